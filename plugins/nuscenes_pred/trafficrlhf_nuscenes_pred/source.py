@@ -1,0 +1,231 @@
+"""Reader for the AgentFormer-preprocessed nuScenes prediction scenes."""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.scenario import AgentType, MapRaster, ScenarioSource, ScenarioTensor, default_data_root
+
+__all__ = ["KEYFRAME_DT", "LabelTable", "NuScenesPredSource", "parse_label_file"]
+
+KEYFRAME_DT = 0.5  # s between labelled keyframes (2 Hz)
+NUM_COLUMNS = 18
+# The PNGs were written by OpenCV from a (drivable, road divider, lane divider) array, i.e. stored as B, G, R;
+# read back as RGB the drivable layer is channel 2.
+PNG_CHANNEL_OF_LAYER = {"drivable": 2, "road_divider": 1, "lane_divider": 0}
+
+
+@dataclass(frozen=True)
+class LabelTable:
+    """Parsed rows of one label file: arrays of length N (rows)."""
+
+    frame: np.ndarray  # int keyframe index
+    track: np.ndarray  # int track id
+    category: list[str]
+    length: np.ndarray
+    width: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+
+
+def parse_label_file(path: str) -> LabelTable:
+    """Parse an 18-column label file; a malformed row raises ``DataFormatError`` naming file and line."""
+    frames, tracks, cats, lengths, widths, xs, ys, yaws = [], [], [], [], [], [], [], []
+    with open(path, encoding="utf-8") as handle:
+        for lineno, line in enumerate(handle, start=1):
+            parts = line.split()
+            if not parts:
+                continue
+            if len(parts) != NUM_COLUMNS:
+                raise DataFormatError(
+                    f"{path}:{lineno}: expected {NUM_COLUMNS} space-separated columns, found {len(parts)}: {line.strip()!r}"
+                )
+            try:
+                values = [float(parts[i]) for i in (0, 1, 10, 12, 13, 15, 16)]
+            except ValueError as exc:
+                raise DataFormatError(f"{path}:{lineno}: non-numeric value ({exc}) in {line.strip()!r}") from exc
+            if not all(math.isfinite(v) for v in values):
+                raise DataFormatError(f"{path}:{lineno}: NaN or inf in {line.strip()!r}")
+            frame, track, width, length, x, y, yaw = values
+            if frame < 0 or frame != int(frame):
+                raise DataFormatError(f"{path}:{lineno}: frame must be a non-negative integer, got {parts[0]!r}")
+            frames.append(int(frame))
+            tracks.append(int(track))
+            cats.append(parts[2])
+            widths.append(width)
+            lengths.append(length)
+            xs.append(x)
+            ys.append(y)
+            yaws.append(yaw)
+    if not frames:
+        raise DataFormatError(f"{path}: the label file has no rows.")
+    return LabelTable(np.array(frames), np.array(tracks), cats, np.array(lengths), np.array(widths),
+                      np.array(xs), np.array(ys), np.array(yaws))
+
+
+def _keyframe_speed(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """Signed speed along the heading at keyframes ``(A, F)`` by central (or one-sided) differences."""
+    speed = np.zeros_like(x)
+    nxt = np.zeros_like(present)
+    prv = np.zeros_like(present)
+    nxt[:, :-1] = present[:, 1:] & present[:, :-1]
+    prv[:, 1:] = present[:, :-1] & present[:, 1:]
+    hx, hy = np.cos(yaw), np.sin(yaw)
+    fwd = np.zeros_like(x)
+    bwd = np.zeros_like(x)
+    fwd[:, :-1] = ((x[:, 1:] - x[:, :-1]) * hx[:, :-1] + (y[:, 1:] - y[:, :-1]) * hy[:, :-1]) / KEYFRAME_DT
+    bwd[:, 1:] = ((x[:, 1:] - x[:, :-1]) * hx[:, 1:] + (y[:, 1:] - y[:, :-1]) * hy[:, 1:]) / KEYFRAME_DT
+    count = nxt.astype(float) + prv.astype(float)
+    speed = np.where(count > 0, (fwd * nxt + bwd * prv) / np.maximum(count, 1), 0.0)
+    return speed
+
+
+class NuScenesPredSource(ScenarioSource):
+    """nuScenes prediction scenes, resampled from 2 Hz keyframes to ``config.dt`` (positions linear, yaw
+    unwrapped, speed from motion), in a scene frame whose origin is the map raster's corner."""
+
+    name = "nuscenes_pred"
+
+    @property
+    def root(self) -> str:
+        """``config.root`` or ``<data root>/nuscenes_pred``."""
+        return self.config.root or os.path.join(default_data_root(), "nuscenes_pred")
+
+    def _check_root(self) -> None:
+        if not os.path.isdir(os.path.join(self.root, "label")):
+            raise DataNotFoundError(
+                f"nuscenes_pred data not found: looked for {os.path.join(self.root, 'label')!r}. Point to the "
+                "directory holding label/ and maps/ with --root DIR (or root=...), or set TRAFFICRLHF_DATA to the "
+                "folder that contains nuscenes_pred/."
+            )
+
+    def splits(self) -> list[str]:
+        """Sub-folders of ``label/`` (train, val, test where present)."""
+        self._check_root()
+        label = os.path.join(self.root, "label")
+        return sorted(d for d in os.listdir(label) if os.path.isdir(os.path.join(label, d)))
+
+    @functools.lru_cache(maxsize=8)  # noqa: B019 - one source object reads each split once
+    def _num_keyframes(self, split: str) -> dict[str, int]:
+        self.check_split(split)
+        folder = os.path.join(self.root, "label", split)
+        counts = {}
+        for name in sorted(os.listdir(folder)):
+            if name.endswith(".txt"):
+                counts[name[:-4]] = int(parse_label_file(os.path.join(folder, name)).frame.max()) + 1
+        return counts
+
+    def scene_ids(self, split: str) -> list[str]:
+        """Scenes of ``split`` lasting at least ``history_s + min_future_s``, sorted by name."""
+        needed = self.config.history_s + self.config.min_future_s
+        return [s for s, n in self._num_keyframes(split).items() if (n - 1) * KEYFRAME_DT >= needed - 1e-6]
+
+    def load_scene(self, split: str, scene_id: str) -> ScenarioTensor:
+        """Scene ``scene_id`` of ``split`` as a ScenarioTensor with B = 1."""
+        self._check_root()
+        label_path = os.path.join(self.root, "label", split, f"{scene_id}.txt")
+        if not os.path.isfile(label_path):
+            raise DataNotFoundError(f"scene {scene_id!r} not found in split {split!r}: no file {label_path!r}.")
+        table = parse_label_file(label_path)
+        scene_map, origin = self._load_map(scene_id)
+
+        tracks = np.unique(table.track)
+        num_frames = int(table.frame.max()) + 1
+        a_idx = np.searchsorted(tracks, table.track)
+        present = np.zeros((len(tracks), num_frames), bool)
+        present[a_idx, table.frame] = True
+        grid = lambda values: np.zeros((len(tracks), num_frames)) if values is None else _scatter(  # noqa: E731
+            values, a_idx, table.frame, (len(tracks), num_frames))
+        kx, ky = grid(table.x - origin[0]), grid(table.y - origin[1])
+        kyaw = np.unwrap(grid(table.yaw), axis=1)  # unwrap along each track; gaps hold 0 but stay invalid
+        kspeed = _keyframe_speed(kx, ky, kyaw, present)
+
+        factor = round(KEYFRAME_DT / self.config.dt)
+        if abs(factor * self.config.dt - KEYFRAME_DT) > 1e-9:
+            raise DataFormatError(f"dt={self.config.dt} must divide the keyframe interval {KEYFRAME_DT} s.")
+        states, valid = _upsample(np.stack([kx, ky, kspeed, kyaw], -1), present, factor)
+        states[..., 3] = (states[..., 3] + np.pi) % (2 * np.pi) - np.pi
+
+        t_total = states.shape[1]
+        if self.config.max_future_s is not None:
+            t_total = min(t_total, self.config.history_steps + 1 + round(self.config.max_future_s / self.config.dt))
+        states, valid = states[:, :t_total], valid[:, :t_total]
+        current = self.config.history_steps
+        if current >= t_total:
+            raise DataFormatError(f"scene {scene_id!r} is shorter than the {self.config.history_s} s of history.")
+
+        first = {int(t): i for i, t in reversed(list(enumerate(a_idx)))}
+        extent = np.array([[table.length[first[a]], table.width[first[a]]] for a in range(len(tracks))])
+        types = np.array([int(AgentType.from_name(table.category[first[a]])) for a in range(len(tracks))])
+        valid_t = torch.from_numpy(valid)[None]
+        return ScenarioTensor(
+            states=torch.from_numpy(states).float()[None] * valid_t[..., None],
+            valid=valid_t,
+            extent=torch.from_numpy(extent).float()[None],
+            agent_type=torch.from_numpy(types).long()[None],
+            controlled=(valid_t[:, :, current] & (torch.from_numpy(types)[None] == AgentType.VEHICLE)),
+            dt=self.config.dt,
+            current_index=current,
+            map=scene_map,
+            origin=torch.tensor([origin], dtype=torch.float64),
+            scene_ids=(scene_id,),
+            agent_ids=(tuple(str(t) for t in tracks),),
+            source=self.name,
+            extras={"split": split},
+        )
+
+    def _load_map(self, scene_id: str) -> tuple[MapRaster, tuple[float, float]]:
+        png = os.path.join(self.root, "maps", f"{scene_id}.png")
+        meta = os.path.join(self.root, "maps", f"meta_{scene_id}.txt")
+        for path in (png, meta):
+            if not os.path.isfile(path):
+                raise DataNotFoundError(f"map file missing for {scene_id!r}: {path!r}.")
+        try:
+            x_min, y_min, scale = (float(v) for v in open(meta, encoding="utf-8").read().split())
+        except ValueError as exc:
+            raise DataFormatError(f"{meta}: expected three numbers 'x_min y_min scale' ({exc}).") from exc
+        try:
+            image = np.asarray(Image.open(png).convert("RGB"))
+        except OSError as exc:
+            raise DataFormatError(f"{png}: cannot read the map image ({exc}).") from exc
+        layers = ("drivable", "road_divider", "lane_divider")
+        raster = np.stack([image[..., PNG_CHANNEL_OF_LAYER[name]] > 0 for name in layers])
+        # scene frame origin = raster corner, so pixel (i, j) = (x * scale, y * scale); x runs along rows.
+        world_to_pixel = torch.tensor([[scale, 0.0, 0.0], [0.0, scale, 0.0], [0.0, 0.0, 1.0]])
+        return (
+            MapRaster(raster=torch.from_numpy(raster.astype(np.uint8))[None], world_to_pixel=world_to_pixel[None],
+                      layers=layers),
+            (x_min, y_min),
+        )
+
+
+def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    out = np.zeros(shape)
+    out[rows, cols] = values
+    return out
+
+
+def _upsample(key_states: np.ndarray, present: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation between consecutive present keyframes: ``(A, F, 4)`` -> ``(A, (F-1)*factor+1, 4)``."""
+    num_agents, num_frames, _ = key_states.shape
+    t_total = (num_frames - 1) * factor + 1
+    states = np.zeros((num_agents, t_total, 4))
+    valid = np.zeros((num_agents, t_total), bool)
+    states[:, ::factor] = key_states
+    valid[:, ::factor] = present
+    both = present[:, :-1] & present[:, 1:]  # (A, F-1)
+    for k in range(1, factor):
+        w = k / factor
+        interp = (1 - w) * key_states[:, :-1] + w * key_states[:, 1:]
+        states[:, k::factor] = np.where(both[..., None], interp, 0.0)
+        valid[:, k::factor] = both
+    return states, valid

@@ -1,0 +1,1 @@
+"""The core's own plugins, registered like third-party ones."""

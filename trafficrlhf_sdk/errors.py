@@ -1,0 +1,48 @@
+"""Exceptions raised by the SDK.
+
+Every message names the offending argument or file, shows the value and says how to fix it. The CLI turns
+any :class:`TrafficRLHFError` into one line on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "DataFormatError",
+    "DataNotFoundError",
+    "DuplicateRegistrationError",
+    "ScenarioValidationError",
+    "TrafficRLHFError",
+    "UnknownComponentError",
+    "UnsafePickleError",
+]
+
+
+class TrafficRLHFError(Exception):
+    """Base class of every error the SDK raises on purpose."""
+
+
+class UnknownComponentError(TrafficRLHFError, KeyError):
+    """A name was looked up in a registry (sources, models, metrics, ...) and is not there."""
+
+    def __str__(self) -> str:  # KeyError would wrap the message in quotes
+        return str(self.args[0]) if self.args else ""
+
+
+class DuplicateRegistrationError(TrafficRLHFError, ValueError):
+    """Two plugins registered the same name in the same registry."""
+
+
+class ScenarioValidationError(TrafficRLHFError, ValueError):
+    """A ScenarioTensor field has the wrong shape, dtype or non-finite values."""
+
+
+class DataNotFoundError(TrafficRLHFError, FileNotFoundError):
+    """A data directory or file the user pointed at does not exist."""
+
+
+class DataFormatError(TrafficRLHFError, ValueError):
+    """A data file exists but cannot be parsed (malformed row, corrupt safetensors, ...)."""
+
+
+class UnsafePickleError(DataFormatError):
+    """A pickle asked for a global outside the allow-list of the restricted unpickler."""

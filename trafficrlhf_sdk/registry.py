@@ -1,0 +1,72 @@
+"""Named registries filled by plugin hooks, with duplicate detection that names both plugins."""
+
+from __future__ import annotations
+
+import difflib
+from typing import Generic, Protocol, TypeVar
+
+from trafficrlhf_sdk.errors import DuplicateRegistrationError, UnknownComponentError
+
+__all__ = ["Register", "Registry"]
+
+T = TypeVar("T")
+
+
+class Register(Protocol):
+    """The callback a ``register_*`` hook receives."""
+
+    def __call__(self, name: str, value: object) -> None: ...
+
+
+class Registry(Generic[T]):
+    """Maps names to components of one kind and remembers which plugin registered each."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self._items: dict[str, T] = {}
+        self._owners: dict[str, str] = {}
+
+    def add(self, name: str, value: T, plugin: str = "<direct>") -> None:
+        """Register ``value`` under ``name`` on behalf of ``plugin``."""
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{self.kind} names must be non-empty strings; plugin {plugin!r} passed {name!r}.")
+        if name in self._items:
+            raise DuplicateRegistrationError(
+                f"{self.kind} {name!r} is registered twice: by plugin {self._owners[name]!r} and by plugin "
+                f"{plugin!r}. Uninstall one of them or block it with TRAFFICRLHF_BLOCK_PLUGINS={plugin}."
+            )
+        self._items[name] = value
+        self._owners[name] = plugin
+
+    def bind(self, plugin: str) -> Register:
+        """A ``register(name, value)`` callback that records ``plugin`` as the owner."""
+
+        def register(name: str, value: object) -> None:
+            self.add(name, value, plugin)  # type: ignore[arg-type]
+
+        return register
+
+    def get(self, name: str) -> T:
+        """The component called ``name``; unknown names raise :class:`UnknownComponentError` with suggestions."""
+        if name not in self._items:
+            close = difflib.get_close_matches(name, self._items, n=3)
+            hint = f" Did you mean {close}?" if close else ""
+            raise UnknownComponentError(
+                f"Unknown {self.kind}: {name!r}. Registered: {sorted(self._items)}.{hint} "
+                "Install the plugin that provides it (see `trafficrlhf plugins`)."
+            )
+        return self._items[name]
+
+    def owner(self, name: str) -> str:
+        """The plugin that registered ``name``."""
+        return self._owners[name]
+
+    def names(self) -> list[str]:
+        """Registered names, sorted."""
+        return sorted(self._items)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._items
+
+    def __len__(self) -> int:
+        return len(self._items)

@@ -1,0 +1,17 @@
+"""Scenario data structures, IO and the source interface."""
+
+from trafficrlhf_sdk.scenario.agents import AgentType
+from trafficrlhf_sdk.scenario.map import DEFAULT_LAYERS, MapRaster, PolylineType
+from trafficrlhf_sdk.scenario.source import ScenarioSource, SourceConfig, default_data_root
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = [
+    "DEFAULT_LAYERS",
+    "AgentType",
+    "MapRaster",
+    "PolylineType",
+    "ScenarioSource",
+    "ScenarioTensor",
+    "SourceConfig",
+    "default_data_root",
+]

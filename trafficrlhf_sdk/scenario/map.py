@@ -1,0 +1,177 @@
+"""Map rasters (and optional vector polylines) that travel with a :class:`ScenarioTensor`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import torch
+
+from trafficrlhf_sdk.errors import ScenarioValidationError
+
+__all__ = ["DEFAULT_LAYERS", "MapRaster", "PolylineType"]
+
+DEFAULT_LAYERS: tuple[str, ...] = ("drivable", "road_divider", "lane_divider")
+
+
+class PolylineType:
+    """Codes stored in ``MapRaster.polyline_type``."""
+
+    UNSET = 0
+    LANE_CENTER = 1
+    ROAD_EDGE = 2
+    ROAD_LINE = 3
+    CROSSWALK = 4
+    OTHER = 5
+
+
+@dataclass(frozen=True)
+class MapRaster:
+    """Semantic map layers of a batch of scenes.
+
+    Shapes (B = scenes, C = layers, H x W = pixels, P = polylines, L = points per polyline):
+
+    - ``raster`` uint8 ``(B, C, H, W)``: 1 where the layer is present, 0 elsewhere (and in padding).
+    - ``world_to_pixel`` float32 ``(B, 3, 3)``: affine map from scene-frame metres to *fractional pixel
+      indices*: ``(i, j, 1) = M @ (x, y, 1)`` where ``i`` indexes H and ``j`` indexes W. The pixel that contains a
+      point is ``(floor(i), floor(j))``.
+    - ``layers``: the name of each of the C channels, e.g. ``("drivable", "road_divider", "lane_divider")``.
+    - ``polylines`` float32 ``(B, P, L, 2)`` scene-frame metres, ``polyline_valid`` bool ``(B, P, L)`` and
+      ``polyline_type`` int64 ``(B, P)`` (:class:`PolylineType`): optional vector map, ``None`` when absent.
+    """
+
+    raster: torch.Tensor
+    world_to_pixel: torch.Tensor
+    layers: tuple[str, ...] = DEFAULT_LAYERS
+    polylines: torch.Tensor | None = None
+    polyline_valid: torch.Tensor | None = None
+    polyline_type: torch.Tensor | None = None
+    _checked: bool = field(default=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        r = self.raster
+        if r.dim() != 4 or r.dtype != torch.uint8:
+            raise ScenarioValidationError(
+                f"`map.raster` must be a uint8 tensor of shape (B, C, H, W); got dtype {r.dtype}, shape "
+                f"{tuple(r.shape)}. Convert with `raster.to(torch.uint8)` and add the batch axis."
+            )
+        if r.shape[1] != len(self.layers):
+            raise ScenarioValidationError(
+                f"`map.layers` names {len(self.layers)} layers {self.layers} but `map.raster` has {r.shape[1]}"
+                " channels; pass one name per channel."
+            )
+        if tuple(self.world_to_pixel.shape) != (r.shape[0], 3, 3):
+            raise ScenarioValidationError(
+                f"`map.world_to_pixel` must have shape ({r.shape[0]}, 3, 3); got {tuple(self.world_to_pixel.shape)}."
+            )
+        if not torch.isfinite(self.world_to_pixel).all():
+            raise ScenarioValidationError("`map.world_to_pixel` contains NaN or inf; every transform must be finite.")
+        if self.polylines is not None:
+            b, p = r.shape[0], self.polylines.shape[1] if self.polylines.dim() == 4 else -1
+            if self.polylines.dim() != 4 or self.polylines.shape[0] != b or self.polylines.shape[-1] != 2:
+                raise ScenarioValidationError(
+                    f"`map.polylines` must have shape (B={b}, P, L, 2); got {tuple(self.polylines.shape)}."
+                )
+            if self.polyline_valid is None or self.polyline_valid.shape != self.polylines.shape[:3]:
+                raise ScenarioValidationError(
+                    "`map.polyline_valid` must be a bool tensor of shape (B, P, L) matching `map.polylines`."
+                )
+            if self.polyline_type is None or tuple(self.polyline_type.shape) != (b, p):
+                raise ScenarioValidationError("`map.polyline_type` must be an int tensor of shape (B, P).")
+
+    # ------------------------------------------------------------------ views
+    @property
+    def num_scenes(self) -> int:
+        """Number of scenes B."""
+        return int(self.raster.shape[0])
+
+    def layer(self, name: str) -> torch.Tensor:
+        """The layer called ``name`` as a bool tensor ``(B, H, W)``."""
+        if name not in self.layers:
+            raise ScenarioValidationError(f"map layer {name!r} not found; available layers: {list(self.layers)}.")
+        return self.raster[:, self.layers.index(name)].bool()
+
+    def to_pixel(self, xy: torch.Tensor) -> torch.Tensor:
+        """Fractional pixel indices ``(B, ..., 2)`` (i along H, j along W) of scene-frame points ``xy (B, ..., 2)``."""
+        m = self.world_to_pixel.to(xy.dtype)
+        shape = xy.shape
+        flat = xy.reshape(shape[0], -1, 2)
+        ij = torch.einsum("bkc,bnc->bnk", m[:, :2, :2], flat) + m[:, None, :2, 2]
+        return ij.reshape(shape)
+
+    def lookup(self, xy: torch.Tensor, layer: str = "drivable") -> torch.Tensor:
+        """Whether each scene-frame point ``xy (B, ..., 2)`` (m) lies on ``layer``; ``(B, ...)`` bool.
+
+        Points outside the raster count as *not* on the layer.
+        """
+        grid = self.layer(layer)
+        b, h, w = grid.shape
+        ij = torch.floor(self.to_pixel(xy)).long()
+        i, j = ij[..., 0], ij[..., 1]
+        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        flat_index = i.clamp(0, h - 1) * w + j.clamp(0, w - 1)
+        values = grid.reshape(b, -1).gather(1, flat_index.reshape(b, -1)).reshape(flat_index.shape)
+        return values & inside
+
+    # ----------------------------------------------------------- batch ops
+    def to(self, device: torch.device | str) -> MapRaster:
+        """The same map on ``device``."""
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return replace(
+            self,
+            raster=self.raster.to(device),
+            world_to_pixel=self.world_to_pixel.to(device),
+            polylines=move(self.polylines),
+            polyline_valid=move(self.polyline_valid),
+            polyline_type=move(self.polyline_type),
+        )
+
+    def index(self, index: torch.Tensor | slice | int) -> MapRaster:
+        """Select scenes along B (an int keeps the batch axis)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1)
+        pick = lambda t: None if t is None else t[index]  # noqa: E731
+        return replace(
+            self,
+            raster=self.raster[index],
+            world_to_pixel=self.world_to_pixel[index],
+            polylines=pick(self.polylines),
+            polyline_valid=pick(self.polyline_valid),
+            polyline_type=pick(self.polyline_type),
+        )
+
+    @staticmethod
+    def concat(maps: Sequence[MapRaster]) -> MapRaster:
+        """Stack maps along B, zero-padding rasters to the largest H, W and polylines to the largest P, L."""
+        layers = maps[0].layers
+        for m in maps[1:]:
+            if m.layers != layers:
+                raise ScenarioValidationError(
+                    f"cannot concatenate maps with different layers: {layers} vs {m.layers}; rasterize all scenes"
+                    " with the same layer set."
+                )
+        h = max(m.raster.shape[2] for m in maps)
+        w = max(m.raster.shape[3] for m in maps)
+        raster = torch.cat(
+            [torch.nn.functional.pad(m.raster, (0, w - m.raster.shape[3], 0, h - m.raster.shape[2])) for m in maps]
+        )
+        polylines = polyline_valid = polyline_type = None
+        if all(m.polylines is not None for m in maps):
+            p = max(m.polylines.shape[1] for m in maps)  # type: ignore[union-attr]
+            length = max(m.polylines.shape[2] for m in maps)  # type: ignore[union-attr]
+
+            def pad(t: torch.Tensor, dims: int) -> torch.Tensor:
+                extra = [0, length - t.shape[2], 0, p - t.shape[1]] if dims == 3 else [0, p - t.shape[1]]
+                return torch.nn.functional.pad(t, ([0, 0] if t.dim() == 4 else []) + extra)
+
+            polylines = torch.cat([pad(m.polylines, 3) for m in maps])  # type: ignore[arg-type]
+            polyline_valid = torch.cat([pad(m.polyline_valid, 3) for m in maps])  # type: ignore[arg-type]
+            polyline_type = torch.cat([pad(m.polyline_type, 1) for m in maps])  # type: ignore[arg-type]
+        return MapRaster(
+            raster=raster,
+            world_to_pixel=torch.cat([m.world_to_pixel for m in maps]),
+            layers=layers,
+            polylines=polylines,
+            polyline_valid=polyline_valid,
+            polyline_type=polyline_type,
+        )

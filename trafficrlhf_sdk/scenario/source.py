@@ -1,0 +1,99 @@
+"""``ScenarioSource``: the interface every dataset reader implements (registered through the plugin system)."""
+
+from __future__ import annotations
+
+import abc
+import os
+from typing import ClassVar, Iterator, Sequence
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.errors import UnknownComponentError
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["ScenarioSource", "SourceConfig", "default_data_root"]
+
+
+def default_data_root() -> str:
+    """Where bundled data is looked for: ``$TRAFFICRLHF_DATA`` or ``../shared/data`` beside the project root."""
+    env = os.environ.get("TRAFFICRLHF_DATA")
+    if env:
+        return env
+    project_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return os.path.join(os.path.dirname(project_root), "shared", "data")
+
+
+class SourceConfig(BaseModel):
+    """Options common to every scenario source."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root: str | None = Field(None, description="Directory holding the data; None uses the source's default.")
+    dt: float = Field(0.1, gt=0, description="Time step of the produced ScenarioTensor (s).")
+    history_s: float = Field(3.0, ge=0, description="History before 'now' in each scene window (s).")
+    min_future_s: float = Field(10.0, ge=0, description="Scenes with less future than this are skipped (s).")
+    max_future_s: float | None = Field(
+        None, gt=0, description="Future kept after 'now' (s); None keeps everything up to the end of the scene."
+    )
+
+    @property
+    def history_steps(self) -> int:
+        """Number of steps before the current one."""
+        return round(self.history_s / self.dt)
+
+
+class ScenarioSource(abc.ABC):
+    """Reads scenes of one dataset format into :class:`ScenarioTensor` windows.
+
+    Subclasses set ``name`` and ``splits`` and implement :meth:`scene_ids` and :meth:`load_scene`. A scene
+    window starts at the first logged step, holds ``history_s`` of history, then the future.
+    """
+
+    name: ClassVar[str] = ""
+    Config: ClassVar[type[SourceConfig]] = SourceConfig
+
+    def __init__(self, config: SourceConfig | None = None, **options: object) -> None:
+        self.config = config if config is not None else self.Config(**options)
+
+    @property
+    @abc.abstractmethod
+    def root(self) -> str:
+        """The data directory actually used."""
+
+    @abc.abstractmethod
+    def splits(self) -> list[str]:
+        """The splits present on disk (e.g. ``["train", "val"]``)."""
+
+    @abc.abstractmethod
+    def scene_ids(self, split: str) -> list[str]:
+        """Ids of the scenes of ``split`` that are long enough for a window, sorted by name."""
+
+    @abc.abstractmethod
+    def load_scene(self, split: str, scene_id: str) -> ScenarioTensor:
+        """One scene as a ScenarioTensor with B = 1."""
+
+    def check_split(self, split: str) -> None:
+        """Raise a clear error if ``split`` is not present."""
+        available = self.splits()
+        if split not in available:
+            raise UnknownComponentError(
+                f"split {split!r} not found in source {self.name!r} at {self.root!r}; available splits: {available}."
+            )
+
+    def iter_scenes(self, split: str, scene_ids: Sequence[str] | None = None) -> Iterator[ScenarioTensor]:
+        """Yield one ScenarioTensor (B = 1) per scene of ``split`` (or of ``scene_ids``)."""
+        for scene_id in scene_ids if scene_ids is not None else self.scene_ids(split):
+            yield self.load_scene(split, scene_id)
+
+    def load_batch(self, split: str, num_scenes: int | None = None, scene_ids: Sequence[str] | None = None,
+                   progress: bool = False) -> ScenarioTensor:
+        """The first ``num_scenes`` scenes of ``split`` (sorted by name), or ``scene_ids``, as one batch."""
+        ids = list(scene_ids) if scene_ids is not None else self.scene_ids(split)[:num_scenes]
+        if not ids:
+            raise UnknownComponentError(f"source {self.name!r} has no scene long enough in split {split!r}.")
+        scenes = self.iter_scenes(split, ids)
+        if progress:
+            from tqdm.auto import tqdm
+
+            scenes = tqdm(scenes, total=len(ids), desc=f"loading {self.name}/{split}", unit="scene")
+        return ScenarioTensor.concat(list(scenes))
