@@ -104,14 +104,16 @@ class MapRaster:
 
         Points outside the raster count as *not* on the layer.
         """
-        grid = self.layer(layer)
+        if layer not in self.layers:
+            raise ScenarioValidationError(f"map layer {layer!r} not found; available layers: {list(self.layers)}.")
+        grid = self.raster[:, self.layers.index(layer)]  # uint8; avoids copying the whole layer to bool
         b, h, w = grid.shape
         ij = torch.floor(self.to_pixel(xy)).long()
         i, j = ij[..., 0], ij[..., 1]
         inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
         flat_index = i.clamp(0, h - 1) * w + j.clamp(0, w - 1)
         values = grid.reshape(b, -1).gather(1, flat_index.reshape(b, -1)).reshape(flat_index.shape)
-        return values & inside
+        return (values > 0) & inside
 
     # ----------------------------------------------------------- batch ops
     def to(self, device: torch.device | str) -> MapRaster:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -56,6 +57,13 @@ class ScenarioTensor:
 
     def __post_init__(self) -> None:
         self._validate()
+
+    def replace_unchecked(self, **changes: Any) -> ScenarioTensor:
+        """Like ``dataclasses.replace`` but skips validation: for hot loops whose inputs are known to be valid."""
+        new = object.__new__(ScenarioTensor)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     # ------------------------------------------------------------ validation
     def _validate(self) -> None:
@@ -150,8 +158,7 @@ class ScenarioTensor:
         stop = self.num_steps if stop is None else stop
         if not 0 <= start < stop <= self.num_steps:
             raise ScenarioValidationError(f"time window {start}:{stop} is outside 0:{self.num_steps}.")
-        return replace(
-            self,
+        return self.replace_unchecked(  # a window of a valid scenario is valid
             states=self.states[:, :, start:stop],
             valid=self.valid[:, :, start:stop],
             current_index=min(max(self.current_index - start, 0), stop - start - 1),
@@ -209,8 +216,7 @@ class ScenarioTensor:
     # ------------------------------------------------------------ batch ops
     def to(self, device: torch.device | str) -> ScenarioTensor:
         """The same scenario on ``device`` (``origin`` stays float64)."""
-        return replace(
-            self,
+        return self.replace_unchecked(
             states=self.states.to(device),
             valid=self.valid.to(device),
             extent=self.extent.to(device),
@@ -222,12 +228,18 @@ class ScenarioTensor:
 
     def __getitem__(self, index: int | slice | torch.Tensor | Sequence[int]) -> ScenarioTensor:
         """Select scenes along B; an int keeps the batch axis (B = 1)."""
+        if isinstance(index, torch.Tensor) and index.dim() == 0 and index.dtype != torch.bool:
+            index = int(index)  # a 0-d integer tensor selects one scene like an int
+        elif isinstance(index, numbers.Integral) and not isinstance(index, int):
+            index = int(index)  # numpy integers
         if isinstance(index, int):
             if not -self.num_scenes <= index < self.num_scenes:
                 raise IndexError(f"scene index {index} out of range for {self.num_scenes} scenes")
             index = slice(index % self.num_scenes, index % self.num_scenes + 1)
         if not isinstance(index, (slice, torch.Tensor)):
-            index = torch.as_tensor(list(index), dtype=torch.long)
+            index = torch.as_tensor(list(index))
+            if index.dtype != torch.bool:  # a list of bools is a mask, not the indices 0 and 1
+                index = index.long()
         positions = list(range(self.num_scenes))[index] if isinstance(index, slice) else index.tolist()
         if isinstance(index, torch.Tensor) and index.dtype == torch.bool:
             positions = index.nonzero().flatten().tolist()

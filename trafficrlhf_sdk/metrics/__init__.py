@@ -1,0 +1,25 @@
+"""Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), reward cost."""
+
+from trafficrlhf_sdk.metrics.base import Metric, MetricResult
+from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, pairwise_collisions
+from trafficrlhf_sdk.metrics.realism import HistogramSpec, RealismMetric, histogram_distance, kinematics, scene_histogram
+from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric, RewardFn
+
+__all__ = [
+    "FailureMetric",
+    "HistogramSpec",
+    "Metric",
+    "MetricResult",
+    "RealismMetric",
+    "RewardCostMetric",
+    "RewardFn",
+    "box_corners",
+    "boxes_overlap",
+    "collisions_per_step",
+    "histogram_distance",
+    "kinematics",
+    "offroad_per_step",
+    "pairwise_collisions",
+    "scene_histogram",
+]

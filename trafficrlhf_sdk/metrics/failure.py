@@ -1,0 +1,82 @@
+"""Failure rate: share of controlled agents that ever collide or ever leave the road (tbsim ``CriticalFailure``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from trafficrlhf_sdk.metrics.base import Metric, MetricResult
+from trafficrlhf_sdk.metrics.geometry import box_corners, pairwise_collisions
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.simulator import Rollout
+
+__all__ = ["FailureMetric", "collisions_per_step", "offroad_per_step", "scene_mean"]
+
+OffroadMode = Literal["center", "corners"]
+
+
+def collisions_per_step(scenario: ScenarioTensor) -> torch.Tensor:
+    """bool ``(B, A, T)``: the agent's box overlaps another valid agent's box at that step."""
+    return pairwise_collisions(scenario.xy, scenario.yaw, scenario.extent, scenario.valid)
+
+
+def offroad_per_step(scenario: ScenarioTensor, mode: OffroadMode = "center") -> torch.Tensor:
+    """bool ``(B, A, T)``: the agent's centre (``mode="center"``, upstream) or any box corner
+    (``mode="corners"``, stricter) lies off the drivable layer at a valid step."""
+    if scenario.map is None:
+        raise ValueError("off-road needs a map: the scenario has `map=None`; load it from a source with rasters.")
+    if mode == "center":
+        on_road = scenario.map.lookup(scenario.xy)
+    elif mode == "corners":
+        corners = box_corners(scenario.xy, scenario.yaw, scenario.extent[:, :, None].expand(-1, -1, scenario.num_steps, -1))
+        on_road = scenario.map.lookup(corners).all(-1)
+    else:
+        raise ValueError(f"`mode` must be 'center' or 'corners'; got {mode!r}.")
+    return ~on_road & scenario.valid
+
+
+def scene_mean(per_agent: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``per_agent (B, A)`` over agents where ``mask (B, A)``; NaN for scenes without any."""
+    count = mask.sum(-1)
+    total = (per_agent.float() * mask).sum(-1)
+    return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, float("nan")))
+
+
+def nanmean(values: torch.Tensor) -> float:
+    """Mean over finite entries (NaN if none)."""
+    finite = values[torch.isfinite(values)]
+    return float(finite.mean()) if finite.numel() else float("nan")
+
+
+class FailureMetric(Metric):
+    """Per scene, the share of controlled agents that collide or go off-road at any simulated 0.1 s step;
+    averaged over scenes. Also the collision-only and off-road-only shares.
+
+    Args:
+        offroad_mode: ``"center"`` (upstream: centre pixel on the drivable layer) or ``"corners"`` (all four
+            box corners must be on it).
+    """
+
+    name = "failure"
+
+    def __init__(self, offroad_mode: OffroadMode = "center") -> None:
+        self.offroad_mode = offroad_mode
+
+    def compute(self, rollout: Rollout) -> MetricResult:
+        """failure_rate, collision_rate, offroad_rate (fractions of agents, mean over scenes)."""
+        window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
+        collided = (collisions_per_step(window) & window.valid).any(-1)
+        offroad = offroad_per_step(window, self.offroad_mode).any(-1)
+        mask = rollout.controlled
+        per_scene = {
+            "failure_rate": scene_mean(collided | offroad, mask),
+            "collision_rate": scene_mean(collided, mask),
+            "offroad_rate": scene_mean(offroad, mask),
+        }
+        suffix = "" if self.offroad_mode == "center" else "_corners"
+        return MetricResult(
+            values={f"{k}{suffix}" if k != "collision_rate" else k: nanmean(v) for k, v in per_scene.items()},
+            per_scene=per_scene,
+            extras={"collided": collided, "offroad": offroad},
+        )

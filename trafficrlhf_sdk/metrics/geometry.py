@@ -1,0 +1,67 @@
+"""Oriented-box geometry, batched: corners and separating-axis overlap tests."""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["box_corners", "boxes_overlap", "pairwise_collisions"]
+
+
+def box_corners(xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
+    """Corners ``(..., 4, 2)`` (m) of boxes centred at ``xy (..., 2)`` with heading ``yaw (...)`` (rad) and
+    ``extent (..., 2)`` = (length, width) (m), counter-clockwise from front-left."""
+    half_l, half_w = extent[..., 0] / 2, extent[..., 1] / 2
+    cos, sin = torch.cos(yaw), torch.sin(yaw)
+    signs = torch.tensor([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]], dtype=xy.dtype, device=xy.device)
+    local_x = signs[:, 0] * half_l[..., None]  # (..., 4)
+    local_y = signs[:, 1] * half_w[..., None]
+    x = xy[..., 0:1] + local_x * cos[..., None] - local_y * sin[..., None]
+    y = xy[..., 1:2] + local_x * sin[..., None] + local_y * cos[..., None]
+    return torch.stack([x, y], -1)
+
+
+def boxes_overlap(corners_a: torch.Tensor, corners_b: torch.Tensor) -> torch.Tensor:
+    """Whether convex quadrilaterals ``(..., 4, 2)`` overlap (touching counts, like shapely ``intersects``).
+
+    Separating-axis test on the two edge normals of each box; returns bool ``(...)``.
+    """
+    edges = torch.cat([corners_a[..., 1:3, :] - corners_a[..., 0:2, :], corners_b[..., 1:3, :] - corners_b[..., 0:2, :]], -2)
+    axes = torch.stack([-edges[..., 1], edges[..., 0]], -1)  # (..., 4, 2) normals
+    proj_a = torch.einsum("...kc,...pc->...kp", axes, corners_a)  # (..., 4 axes, 4 corners)
+    proj_b = torch.einsum("...kc,...pc->...kp", axes, corners_b)
+    separated = (proj_a.amax(-1) < proj_b.amin(-1)) | (proj_b.amax(-1) < proj_a.amin(-1))
+    return ~separated.any(-1)
+
+
+def pairwise_collisions(
+    xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor, valid: torch.Tensor
+) -> torch.Tensor:
+    """Which agents overlap another valid agent of the same scene at each step.
+
+    Args:
+        xy: ``(B, A, T, 2)`` centres (m); yaw: ``(B, A, T)`` (rad); extent: ``(B, A, 2)`` length, width (m);
+        valid: ``(B, A, T)`` bool.
+
+    Returns:
+        bool ``(B, A, T)``: agent overlaps at least one other valid agent at that step.
+
+    A circumscribed-circle test prunes pairs first, so only nearby pairs reach the exact box test.
+    """
+    b, a, t = valid.shape
+    radius = 0.5 * torch.linalg.vector_norm(extent, dim=-1)  # (B, A)
+    reach = radius[:, :, None] + radius[:, None, :]  # (B, A, A)
+    diff = xy[:, :, None] - xy[:, None, :]  # (B, A, A, T, 2)
+    near = (diff.square().sum(-1) <= reach[..., None].square()) & valid[:, :, None] & valid[:, None, :]
+    near &= ~torch.eye(a, dtype=torch.bool, device=xy.device)[None, :, :, None]
+    near &= torch.ones(a, a, dtype=torch.bool, device=xy.device).triu(1)[None, :, :, None]  # each pair once
+    scene, i, j, step = near.nonzero(as_tuple=True)
+    hit = torch.zeros(b, a, t, dtype=torch.bool, device=xy.device)
+    if scene.numel() == 0:
+        return hit
+    corners_i = box_corners(xy[scene, i, step], yaw[scene, i, step], extent[scene, i])
+    corners_j = box_corners(xy[scene, j, step], yaw[scene, j, step], extent[scene, j])
+    overlap = boxes_overlap(corners_i, corners_j)
+    scene, i, j, step = scene[overlap], i[overlap], j[overlap], step[overlap]
+    hit[scene, i, step] = True
+    hit[scene, j, step] = True
+    return hit

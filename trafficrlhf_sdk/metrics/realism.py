@@ -1,0 +1,167 @@
+"""Realism deviation: Wasserstein-1 distance between histograms of kinematic quantities of simulated and logged
+agents over the same scenes and window.
+
+Preset ``ctg`` reproduces CTG's ``parse_scene_edit_results.py --estimate_dist`` pipeline (facts in
+shared/reference/upstream-models-and-metrics.md §2.5): positions down-sampled to a 0.5 s step; velocity,
+acceleration and jerk by first differences whose first element is linearly extrapolated (so the first two
+accelerations are 0); longitudinal/lateral acceleration = |a| cos(yaw) and |a| sin(yaw) with the *world* yaw
+(an upstream quirk); jerk = d|a|/dt; 20 bins on [-2, 2] m/s^2 and [-1, 1] m/s^3 that drop values outside;
+agents slower than 0.5 m/s at the start masked; per-scene normalized histograms averaged over scenes.
+
+Preset ``body`` keeps the sampling, bins and masks but decomposes the acceleration vector in the vehicle's own
+frame (longitudinal along the heading, lateral across it), takes jerk as the derivative of the longitudinal
+acceleration, and drops the extrapolated first samples instead of zero-filling them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from trafficrlhf_sdk.metrics.base import Metric, MetricResult
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.simulator import Rollout
+
+__all__ = ["HistogramSpec", "RealismMetric", "histogram_distance", "kinematics", "scene_histogram"]
+
+Preset = Literal["ctg", "body"]
+QUANTITIES = ("lon_acc", "lat_acc", "jerk")
+
+
+@dataclass(frozen=True)
+class HistogramSpec:
+    """Bins of one quantity: ``num_bins`` equal bins on ``[low, high]`` (values outside are dropped)."""
+
+    low: float
+    high: float
+    num_bins: int = 20
+
+    @property
+    def edges(self) -> torch.Tensor:
+        """The ``num_bins + 1`` bin edges."""
+        return torch.linspace(self.low, self.high, self.num_bins + 1, dtype=torch.float64)
+
+
+SPECS = {
+    "speed": HistogramSpec(0.0, 4.0),
+    "lon_acc": HistogramSpec(-2.0, 2.0),
+    "lat_acc": HistogramSpec(-2.0, 2.0),
+    "jerk": HistogramSpec(-1.0, 1.0),
+}
+STAT_DT = 0.5  # s, CTG's STAT_DT
+
+
+def _diff_extrapolated(x: torch.Tensor) -> torch.Tensor:
+    """``np.diff(x, prepend=x0 - (x1 - x0))`` along dim 2 of ``(B, A, K, ...)``: element 0 repeats element 1."""
+    d = x[:, :, 1:] - x[:, :, :-1]
+    return torch.cat([d[:, :, :1], d], 2)
+
+
+def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """Kinematic quantities of every agent at the statistics step (0.5 s).
+
+    Args:
+        scenario: a window of steps ``(B, A, T)`` at ``scenario.dt``.
+        preset: ``"ctg"`` or ``"body"`` (module docstring).
+
+    Returns:
+        (quantities, sample_valid, moving): quantities maps ``speed`` (m/s), ``lon_acc``, ``lat_acc`` (m/s^2),
+        ``jerk`` (m/s^3) to ``(B, A, K)`` tensors; ``sample_valid (B, A, K)`` marks samples whose inputs are all
+        valid; ``moving (B, A)`` marks agents faster than 0.5 m/s at the first sample.
+    """
+    stride = max(1, round(STAT_DT / scenario.dt))
+    dt = stride * scenario.dt
+    pos = scenario.xy[:, :, ::stride].double()
+    yaw = scenario.yaw[:, :, ::stride].double()
+    valid = scenario.valid[:, :, ::stride]
+    if pos.shape[2] < 3:
+        raise ValueError(f"realism needs at least 3 samples at {dt} s; the window has {pos.shape[2]}.")
+    if preset == "ctg":
+        vel = _diff_extrapolated(pos) / dt
+        acc = _diff_extrapolated(vel) / dt
+        acc_norm = torch.linalg.vector_norm(acc, dim=-1)
+        quantities = {
+            "speed": torch.linalg.vector_norm(vel, dim=-1),
+            "lon_acc": acc_norm * torch.cos(yaw),
+            "lat_acc": acc_norm * torch.sin(yaw),
+            "jerk": _diff_extrapolated(acc_norm) / dt,
+        }
+        # every quantity at k reads positions k-3..k (k+1 for the extrapolated first samples)
+        padded = torch.cat([valid[:, :, 1:2].expand(-1, -1, 3), valid], 2)
+        sample_valid = padded[:, :, 3:] & padded[:, :, 2:-1] & padded[:, :, 1:-2] & padded[:, :, :-3]
+        sample_valid[:, :, 0] &= valid[:, :, 1]
+        moving = quantities["speed"][:, :, 0] > 0.5
+    elif preset == "body":
+        vel = torch.nn.functional.pad((pos[:, :, 1:] - pos[:, :, :-1]) / dt, (0, 0, 1, 0))
+        acc = torch.nn.functional.pad((vel[:, :, 1:] - vel[:, :, :-1]) / dt, (0, 0, 1, 0))
+        heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
+        normal = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)
+        lon = (acc * heading).sum(-1)
+        quantities = {
+            "speed": torch.linalg.vector_norm(vel, dim=-1),
+            "lon_acc": lon,
+            "lat_acc": (acc * normal).sum(-1),
+            "jerk": torch.nn.functional.pad((lon[:, :, 1:] - lon[:, :, :-1]) / dt, (1, 0)),
+        }
+        run = valid.clone()
+        for lag in (1, 2, 3):  # jerk at k reads positions k-3..k; earlier samples have no defined jerk
+            run[:, :, lag:] &= valid[:, :, :-lag]
+            run[:, :, :lag] = False
+        sample_valid = run
+        moving = quantities["speed"][:, :, 1] > 0.5
+    else:
+        raise ValueError(f"`preset` must be 'ctg' or 'body'; got {preset!r}.")
+    return quantities, sample_valid, moving
+
+
+def scene_histogram(values: torch.Tensor, mask: torch.Tensor, spec: HistogramSpec) -> torch.Tensor:
+    """Scene-normalized histogram: each scene's counts over ``mask``-ed ``values (B, ...)`` divided by the
+    scene's total (empty scenes give 0), then averaged over the B scenes; float64 ``(num_bins,)``."""
+    b = values.shape[0]
+    flat = values.reshape(b, -1).double()
+    keep = mask.reshape(b, -1) & (flat >= spec.low) & (flat <= spec.high)
+    index = ((flat - spec.low) / (spec.high - spec.low) * spec.num_bins).floor().long().clamp(0, spec.num_bins - 1)
+    counts = torch.zeros(b, spec.num_bins, dtype=torch.float64, device=values.device)
+    counts.scatter_add_(1, index * keep, keep.double())
+    totals = counts.sum(1, keepdim=True)
+    per_scene = torch.where(totals > 0, counts / totals.clamp_min(1), torch.zeros_like(counts))
+    return per_scene.sum(0) / max(b, 1)
+
+
+def histogram_distance(reference: torch.Tensor, other: torch.Tensor, spec: HistogramSpec) -> float:
+    """Wasserstein-1 distance between two histograms on the same bins, each renormalized to sum 1.
+
+    Equal to ``scipy.stats.wasserstein_distance(centres, centres, reference, other)``; NaN if either is empty.
+    """
+    if reference.sum() <= 0 or other.sum() <= 0:
+        return float("nan")
+    cdf_gap = torch.cumsum(reference / reference.sum() - other / other.sum(), 0)[:-1]
+    width = (spec.high - spec.low) / spec.num_bins
+    return float(cdf_gap.abs().sum() * width)
+
+
+class RealismMetric(Metric):
+    """Realism deviation of the simulated controlled agents against the logged ones (lower is better)."""
+
+    def __init__(self, preset: Preset = "ctg") -> None:
+        if preset not in ("ctg", "body"):
+            raise ValueError(f"`preset` must be 'ctg' or 'body'; got {preset!r}.")
+        self.preset = preset
+        self.name = f"realism_{preset}"  # type: ignore[misc]
+
+    def histograms(self, window: ScenarioTensor, controlled: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Histograms ``(num_bins,)`` of every quantity for the controlled, moving agents of ``window``."""
+        quantities, sample_valid, moving = kinematics(window, self.preset)
+        mask = sample_valid & (controlled & moving)[:, :, None]
+        return {name: scene_histogram(values, mask, SPECS[name]) for name, values in quantities.items()}
+
+    def compute(self, rollout: Rollout) -> MetricResult:
+        """``realism_<preset>`` (mean of the three distances) and each quantity's distance."""
+        simulated = self.histograms(rollout.window("simulated"), rollout.controlled)
+        logged = self.histograms(rollout.window("logged"), rollout.controlled)
+        distances = {q: histogram_distance(logged[q], simulated[q], SPECS[q]) for q in QUANTITIES}
+        values = {f"{self.name}_{q}": d for q, d in distances.items()}
+        values[self.name] = sum(distances.values()) / len(distances)
+        return MetricResult(values=values, extras={"simulated": simulated, "logged": logged, "specs": SPECS})
