@@ -1,0 +1,115 @@
+"""``trafficrlhf evaluate``: closed-loop evaluation of a traffic model on logged scenes."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import math
+
+import click
+
+from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.errors import TrafficRLHFError
+
+ROWS = (
+    ("failure_rate", "failure rate (any)"),
+    ("collision_rate", "  collision"),
+    ("offroad_rate", "  off-road (centre)"),
+    ("failure_rate_corners", "failure rate (box corners)"),
+    ("realism_ctg", "realism deviation, ctg"),
+    ("realism_ctg_lon_acc", "  lon. acceleration"),
+    ("realism_ctg_lat_acc", "  lat. acceleration"),
+    ("realism_ctg_jerk", "  jerk"),
+    ("realism_body", "realism deviation, body"),
+    ("realism_body_lon_acc", "  lon. acceleration"),
+    ("realism_body_lat_acc", "  lat. acceleration"),
+    ("realism_body_jerk", "  jerk"),
+    ("reward_cost", "reward cost"),
+)
+
+
+def build_policy(model: str, options: dict[str, object]) -> object:
+    """Instantiate registered traffic model ``model`` with only the options its factory accepts."""
+    from trafficrlhf_sdk.plugins import registry
+
+    factory = registry("traffic_models").get(model)
+    try:
+        accepted = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        accepted = {}
+    takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in accepted.values())
+    if options.get("guidance") and "guidance" not in accepted and not takes_any:
+        raise TrafficRLHFError(
+            f"traffic model {model!r} does not accept guidance (got --guidance {options['guidance']!r}); "
+            "drop --guidance or pick a model that supports it."
+        )
+    kwargs = {k: v for k, v in options.items() if v is not None and (takes_any or k in accepted)}
+    return factory(**kwargs)
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4f}"
+
+
+@cli.command("evaluate")
+@click.option("--model", "model", default="constant_velocity", show_default=True,
+              help="Registered traffic model or built-in policy (see `trafficrlhf plugins`).")
+@click.option("--source", default="nuscenes_pred", show_default=True, help="Registered scenario source.")
+@click.option("--split", default="val", show_default=True, help="Split of the source.")
+@click.option("--root", default=None, help="Data directory of the source (default: ../shared/data/...).")
+@click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=100, show_default=True,
+              help="First N long-enough scenes of the split, sorted by name.")
+@click.option("--guidance", default=None, help="Guidance name(s), comma separated, for models that support it.")
+@click.option("--checkpoint", default=None, help="Weights directory for models that load one.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--batch-size", type=click.IntRange(min=1), default=50, show_default=True,
+              help="Scenes per simulated batch.")
+@click.option("--out", "out_dir", default=None, help="Directory for results.json and histograms.png.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
+def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int, guidance: str | None,
+                     checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None, as_json: bool) -> None:
+    """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
+
+    The same metrics are computed on the logged data of the same scenes, for reference.
+    """
+    import torch
+
+    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+
+    torch.manual_seed(seed)
+    options = {"root": root} if root else {}
+    scenario_source = get_scenario_source(source, **options)
+    scene_ids = scenario_source.scene_ids(split)[:num_scenes]
+    if not scene_ids:
+        raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
+    scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
+    policy_options: dict[str, object] = {"guidance": guidance, "checkpoint": checkpoint, "seed": seed}
+    policy = build_policy(model, policy_options)
+    config = EvaluationConfig(batch_size=batch_size, seed=seed)
+    report = evaluate_policy(
+        policy, scenario, config, progress=True,
+        metadata={"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
+                  "scene_ids": list(scene_ids)},
+    )
+    paths = report.save(out_dir) if out_dir else []
+    if as_json:
+        click.echo(json.dumps(report.to_json(), indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{model} on {source}/{split}: {report.num_scenes} scenes, "
+                        f"{report.num_controlled_agents} controlled agents, 10 s closed loop")
+    table.add_column("metric")
+    table.add_column(model, justify="right")
+    table.add_column("logged data", justify="right")
+    for key, label in ROWS:
+        if key in report.values:
+            table.add_row(label, _fmt(report.values[key]), _fmt(report.logged_values.get(key)))
+    console = Console()
+    console.print(table)
+    console.print(f"wall time {report.wall_time_s:.1f} s (closed loop {report.simulation_time_s:.1f} s) on "
+                  f"{torch.get_num_threads()} threads")
+    for path in paths:
+        console.print(f"wrote {path}")
