@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
+# TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
+# closed loop on the first 100 long-enough val scenes. Outputs land in out/main/.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+OUT=${OUT:-out/main}
+mkdir -p "$OUT"
+T=.venv/bin/trafficrlhf
+$T sources
+$T inspect nuscenes_pred --split val
+first_scene=$(.venv/bin/python -c "import trafficrlhf_sdk as t; print(t.get_scenario_source('nuscenes_pred').scene_ids('val')[0])")
+$T render nuscenes_pred "$first_scene" --split val -o "$OUT/$first_scene.png"
+for model in log_replay constant_velocity; do
+  $T evaluate --model "$model" --source nuscenes_pred --split val --scenes 100 --out "$OUT/$model"
+done
+echo "main job done: results in $OUT/"
