@@ -16,6 +16,7 @@ from typing import Any
 import pluggy
 
 from trafficrlhf_sdk import hookspecs
+from trafficrlhf_sdk.errors import UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 
 __all__ = ["DEFAULT_PLUGINS", "get_plugin_manager", "list_plugins", "registry"]
@@ -68,11 +69,15 @@ def registry(kind: str) -> Registry[Any]:
 
     Built afresh on each call so plugins registered at run time (tests, notebooks) are seen.
     """
+    if kind not in KINDS:
+        raise UnknownComponentError(f"Unknown registry kind: {kind!r}. Known kinds: {sorted(KINDS)}.")
     hook_name, label = KINDS[kind]
     manager = get_plugin_manager()
     result: Registry[Any] = Registry(label)
-    for impl in reversed(getattr(manager.hook, hook_name).get_hookimpls()):  # registration order
-        impl.function(register=result.bind(impl.plugin_name))
+    # get_hookimpls() lists implementations in registration order (pluggy calls them in reverse).
+    for impl in getattr(manager.hook, hook_name).get_hookimpls():
+        arguments = {"register": result.bind(impl.plugin_name)}
+        impl.function(**{name: arguments[name] for name in impl.argnames})  # opt-in arguments, as pluggy does
     return result
 
 

@@ -73,6 +73,15 @@ def load_scenario(path: str | os.PathLike[str], device: str | torch.device = "cp
             f"{os.fspath(path)!r} is a safetensors file but not a TrafficRLHF scenario (header key "
             f"'trafficrlhf_scenario' is {meta.get('trafficrlhf_scenario')!r}, expected {FORMAT_VERSION!r})."
         )
+    required = [name for name in _TENSOR_FIELDS if name != "origin"]
+    if "map.raster" in tensors:
+        required.append("map.world_to_pixel")
+    missing = [name for name in required if name not in tensors]
+    if missing:
+        raise DataFormatError(
+            f"{os.fspath(path)!r} is a TrafficRLHF scenario header without the tensors {missing}; the file is "
+            "incomplete: re-save it."
+        )
     try:
         decoded: dict[str, Any] = {k: json.loads(meta[k]) for k in ("dt", "current_index", "scene_ids",
                                                                      "agent_ids", "source", "extras", "map_layers")}

@@ -1,0 +1,8 @@
+"""Test helpers for plugin authors.
+
+``trafficrlhf_sdk.testing.strategies`` holds `Hypothesis <https://hypothesis.readthedocs.io>`_ strategies that
+build valid random :class:`~trafficrlhf_sdk.scenario.ScenarioTensor` batches. It needs ``hypothesis`` (install
+the ``test`` extra); this package itself imports nothing optional.
+"""
+
+__all__ = ["strategies"]
