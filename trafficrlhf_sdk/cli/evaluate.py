@@ -24,6 +24,9 @@ ROWS = (
     ("realism_body_lon_acc", "  lon. acceleration"),
     ("realism_body_lat_acc", "  lat. acceleration"),
     ("realism_body_jerk", "  jerk"),
+    ("guidance_speed_limit", "speed-limit violation (m/s)"),
+    ("guidance_target_speed", "target-speed error (m/s)"),
+    ("guidance_goal_waypoint", "goal distance (m)"),
     ("reward_cost", "reward cost"),
 )
 

@@ -1,0 +1,191 @@
+"""``TrafficModelAdapter``: what the SDK needs from any traffic model (sampling with a replayable trace,
+log-probabilities, its own training loss, trainable parameter groups, closed-loop planning, save/load)."""
+
+from __future__ import annotations
+
+import abc
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, NamedTuple
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from safetensors.torch import save_file
+
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.guidance import GuidanceSet, select_samples
+from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import Plan
+
+__all__ = ["AdapterOptions", "PolicyTrace", "SampleOutput", "TrafficModelAdapter", "extend_constant_velocity"]
+
+
+class AdapterOptions(BaseModel):
+    """Options every adapter accepts (subclass it to add model-specific ones)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    guidance: str | None = Field(None, description="Guidance spec used by `plan`, e.g. 'no_collision:50,no_offroad'.")
+    plan_samples: int = Field(5, ge=1, description="Samples drawn per agent at each replan (filtered by guidance).")
+    checkpoint: str | None = Field(None, description="Weights directory; None loads the adapter's bundled checkpoint.")
+    seed: int = Field(0, description="Seed of the sampling generator used by `plan`.")
+    device: str = Field("cpu", description="Torch device of the model.")
+
+
+@dataclass
+class PolicyTrace:
+    """What is needed to recompute the log-probability of exactly the sampled futures.
+
+    tensors: model-specific, each with leading dims ``(B, S, A)`` (e.g. a denoising chain, a goal cell, a mode).
+    agents: bool ``(B, A)``: the agents that were sampled (the controlled ones).
+    now: the step the futures start after.
+    """
+
+    tensors: dict[str, torch.Tensor]
+    agents: torch.Tensor
+    now: int
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def detach(self) -> PolicyTrace:
+        """A copy whose tensors do not track gradients."""
+        return PolicyTrace({k: v.detach() for k, v in self.tensors.items()}, self.agents, self.now, dict(self.info))
+
+
+class SampleOutput(NamedTuple):
+    """futures: float32 ``(B, S, A, H, 4)`` scene-frame states after ``now``; trace: :class:`PolicyTrace`;
+    log_prob: the log-probability at sampling time, same shape as :meth:`TrafficModelAdapter.log_prob`."""
+
+    futures: torch.Tensor
+    trace: PolicyTrace
+    log_prob: torch.Tensor
+
+
+def extend_constant_velocity(futures: torch.Tensor, horizon: int, dt: float) -> torch.Tensor:
+    """Extend ``(..., H, 4)`` futures to ``horizon`` steps by holding the last speed and heading."""
+    h = futures.shape[-2]
+    if h >= horizon:
+        return futures[..., :horizon, :]
+    last = futures[..., -1:, :]
+    steps = torch.arange(1, horizon - h + 1, dtype=futures.dtype, device=futures.device)[:, None] * dt
+    x = last[..., 0] + last[..., 2] * torch.cos(last[..., 3]) * steps[..., 0]
+    y = last[..., 1] + last[..., 2] * torch.sin(last[..., 3]) * steps[..., 0]
+    extra = torch.stack([x, y, last[..., 2].expand_as(x), last[..., 3].expand_as(x)], -1)
+    return torch.cat([futures, extra], -2)
+
+
+class TrafficModelAdapter(abc.ABC):
+    """Base class of every traffic-model adapter; it is also a closed-loop policy (``reset`` + ``plan``).
+
+    Subclasses set ``name``, ``Options`` and ``horizon``, and implement :meth:`build`, :meth:`get_config`,
+    :attr:`module`, :meth:`sample`, :meth:`log_prob`, :meth:`imitation_loss` and :meth:`parameter_groups`.
+    What must stay frozen (e.g. BITS's policy, TrafficGen's initializer) is simply not offered by
+    :meth:`parameter_groups`. Run :func:`trafficrlhf_sdk.testing.check_adapter` on a new adapter.
+    """
+
+    name: ClassVar[str] = ""
+    Options: ClassVar[type[AdapterOptions]] = AdapterOptions
+    horizon: int = 20
+
+    def __init__(self, config: dict[str, Any] | None = None, **options: Any) -> None:
+        self.options = self.Options(**options)
+        self.guidance = GuidanceSet.parse(self.options.guidance)
+        self._generator = torch.Generator(device="cpu").manual_seed(self.options.seed)
+        self.build(config)
+        self.module.to(self.options.device)
+
+    # ------------------------------------------------------------ contract
+    @abc.abstractmethod
+    def build(self, config: dict[str, Any] | None) -> None:
+        """Create the model from ``config`` (None: the default or bundled checkpoint's config) and load weights."""
+
+    @abc.abstractmethod
+    def get_config(self) -> dict[str, Any]:
+        """JSON-serializable architecture config that :meth:`build` accepts."""
+
+    @property
+    @abc.abstractmethod
+    def module(self) -> torch.nn.Module:
+        """The wrapped model (all its parameters, frozen ones included)."""
+
+    @abc.abstractmethod
+    def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
+               generator: torch.Generator | None = None) -> SampleOutput:
+        """Draw ``num_samples`` futures ``(B, S, A, horizon, 4)`` for the controlled agents of ``context``."""
+
+    @abc.abstractmethod
+    def log_prob(self, context: ScenarioTensor, trace: PolicyTrace) -> torch.Tensor:
+        """Log-probability of the traced samples under the current parameters: ``(B, S, A)`` or per step
+        ``(B, S, A, K)`` (e.g. per denoising step); entries of agents not sampled are 0. Differentiable."""
+
+    @abc.abstractmethod
+    def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
+        """The model's own training loss on logged scenes (scalar, differentiable): the paper's r."""
+
+    @abc.abstractmethod
+    def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
+        """Trainable parameter groups by name (e.g. ``encoder``, ``decoder``); frozen parts are not offered."""
+
+    # ------------------------------------------------------------ policy
+    def reset(self, scenario: ScenarioTensor) -> None:
+        """Fit the guidance heuristics on the logged scene at the rollout start."""
+        if self.guidance is not None:
+            self.guidance.fit(scenario)
+        self._generator.manual_seed(self.options.seed)
+
+    @torch.no_grad()
+    def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
+        """Sample ``plan_samples`` futures, keep the one with the lowest guidance loss (sample 0 without
+        guidance), and extend it to ``horizon`` steps if the model plans fewer."""
+        context = context.to(self.options.device)
+        samples = 1 if self.guidance is None else self.options.plan_samples
+        with torch.enable_grad() if self.guidance is not None else torch.no_grad():
+            out = self.sample(context, samples, self.guidance, self._generator)
+        futures = out.futures.detach()
+        if self.guidance is not None and samples > 1:
+            loss = self.guidance.loss(futures, context.current_index, context)
+            choice = select_samples(loss, context.controlled, self.guidance.scene_level)  # (B, A)
+            index = choice[:, None, :, None, None].expand(-1, 1, -1, futures.shape[-2], 4)
+            futures = futures.gather(1, index)
+        return Plan(extend_constant_velocity(futures[:, 0], horizon, context.dt).cpu())
+
+    # ------------------------------------------------------------ weights
+    def save_pretrained(self, directory: str) -> None:
+        """Write ``config.json`` (adapter name, architecture config) and ``model.safetensors``."""
+        os.makedirs(directory, exist_ok=True)
+        with open(os.path.join(directory, "config.json"), "w", encoding="utf-8") as handle:
+            json.dump({"adapter": self.name, "config": self.get_config()}, handle, indent=2)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.module.state_dict().items()}
+        save_file(state, os.path.join(directory, "model.safetensors"), metadata={"format": "pt", "adapter": self.name})
+
+    @classmethod
+    def from_pretrained(cls, directory: str, **options: Any) -> TrafficModelAdapter:
+        """Rebuild an adapter saved with :meth:`save_pretrained` (never unpickles anything)."""
+        config_path = os.path.join(directory, "config.json")
+        if not os.path.isfile(config_path):
+            raise DataNotFoundError(f"no config.json in {directory!r}; pass a directory written by save_pretrained.")
+        with open(config_path, encoding="utf-8") as handle:
+            try:
+                saved = json.load(handle)
+            except json.JSONDecodeError as exc:
+                raise DataFormatError(f"{config_path}: invalid JSON ({exc}).") from exc
+        if saved.get("adapter") != cls.name:
+            raise DataFormatError(
+                f"{directory!r} holds weights for adapter {saved.get('adapter')!r}, not {cls.name!r}; load it with that "
+                "adapter."
+            )
+        options = {**options, "checkpoint": None}
+        adapter = cls(config=saved.get("config"), **options)
+        adapter.load_weights(directory)
+        return adapter
+
+    def load_weights(self, directory: str) -> None:
+        """Load ``model.safetensors`` from ``directory`` into :attr:`module` (shapes must match)."""
+        tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"), device=self.options.device)
+        try:
+            self.module.load_state_dict(tensors, strict=True)
+        except RuntimeError as exc:
+            raise DataFormatError(
+                f"weights in {directory!r} do not match the {self.name!r} architecture: {str(exc).splitlines()[0]}"
+            ) from exc

@@ -1,0 +1,159 @@
+"""``check_adapter``: a conformance check model authors run on their own :class:`TrafficModelAdapter`
+(in the spirit of stable-baselines3's ``check_env``). Contract breaks raise :class:`AdapterCheckError` with what
+to fix; soft issues are warnings."""
+
+from __future__ import annotations
+
+import tempfile
+import warnings
+from typing import Any
+
+import torch
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.models.adapter import PolicyTrace, SampleOutput, TrafficModelAdapter
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["AdapterCheckError", "check_adapter"]
+
+
+class AdapterCheckError(TrafficRLHFError, AssertionError):
+    """The adapter breaks the contract; the message says which part and how to fix it."""
+
+
+def _fail(adapter: TrafficModelAdapter, what: str, fix: str) -> None:
+    raise AdapterCheckError(f"adapter {type(adapter).__name__} ({adapter.name!r}): {what}. Fix: {fix}")
+
+
+def _check_sample(adapter: TrafficModelAdapter, context: ScenarioTensor, out: Any, num_samples: int) -> None:
+    if not isinstance(out, SampleOutput):
+        _fail(adapter, f"sample() returned {type(out).__name__}", "return SampleOutput(futures, trace, log_prob)")
+    b, a = context.num_scenes, context.num_agents
+    expected = (b, num_samples, a, adapter.horizon, 4)
+    if tuple(out.futures.shape) != expected:
+        _fail(adapter, f"sample() futures have shape {tuple(out.futures.shape)}, expected {expected}",
+              "return (B, S, A, horizon, 4) scene-frame states for every agent slot")
+    if not torch.isfinite(out.futures).all():
+        _fail(adapter, "sample() futures contain NaN or inf", "check the decoder and the state rollout")
+    if not isinstance(out.trace, PolicyTrace):
+        _fail(adapter, "sample() trace is not a PolicyTrace", "wrap what log_prob needs in PolicyTrace(tensors, ...)")
+    if out.trace.now != context.current_index:
+        _fail(adapter, f"trace.now is {out.trace.now}, context.current_index is {context.current_index}",
+              "record the step the futures start after")
+
+
+def check_adapter(
+    adapter: TrafficModelAdapter,
+    context: ScenarioTensor,
+    num_samples: int = 3,
+    check_save_load: bool = True,
+    atol: float = 1e-4,
+) -> dict[str, Any]:
+    """Verify ``adapter`` against the contract on the logged scenes ``context`` (B >= 1, with a map).
+
+    Checks: shapes and finiteness of ``sample``; determinism under a seeded generator; ``log_prob`` recomputed
+    from the trace equals the sampling-time value and is differentiable w.r.t. the offered parameters;
+    ``imitation_loss`` is a finite differentiable scalar; a training step moves only offered parameters
+    (frozen parts stay bitwise equal); ``plan`` returns finite ``(B, A, >=H, 4)`` plans; a
+    ``save_pretrained``/``from_pretrained`` round trip reproduces samples.
+
+    Returns:
+        A dict of facts found (parameter counts per group, log-prob shape), for reports.
+    """
+    if not isinstance(adapter, TrafficModelAdapter):
+        raise AdapterCheckError(f"{type(adapter).__name__} does not subclass TrafficModelAdapter; derive from it.")
+    if not adapter.name:
+        _fail(adapter, "the class attribute `name` is empty", "set name = 'my_model' (the registry name)")
+    facts: dict[str, Any] = {}
+
+    groups = adapter.parameter_groups()
+    if not groups:
+        _fail(adapter, "parameter_groups() is empty", "offer at least one named group of trainable parameters")
+    all_params = {id(p) for p in adapter.module.parameters()}
+    offered: dict[int, str] = {}
+    for group, params in groups.items():
+        if not params:
+            _fail(adapter, f"parameter group {group!r} is empty", "drop empty groups")
+        for p in params:
+            if id(p) not in all_params:
+                _fail(adapter, f"group {group!r} holds a parameter that is not in adapter.module",
+                      "offer parameters of the wrapped module only")
+            if id(p) in offered:
+                _fail(adapter, f"a parameter is in groups {offered[id(p)]!r} and {group!r}", "put each in one group")
+            offered[id(p)] = group
+    facts["parameters"] = {g: sum(p.numel() for p in ps) for g, ps in groups.items()}
+    facts["frozen_parameters"] = sum(p.numel() for p in adapter.module.parameters() if id(p) not in offered)
+
+    # --- sampling and determinism
+    gen = lambda: torch.Generator().manual_seed(1234)  # noqa: E731
+    out = adapter.sample(context, num_samples, None, gen())
+    _check_sample(adapter, context, out, num_samples)
+    again = adapter.sample(context, num_samples, None, gen())
+    if not torch.equal(out.futures, again.futures):
+        _fail(adapter, "two sample() calls with identically seeded generators differ",
+              "draw all randomness from the `generator` argument")
+
+    # --- log-probability from the trace
+    log_prob = adapter.log_prob(context, out.trace.detach())
+    facts["log_prob_shape"] = tuple(log_prob.shape)
+    if tuple(log_prob.shape[:3]) != (context.num_scenes, num_samples, context.num_agents) or log_prob.dim() not in (3, 4):
+        _fail(adapter, f"log_prob() has shape {tuple(log_prob.shape)}",
+              "return (B, S, A) or per-step (B, S, A, K) log-probabilities")
+    if not torch.isfinite(log_prob).all():
+        _fail(adapter, "log_prob() contains NaN or inf", "clamp scales and mask agents that were not sampled")
+    if out.log_prob.shape != log_prob.shape or not torch.allclose(out.log_prob.detach(), log_prob.detach(), atol=atol,
+                                                                   rtol=1e-4):
+        gap = (out.log_prob.detach() - log_prob.detach()).abs().max() if out.log_prob.shape == log_prob.shape else "n/a"
+        _fail(adapter, f"log_prob() recomputed from the trace differs from the sampling-time value (max gap {gap})",
+              "store in the trace everything the sample depended on (noise, chosen modes/cells)")
+    not_sampled = ~out.trace.agents
+    if (log_prob.detach()[not_sampled[:, None].expand(-1, num_samples, -1)] != 0).any():
+        _fail(adapter, "log_prob() is non-zero for agents that were not sampled", "multiply by the agent mask")
+
+    # --- gradients reach the offered parameters only; a step leaves frozen ones bitwise equal
+    frozen_before = {name: p.detach().clone() for name, p in adapter.module.named_parameters() if id(p) not in offered}
+    adapter.module.train()
+    adapter.module.zero_grad(set_to_none=True)
+    lp = adapter.log_prob(context, out.trace.detach())
+    imitation = adapter.imitation_loss(context)
+    if imitation.dim() != 0 or not torch.isfinite(imitation):
+        _fail(adapter, f"imitation_loss() returned {imitation!r}", "return a finite scalar tensor")
+    loss = imitation - lp.sum() / max(1, int(out.trace.agents.sum()))
+    loss.backward()
+    moved = [g for g, ps in groups.items() if any(p.grad is not None and p.grad.abs().sum() > 0 for p in ps)]
+    if not moved:
+        _fail(adapter, "neither log_prob() nor imitation_loss() has a gradient w.r.t. any offered parameter",
+              "compute them with the module's parameters, without torch.no_grad()")
+    params = [p for ps in groups.values() for p in ps]
+    optimizer = torch.optim.SGD(params, lr=1e-3)
+    optimizer.step()
+    adapter.module.zero_grad(set_to_none=True)
+    adapter.module.eval()
+    for name, p in adapter.module.named_parameters():
+        if name in frozen_before and not torch.equal(p.detach(), frozen_before[name]):
+            _fail(adapter, f"frozen parameter {name!r} changed in a training step on the offered groups",
+                  "do not share tensors between offered and frozen parts")
+    facts["groups_with_gradient"] = moved
+
+    # --- closed-loop planning
+    adapter.reset(context)
+    plan = adapter.plan(context, max(adapter.horizon, 5))
+    if plan.states.shape[:2] != (context.num_scenes, context.num_agents) or plan.states.shape[2] < 5:
+        _fail(adapter, f"plan() returned states of shape {tuple(plan.states.shape)}",
+              "return Plan(states (B, A, >= horizon, 4))")
+    if not torch.isfinite(plan.states).all():
+        _fail(adapter, "plan() states contain NaN or inf", "check the sampler")
+
+    # --- save / load round trip
+    if check_save_load:
+        with tempfile.TemporaryDirectory() as tmp:
+            adapter.save_pretrained(tmp)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                reloaded = type(adapter).from_pretrained(tmp, **adapter.options.model_dump(exclude={"checkpoint"}))
+            a_out = adapter.sample(context, num_samples, None, gen())
+            b_out = reloaded.sample(context, num_samples, None, gen())
+            if not torch.allclose(a_out.futures, b_out.futures, atol=1e-5):
+                _fail(adapter, "a save_pretrained/from_pretrained round trip changes the samples",
+                      "save every tensor the model uses (buffers too) and rebuild the same architecture")
+    return facts
