@@ -1,0 +1,306 @@
+"""Commands about installed components and data: ``plugins``, ``sources``, ``inspect``, ``render``."""
+
+from __future__ import annotations
+
+import difflib
+import json
+import os
+import sys
+from collections import Counter
+from typing import Any, Iterable
+
+import click
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from trafficrlhf_sdk.cli import cli, format_error
+from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
+from trafficrlhf_sdk.scenario import AgentType, ScenarioSource, ScenarioTensor
+
+__all__ = ["inspect_command", "plugins_command", "render_command", "scene_statistics", "sources_command"]
+
+json_option = click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON instead of a table.")
+split_option = click.option("--split", default="val", show_default=True, help="Which split of the source.")
+root_option = click.option(
+    "--root", type=click.Path(file_okay=False, path_type=str), default=None,
+    help="Data directory of the source (default: the source's own default, see `trafficrlhf sources`).",
+)
+
+
+def _console() -> Console:
+    console = Console(highlight=False)
+    if not console.is_terminal:  # pipes and captured output: do not squeeze tables into 80 columns
+        console = Console(highlight=False, width=max(console.width, 120))
+    return console
+
+
+def _echo_json(data: Any) -> None:
+    click.echo(json.dumps(data, indent=2, sort_keys=False))
+
+
+def _error_text(exc: BaseException) -> str:
+    """Message of an exception raised by a plugin: expected errors as is, others with their type."""
+    import pydantic
+
+    if isinstance(exc, (TrafficRLHFError, OSError, pydantic.ValidationError)):
+        return format_error(exc)
+    return f"{type(exc).__name__}: {format_error(exc)}"
+
+
+def open_source(name: str, root: str | None) -> ScenarioSource:
+    """The registered source ``name``, with ``root`` only when the user gave one."""
+    from trafficrlhf_sdk import get_scenario_source
+
+    return get_scenario_source(name, root=root) if root is not None else get_scenario_source(name)
+
+
+# ------------------------------------------------------------------------------------------------ plugins
+@cli.command("plugins")
+@json_option
+def plugins_command(as_json: bool) -> None:
+    """List loaded plugins and the components each registry holds."""
+    from trafficrlhf_sdk.plugins import KINDS, blocked_plugins, list_plugins, registry
+
+    plugins = list_plugins()
+    registries: dict[str, dict[str, Any]] = {}
+    for kind, (_hook, label) in KINDS.items():
+        entry: dict[str, Any] = {"label": label, "components": [], "error": None}
+        try:
+            reg = registry(kind)
+            entry["components"] = [{"name": name, "plugin": reg.owner(name)} for name in reg.names()]
+        except Exception as exc:  # one broken plugin must not hide the rest of the listing
+            entry["error"] = _error_text(exc)
+        registries[kind] = entry
+    blocked = blocked_plugins()
+    if as_json:
+        _echo_json({"plugins": plugins, "registries": registries, "blocked": blocked})
+        return
+
+    console = _console()
+    table = Table(title="Loaded plugins", title_justify="left")
+    for column in ("plugin", "version", "default", "hooks"):
+        table.add_column(column, overflow="fold")
+    for row in plugins:
+        table.add_row(escape(row["name"]), escape(row["version"] or "-"), "yes" if row["default"] else "no",
+                      escape(", ".join(row["hooks"]) or "-"))
+    console.print(table)
+    components = Table(title="Registered components", title_justify="left")
+    for column in ("kind", "name", "plugin"):
+        components.add_column(column, overflow="fold")
+    for entry in registries.values():
+        if entry["error"]:
+            components.add_row(escape(entry["label"]), "[red]error[/red]", escape(entry["error"]))
+        elif not entry["components"]:
+            components.add_row(escape(entry["label"]), "[dim](none)[/dim]", "")
+        for item in entry["components"]:
+            components.add_row(escape(entry["label"]), escape(item["name"]), escape(item["plugin"]))
+    console.print(components)
+    if blocked:
+        console.print(f"Blocked by TRAFFICRLHF_BLOCK_PLUGINS: {escape(', '.join(blocked))}")
+
+
+# ------------------------------------------------------------------------------------------------ sources
+@cli.command("sources")
+@json_option
+def sources_command(as_json: bool) -> None:
+    """List scenario sources: owning plugin, default data root and the splits found there."""
+    from trafficrlhf_sdk.plugins import registry
+
+    reg = registry("scenario_sources")
+    rows = []
+    for name in reg.names():
+        row: dict[str, Any] = {"name": name, "plugin": reg.owner(name), "root": None, "root_exists": False,
+                               "splits": None, "error": None}
+        try:
+            source = reg.get(name)()
+            row["root"] = str(source.root)
+            row["root_exists"] = os.path.isdir(row["root"])
+            row["splits"] = list(source.splits())
+        except Exception as exc:  # report per source; a missing dataset is normal
+            row["error"] = _error_text(exc)
+        rows.append(row)
+    if as_json:
+        _echo_json(rows)
+        return
+    if not rows:
+        click.echo("No scenario source is registered; install a source plugin (see `trafficrlhf plugins`).")
+        return
+    table = Table(title="Scenario sources", title_justify="left")
+    for column in ("source", "plugin", "default root", "exists", "splits"):
+        table.add_column(column, overflow="fold")
+    for row in rows:
+        splits = ", ".join(row["splits"]) if row["splits"] is not None else f"missing: {row['error']}"
+        table.add_row(escape(row["name"]), escape(row["plugin"]), escape(row["root"] or "-"),
+                      "yes" if row["root_exists"] else "[red]no[/red]", escape(splits or "(none)"))
+    _console().print(table)
+
+
+# ------------------------------------------------------------------------------------------------ inspect
+def _summary(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"mean": None, "min": None, "max": None}
+    return {"mean": round(sum(values) / len(values), 4), "min": round(min(values), 4), "max": round(max(values), 4)}
+
+
+def _total_scene_count(source: ScenarioSource, split: str) -> int | None:
+    """Number of scenes in ``split`` before the length filter, when the source offers ``all_scene_ids``."""
+    all_ids = getattr(source, "all_scene_ids", None)
+    if not callable(all_ids):
+        return None
+    try:
+        return len(all_ids(split))
+    except Exception:  # optional information only
+        return None
+
+
+def scene_statistics(scenes: Iterable[ScenarioTensor]) -> dict[str, Any]:
+    """Summary statistics over scenes (each a ScenarioTensor; every scene of every batch counts once)."""
+    agents: list[int] = []
+    controlled: list[int] = []
+    durations: list[float] = []
+    history_s: list[float] = []
+    future_s: list[float] = []
+    dts: set[float] = set()
+    types: Counter[str] = Counter()
+    speed_sum, speed_count = 0.0, 0
+    scene_ids: list[str] = []
+    for batch in scenes:
+        for b in range(batch.num_scenes):
+            valid = batch.valid[b]
+            present = valid.any(-1)
+            agents.append(int(present.sum()))
+            controlled.append(int((batch.controlled[b] & present).sum()))
+            active = valid.any(0).nonzero().flatten()
+            span = int(active[-1] - active[0] + 1) if len(active) else 0
+            durations.append(span * batch.dt)
+            history_s.append(batch.current_index * batch.dt)
+            future_s.append((batch.num_steps - 1 - batch.current_index) * batch.dt)
+            dts.add(batch.dt)
+            for code in batch.agent_type[b][present].tolist():
+                types[AgentType(code).name if code in AgentType._value2member_map_ else str(code)] += 1
+            speeds = batch.speed[b][valid].abs()
+            speed_sum += float(speeds.double().sum())
+            speed_count += int(speeds.numel())
+            scene_ids.append(batch.scene_ids[b] if batch.scene_ids else str(len(scene_ids)))
+    return {
+        "scenes_loaded": len(agents),
+        "dt_s": sorted(dts),
+        "agents": {"total": sum(agents), "per_scene_mean": sum(agents) / len(agents) if agents else None,
+                   "per_scene_max": max(agents, default=None), "per_scene_min": min(agents, default=None)},
+        "controlled_agents": {"total": sum(controlled),
+                              "per_scene_mean": sum(controlled) / len(controlled) if controlled else None},
+        "duration_s": _summary(durations),
+        "history_s": _summary(history_s),
+        "future_s": _summary(future_s),
+        "agent_types": dict(sorted(types.items())),
+        "mean_speed_mps": speed_sum / speed_count if speed_count else None,
+        "scene_ids": scene_ids,
+    }
+
+
+def _fmt(value: float | None, digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _fmt_summary(summary: dict[str, float | None], unit: str = "s") -> str:
+    return f"mean {_fmt(summary['mean'])} {unit} (min {_fmt(summary['min'])}, max {_fmt(summary['max'])})"
+
+
+@cli.command("inspect")
+@click.argument("source_name", metavar="SOURCE")
+@split_option
+@root_option
+@click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=None,
+              help="Load only the first N scenes (sorted by name) that are long enough. Default: all.")
+@click.option("--ids", "list_ids", is_flag=True, help="Only list the ids of the scenes that are long enough.")
+@json_option
+def inspect_command(source_name: str, split: str, root: str | None, num_scenes: int | None, list_ids: bool,
+                    as_json: bool) -> None:
+    """Load scenes of SOURCE and print statistics (scenes, agents, durations, types, speeds)."""
+    source = open_source(source_name, root)
+    source.check_split(split)
+    ids = source.scene_ids(split)
+    if list_ids:
+        if as_json:
+            _echo_json(ids)
+        else:
+            click.echo("\n".join(ids))
+        return
+    if not ids:
+        raise TrafficRLHFError(
+            f"source {source_name!r} has no scene long enough in split {split!r} at {source.root!r} (needs "
+            f"{source.config.history_s} s of history + {source.config.min_future_s} s of future)."
+        )
+    chosen = ids[:num_scenes]
+    from tqdm.auto import tqdm
+
+    scenes = tqdm((source.load_scene(split, scene_id) for scene_id in chosen), total=len(chosen),
+                  desc=f"loading {source_name}/{split}", unit="scene", file=sys.stderr, disable=None, leave=False)
+    stats = scene_statistics(scenes)
+    report = {"source": source_name, "split": split, "root": str(source.root),
+              "scenes": {"loaded": stats.pop("scenes_loaded"), "long_enough": len(ids),
+                         "total": _total_scene_count(source, split)},
+              **stats}
+    if as_json:
+        _echo_json(report)
+        return
+
+    scenes_info = report["scenes"]
+    scene_line = f"{scenes_info['loaded']} loaded of {scenes_info['long_enough']} long enough"
+    if scenes_info["total"] is not None:
+        scene_line += f" ({scenes_info['total']} in the split)"
+    a, c = report["agents"], report["controlled_agents"]
+    rows = [
+        ("root", report["root"]),
+        ("scenes", scene_line),
+        ("time step", ", ".join(f"{dt:g} s" for dt in report["dt_s"])),
+        ("agents", f"{a['total']} (per scene mean {_fmt(a['per_scene_mean'])}, max {a['per_scene_max']})"),
+        ("controlled agents", f"{c['total']} (per scene mean {_fmt(c['per_scene_mean'])})"),
+        ("duration", _fmt_summary(report["duration_s"])),
+        ("history", _fmt_summary(report["history_s"])),
+        ("future", _fmt_summary(report["future_s"])),
+        ("agent types", ", ".join(f"{name}: {count}" for name, count in report["agent_types"].items()) or "-"),
+        ("mean speed (valid agents)", f"{_fmt(report['mean_speed_mps'], 2)} m/s"),
+    ]
+    table = Table(title=f"{source_name} / {split}", title_justify="left", show_header=False)
+    table.add_column("property", style="bold")
+    table.add_column("value", overflow="fold")
+    for key, value in rows:
+        table.add_row(escape(key), escape(value))
+    _console().print(table)
+
+
+# ------------------------------------------------------------------------------------------------- render
+@cli.command("render")
+@click.argument("source_name", metavar="SOURCE")
+@click.argument("scene_id", metavar="SCENE")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=str), default=None,
+              help="PNG file to write. Default: SCENE.png in the current directory.")
+@split_option
+@root_option
+@click.option("--step", type=click.IntRange(min=0), default=None,
+              help="Time step at which agents are drawn. Default: the current step (end of history).")
+@click.option("--dpi", type=click.IntRange(min=20, max=600), default=110, show_default=True)
+def render_command(source_name: str, scene_id: str, output: str | None, split: str, root: str | None,
+                   step: int | None, dpi: int) -> None:
+    """Render scene SCENE of SOURCE (map, boxes, trails) to a PNG and print its path."""
+    from trafficrlhf_sdk.render import save_scene_png
+
+    source = open_source(source_name, root)
+    source.check_split(split)
+    try:
+        scenario = source.load_scene(split, scene_id)
+    except (FileNotFoundError, KeyError) as exc:
+        known = source.scene_ids(split)
+        if scene_id in known:  # the scene exists: something else is missing (e.g. its map)
+            raise
+        close = difflib.get_close_matches(scene_id, known, n=3)
+        hint = f" Did you mean {close}?" if close else ""
+        raise UnknownComponentError(
+            f"scene {scene_id!r} not found in split {split!r} of source {source_name!r} "
+            f"({format_error(exc).rstrip('.')}).{hint}"
+            f" List the scene ids with `trafficrlhf inspect {source_name} --split {split} --ids`."
+        ) from exc
+    path = save_scene_png(scenario, output or f"{scene_id}.png", step=step, dpi=dpi)
+    click.echo(path)
