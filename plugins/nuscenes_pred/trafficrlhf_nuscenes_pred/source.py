@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 from dataclasses import dataclass
@@ -114,15 +113,22 @@ class NuScenesPredSource(ScenarioSource):
         label = os.path.join(self.root, "label")
         return sorted(d for d in os.listdir(label) if os.path.isdir(os.path.join(label, d)))
 
-    @functools.lru_cache(maxsize=8)  # noqa: B019 - one source object reads each split once
     def _num_keyframes(self, split: str) -> dict[str, int]:
-        self.check_split(split)
-        folder = os.path.join(self.root, "label", split)
-        counts = {}
-        for name in sorted(os.listdir(folder)):
-            if name.endswith(".txt"):
-                counts[name[:-4]] = int(parse_label_file(os.path.join(folder, name)).frame.max()) + 1
-        return counts
+        """Keyframe count of every scene of ``split`` (read once per source object)."""
+        cache: dict[str, dict[str, int]] = self.__dict__.setdefault("_keyframe_cache", {})
+        if split not in cache:
+            self.check_split(split)
+            folder = os.path.join(self.root, "label", split)
+            cache[split] = {
+                name[:-4]: int(parse_label_file(os.path.join(folder, name)).frame.max()) + 1
+                for name in sorted(os.listdir(folder))
+                if name.endswith(".txt")
+            }
+        return cache[split]
+
+    def all_scene_ids(self, split: str) -> list[str]:
+        """Every scene of ``split``, long enough or not, sorted by name."""
+        return list(self._num_keyframes(split))
 
     def scene_ids(self, split: str) -> list[str]:
         """Scenes of ``split`` lasting at least ``history_s + min_future_s``, sorted by name."""
@@ -131,7 +137,7 @@ class NuScenesPredSource(ScenarioSource):
 
     def load_scene(self, split: str, scene_id: str) -> ScenarioTensor:
         """Scene ``scene_id`` of ``split`` as a ScenarioTensor with B = 1."""
-        self._check_root()
+        self.check_split(split)
         label_path = os.path.join(self.root, "label", split, f"{scene_id}.txt")
         if not os.path.isfile(label_path):
             raise DataNotFoundError(f"scene {scene_id!r} not found in split {split!r}: no file {label_path!r}.")
