@@ -1,0 +1,28 @@
+"""Scenario source ``scenarionet``: ScenarioNet scenario pickles (one ``*.pkl`` per scenario).
+
+Reads the scenario description that ScenarioNet/MetaDrive use for Waymo, nuPlan, nuScenes and Argoverse 2
+exports; the default root is ``<data root>/nuscenes_mini_scenarionet`` (the ten nuScenes v1.0-mini scenes, see
+shared/data/README.md). Pickles are only read through the restricted unpickler of
+:mod:`trafficrlhf_scenarionet.unpickler`. nuScenes data is licensed CC BY-NC-SA 4.0 (non-commercial); other
+datasets keep their own terms.
+"""
+
+from trafficrlhf_sdk import hookimpl
+
+from trafficrlhf_scenarionet.source import ScenarioNetConfig, ScenarioNetSource, read_scenario
+from trafficrlhf_scenarionet.unpickler import RestrictedUnpickler, restricted_load, restricted_loads
+
+__all__ = [
+    "RestrictedUnpickler",
+    "ScenarioNetConfig",
+    "ScenarioNetSource",
+    "read_scenario",
+    "restricted_load",
+    "restricted_loads",
+]
+
+
+@hookimpl
+def register_scenario_sources(register):  # type: ignore[no-untyped-def]
+    """Register ``scenarionet``."""
+    register("scenarionet", ScenarioNetSource)
