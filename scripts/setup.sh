@@ -10,12 +10,12 @@ if [ ! -x .venv/bin/python ]; then
 fi
 PIP=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
 # torch first: any other version pulls gigabytes of CUDA packages
-"${PIP[@]}" "torch==2.13.0"
+"${PIP[@]}" "torch==2.13.0" 2>&1 | grep -v "^WARNING: Location" || true
 dists=(-e ".[test]")
 for dir in reference_models adapters/* plugins/* reference_models/*; do
   if [ -f "$dir/pyproject.toml" ]; then dists+=(-e "$dir"); fi
 done
-echo "[setup] installing ${#dists[@]} editable distributions"
+echo "[setup] installing $(( ${#dists[@]} / 2 )) editable distributions: ${dists[*]}"
 "${PIP[@]}" "${dists[@]}" 2>&1 | grep -v "^WARNING: Location" || true
 .venv/bin/python -c "import torch, trafficrlhf_sdk; assert torch.__version__.startswith('2.13.0'), torch.__version__"
 echo "[setup] done: $(.venv/bin/trafficrlhf --version)"
