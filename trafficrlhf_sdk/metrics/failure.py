@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
@@ -17,7 +18,7 @@ OffroadMode = Literal["center", "corners"]
 
 
 def collisions_per_step(scenario: ScenarioTensor) -> torch.Tensor:
-    """bool ``(B, A, T)``: the agent's box overlaps another valid agent's box at that step."""
+    """bool ``(B, A, T)``: the agent's box overlaps another valid agent's box at that step (exact test in float64)."""
     return pairwise_collisions(scenario.xy, scenario.yaw, scenario.extent, scenario.valid)
 
 
@@ -26,10 +27,13 @@ def offroad_per_step(scenario: ScenarioTensor, mode: OffroadMode = "center") -> 
     (``mode="corners"``, stricter) lies off the drivable layer at a valid step."""
     if scenario.map is None:
         raise ValueError("off-road needs a map: the scenario has `map=None`; load it from a source with rasters.")
+    # float64 pixel coordinates: the pixel of the stored position, not of a float32-rounded transform of it
+    xy = scenario.xy.double()
     if mode == "center":
-        on_road = scenario.map.lookup(scenario.xy)
+        on_road = scenario.map.lookup(xy)
     elif mode == "corners":
-        corners = box_corners(scenario.xy, scenario.yaw, scenario.extent[:, :, None].expand(-1, -1, scenario.num_steps, -1))
+        extent = scenario.extent.double()[:, :, None].expand(-1, -1, scenario.num_steps, -1)
+        corners = box_corners(xy, scenario.yaw.double(), extent)
         on_road = scenario.map.lookup(corners).all(-1)
     else:
         raise ValueError(f"`mode` must be 'center' or 'corners'; got {mode!r}.")
@@ -37,16 +41,21 @@ def offroad_per_step(scenario: ScenarioTensor, mode: OffroadMode = "center") -> 
 
 
 def scene_mean(per_agent: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of ``per_agent (B, A)`` over agents where ``mask (B, A)``; NaN for scenes without any."""
-    count = mask.sum(-1)
-    total = (per_agent.float() * mask).sum(-1)
+    """Mean of ``per_agent (B, A)`` over agents where ``mask (B, A)``; NaN for scenes without any.
+
+    float64, so a share of agents is the correctly rounded ratio of two counts (float32 turned 0.5265 into
+    0.52649998...).
+    """
+    count = mask.sum(-1).double()
+    total = (per_agent.double() * mask).sum(-1)
     return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, float("nan")))
 
 
 def nanmean(values: torch.Tensor) -> float:
-    """Mean over finite entries (NaN if none)."""
+    """Mean over finite entries (NaN if none), with an exactly rounded sum (``math.fsum``) so the result does not
+    depend on the order or batching of the scenes."""
     finite = values[torch.isfinite(values)]
-    return float(finite.mean()) if finite.numel() else float("nan")
+    return math.fsum(finite.double().tolist()) / finite.numel() if finite.numel() else float("nan")
 
 
 class FailureMetric(Metric):

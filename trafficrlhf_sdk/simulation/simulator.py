@@ -6,7 +6,7 @@ import time
 from dataclasses import dataclass
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import ScenarioValidationError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -31,6 +31,15 @@ class SimulationConfig(BaseModel):
     remove_offroad_at_start: bool = Field(
         True, description="Agents whose centre is off the drivable layer at the start are not controlled (upstream)."
     )
+
+    @model_validator(mode="after")
+    def _horizon_covers_replan(self) -> SimulationConfig:
+        if self.plan_horizon < self.replan_every:
+            raise ValueError(
+                f"`plan_horizon` ({self.plan_horizon}) must be >= `replan_every` ({self.replan_every}): each plan "
+                "must cover the steps executed before the next replan; raise `plan_horizon`."
+            )
+        return self
 
 
 @dataclass(frozen=True)
@@ -82,7 +91,7 @@ def _prepare(scenario: ScenarioTensor, config: SimulationConfig) -> tuple[Scenar
     logged = logged.replace_unchecked(current_index=start)
     controlled = logged.controlled & logged.valid[:, :, start]
     if config.remove_offroad_at_start and logged.map is not None and "drivable" in logged.map.layers:
-        controlled = controlled & logged.map.lookup(logged.xy[:, :, start])
+        controlled = controlled & logged.map.lookup(logged.xy[:, :, start].double())  # as the off-road metric
     return logged, controlled, start, end
 
 
@@ -118,7 +127,7 @@ def simulate(
     valid = logged.valid.clone()
     # controlled agents exist for the whole rollout unless their plan says otherwise
     valid[:, :, start + 1 :] |= controlled[:, :, None]
-    select = controlled[:, :, None, None]
+    scene_of, agent_of = controlled.nonzero(as_tuple=True)  # controlled rows: only they take the plan
 
     replans = range(start, end, config.replan_every)
     if progress:
@@ -133,20 +142,43 @@ def simulate(
         plan = policy.plan(context, config.plan_horizon)
         policy_time += time.perf_counter() - tic
         n = min(config.replan_every, end - t)
-        planned = plan.states[:, :, :n]
-        if planned.shape[:3] != (logged.num_scenes, logged.num_agents, n) or planned.shape[-1] != 4:
+        plan_states = getattr(plan, "states", None)
+        if not isinstance(plan_states, torch.Tensor):
             raise ScenarioValidationError(
-                f"policy {type(policy).__name__} returned plan states of shape {tuple(plan.states.shape)}; expected "
+                f"policy {type(policy).__name__}.plan returned {type(plan).__name__}; expected a Plan(states, valid)."
+            )
+        planned = plan_states[:, :, :n]
+        expected = (logged.num_scenes, logged.num_agents, n, 4)
+        if planned.dim() != 4 or tuple(planned.shape) != expected:
+            raise ScenarioValidationError(
+                f"policy {type(policy).__name__} returned plan states of shape {tuple(plan_states.shape)}; expected "
                 f"({logged.num_scenes}, {logged.num_agents}, >= {n}, 4)."
             )
         window = slice(t + 1, t + 1 + n)
-        states[:, :, window] = torch.where(select, planned.to(states.dtype), states[:, :, window])
+        planned = planned.to(device=states.device, dtype=states.dtype)
+        states[scene_of, agent_of, window] = planned[scene_of, agent_of]
         if plan.valid is not None:
-            valid[:, :, window] = torch.where(controlled[:, :, None], plan.valid[:, :, :n], valid[:, :, window])
+            plan_valid = plan.valid[:, :, :n]
+            if tuple(plan_valid.shape) != (logged.num_scenes, logged.num_agents, n) or plan_valid.dtype != torch.bool:
+                raise ScenarioValidationError(
+                    f"policy {type(policy).__name__} returned plan valid of shape {tuple(plan.valid.shape)} and dtype "
+                    f"{plan.valid.dtype}; expected bool ({logged.num_scenes}, {logged.num_agents}, >= {n})."
+                )
+            valid[scene_of, agent_of, window] = plan_valid.to(valid.device)[scene_of, agent_of]
     wall = time.perf_counter() - began
-    states = states * valid[..., None]
-    if not torch.isfinite(states).all():
-        raise ScenarioValidationError(f"policy {type(policy).__name__} produced NaN or inf states.")
+    # Only the controlled agents' simulated steps changed. Zero the steps their plans marked invalid with where()
+    # (a policy may leave NaN there, and NaN * 0 is NaN), then require the valid ones to be finite.
+    future = slice(start + 1, end + 1)
+    driven = torch.where(valid[:, :, future][controlled][..., None], states[:, :, future][controlled],
+                         torch.zeros((), dtype=states.dtype, device=states.device))  # (N controlled, steps, 4)
+    if not torch.isfinite(driven).all():
+        row, step = (int(v) for v in (~torch.isfinite(driven)).any(-1).nonzero()[0])
+        scene, agent = (int(v) for v in controlled.nonzero()[row])
+        raise ScenarioValidationError(
+            f"policy {type(policy).__name__} produced NaN or inf states (first at scene {scene}, agent {agent}, "
+            f"step {start + 1 + step}); return finite states for every valid planned step."
+        )
+    states[:, :, future][controlled] = driven
     simulated = logged.replace_unchecked(states=states, valid=valid, controlled=controlled)
     logged = logged.replace_unchecked(controlled=controlled)
     return Rollout(simulated, logged, controlled, start, end, wall, policy_time)

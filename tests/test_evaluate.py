@@ -1,0 +1,90 @@
+"""``trafficrlhf evaluate`` end to end on a few real scenes, and its error messages."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+from click.testing import CliRunner
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.scenario import default_data_root
+
+
+@pytest.fixture(scope="module")
+def has_data() -> None:
+    """Skip unless nuscenes_pred and its source plugin are available."""
+    if not os.path.isdir(os.path.join(default_data_root(), "nuscenes_pred", "label")):
+        pytest.skip(f"nuscenes_pred not found under {default_data_root()!r}")
+    from trafficrlhf_sdk.plugins import registry
+
+    if "nuscenes_pred" not in registry("scenario_sources"):
+        pytest.skip("the nuscenes_pred source plugin is not installed")
+
+
+@pytest.fixture(scope="module")
+def cli():  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import get_cli
+
+    return get_cli()
+
+
+@pytest.mark.slow
+def test_evaluate_constant_velocity_writes_results(has_data, cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    out = tmp_path / "run"
+    result = CliRunner().invoke(
+        cli, ["evaluate", "--model", "constant_velocity", "--scenes", "5", "--out", str(out), "--json"]
+    )
+    assert result.exit_code == 0, (result.output, result.exception)
+    assert (out / "results.json").is_file() and (out / "histograms.png").is_file()
+    assert (out / "histograms.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    saved = json.loads((out / "results.json").read_text())
+    printed = json.loads(result.stdout)  # --json prints the same report on stdout (progress bars go to stderr)
+    assert printed["metrics"] == saved["metrics"]
+    assert saved["num_scenes"] == 5 and saved["num_controlled_agents"] > 0
+    assert saved["metadata"]["model"] == "constant_velocity" and len(saved["metadata"]["scene_ids"]) == 5
+    metrics, logged = saved["metrics"], saved["logged"]
+    for key in ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body"):
+        assert key in metrics and key in logged, key
+    assert 0.0 <= metrics["failure_rate"] <= 1.0
+    assert logged["realism_ctg"] == 0.0 and logged["realism_body"] == 0.0  # the log against itself
+    assert metrics["realism_ctg"] > 0.0
+    assert set(saved["histograms"]) == {"ctg", "body"}
+
+
+def test_unknown_model_lists_the_registered_ones(has_data, cli) -> None:  # type: ignore[no-untyped-def]
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "nope", "--scenes", "1"])
+    assert result.exit_code != 0
+    assert isinstance(result.exception, TrafficRLHFError)
+    message = str(result.exception)
+    assert "'nope'" in message
+    for name in ("constant_velocity", "log_replay", "noisy_log"):
+        assert name in message
+
+
+def test_unknown_model_through_the_console_entry_point(has_data, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``main`` turns the error into one ``Error:`` line on stderr and exit code 2."""
+    from trafficrlhf_sdk.cli import EXIT_USER_ERROR, main
+
+    with pytest.raises(SystemExit) as info:
+        main(["evaluate", "--model", "nope", "--scenes", "1"])
+    assert info.value.code == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    error_lines = [line for line in err.splitlines() if line.startswith("Error:")]
+    assert len(error_lines) == 1 and "nope" in error_lines[0] and "constant_velocity" in error_lines[0]
+
+
+def test_guidance_is_refused_for_a_model_without_it(has_data, cli) -> None:  # type: ignore[no-untyped-def]
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--guidance", "x", "--scenes", "1"])
+    assert result.exit_code != 0
+    assert isinstance(result.exception, TrafficRLHFError)
+    message = str(result.exception)
+    assert "constant_velocity" in message and "guidance" in message
+
+
+def test_evaluate_help_mentions_the_protocol(cli) -> None:  # type: ignore[no-untyped-def]
+    result = CliRunner().invoke(cli, ["evaluate", "--help"])
+    assert result.exit_code == 0
+    for option in ("--model", "--scenes", "--out", "--json", "--guidance"):
+        assert option in result.output
