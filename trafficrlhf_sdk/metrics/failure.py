@@ -27,17 +27,20 @@ def offroad_per_step(scenario: ScenarioTensor, mode: OffroadMode = "center") -> 
     (``mode="corners"``, stricter) lies off the drivable layer at a valid step."""
     if scenario.map is None:
         raise ValueError("off-road needs a map: the scenario has `map=None`; load it from a source with rasters.")
-    # float64 pixel coordinates: the pixel of the stored position, not of a float32-rounded transform of it
-    xy = scenario.xy.double()
-    if mode == "center":
-        on_road = scenario.map.lookup(xy)
-    elif mode == "corners":
-        extent = scenario.extent.double()[:, :, None].expand(-1, -1, scenario.num_steps, -1)
-        corners = box_corners(xy, scenario.yaw.double(), extent)
-        on_road = scenario.map.lookup(corners).all(-1)
-    else:
+    if mode not in ("center", "corners"):
         raise ValueError(f"`mode` must be 'center' or 'corners'; got {mode!r}.")
-    return ~on_road & scenario.valid
+    # only valid steps are looked up (most agent slots are padding); float64 pixel coordinates give the pixel of
+    # the stored position, not of a float32-rounded transform of it
+    scene, agent, step = scenario.valid.nonzero(as_tuple=True)
+    xy = scenario.xy[scene, agent, step].double()
+    if mode == "center":
+        on_road = scenario.map.lookup_points(scene, xy)
+    else:
+        corners = box_corners(xy, scenario.yaw[scene, agent, step].double(), scenario.extent[scene, agent].double())
+        on_road = scenario.map.lookup_points(scene.repeat_interleave(4), corners.reshape(-1, 2)).reshape(-1, 4).all(-1)
+    offroad = torch.zeros_like(scenario.valid)
+    offroad[scene, agent, step] = ~on_road
+    return offroad
 
 
 def scene_mean(per_agent: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,15 @@ from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["HistogramSpec", "RealismMetric", "histogram_distance", "kinematics", "scene_histogram"]
+__all__ = [
+    "HistogramSpec",
+    "RealismMetric",
+    "agent_kinematics",
+    "grouped_histogram",
+    "histogram_distance",
+    "kinematics",
+    "scene_histogram",
+]
 
 Preset = Literal["ctg", "body"]
 QUANTITIES = ("lon_acc", "lat_acc", "jerk")
@@ -54,9 +62,9 @@ STAT_DT = 0.5  # s, CTG's STAT_DT
 
 
 def _diff_extrapolated(x: torch.Tensor) -> torch.Tensor:
-    """``np.diff(x, prepend=x0 - (x1 - x0))`` along dim 2 of ``(B, A, K, ...)``: element 0 repeats element 1."""
-    d = x[:, :, 1:] - x[:, :, :-1]
-    return torch.cat([d[:, :, :1], d], 2)
+    """``np.diff(x, prepend=x0 - (x1 - x0))`` along dim 1 of ``(N, K, ...)``: element 0 repeats element 1."""
+    d = x[:, 1:] - x[:, :-1]
+    return torch.cat([d[:, :1], d], 1)
 
 
 def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
@@ -71,13 +79,26 @@ def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[s
         ``jerk`` (m/s^3) to ``(B, A, K)`` tensors; ``sample_valid (B, A, K)`` marks samples whose inputs are all
         valid; ``moving (B, A)`` marks agents faster than 0.5 m/s at the first sample.
     """
-    stride = max(1, round(STAT_DT / scenario.dt))
-    dt = stride * scenario.dt
-    pos = scenario.xy[:, :, ::stride].double()
-    yaw = scenario.yaw[:, :, ::stride].double()
-    valid = scenario.valid[:, :, ::stride]
-    if pos.shape[2] < 3:
-        raise ValueError(f"realism needs at least 3 samples at {dt} s; the window has {pos.shape[2]}.")
+    b, a = scenario.num_scenes, scenario.num_agents
+    quantities, sample_valid, moving = agent_kinematics(
+        scenario.xy.flatten(0, 1), scenario.yaw.flatten(0, 1), scenario.valid.flatten(0, 1), scenario.dt, preset
+    )
+    unflatten = lambda t: t.reshape(b, a, *t.shape[1:])  # noqa: E731
+    return {k: unflatten(v) for k, v in quantities.items()}, unflatten(sample_valid), unflatten(moving)
+
+
+def agent_kinematics(
+    xy: torch.Tensor, yaw: torch.Tensor, valid: torch.Tensor, dt: float, preset: Preset = "ctg"
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """:func:`kinematics` for a flat list of N agent tracks: ``xy (N, T, 2)``, ``yaw (N, T)``, ``valid (N, T)``
+    at step ``dt`` (s); returns quantities and ``sample_valid`` of shape ``(N, K)`` and ``moving (N,)``."""
+    stride = max(1, round(STAT_DT / dt))
+    dt = stride * dt
+    pos = xy[:, ::stride].double()
+    yaw = yaw[:, ::stride].double()
+    valid = valid[:, ::stride]
+    if pos.shape[1] < 3:
+        raise ValueError(f"realism needs at least 3 samples at {dt} s; the window has {pos.shape[1]}.")
     if preset == "ctg":
         vel = _diff_extrapolated(pos) / dt
         acc = _diff_extrapolated(vel) / dt
@@ -89,13 +110,13 @@ def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[s
             "jerk": _diff_extrapolated(acc_norm) / dt,
         }
         # every quantity at k reads positions k-3..k (k+1 for the extrapolated first samples)
-        padded = torch.cat([valid[:, :, 1:2].expand(-1, -1, 3), valid], 2)
-        sample_valid = padded[:, :, 3:] & padded[:, :, 2:-1] & padded[:, :, 1:-2] & padded[:, :, :-3]
-        sample_valid[:, :, 0] &= valid[:, :, 1]
-        moving = quantities["speed"][:, :, 0] > 0.5
+        padded = torch.cat([valid[:, 1:2].expand(-1, 3), valid], 1)
+        sample_valid = padded[:, 3:] & padded[:, 2:-1] & padded[:, 1:-2] & padded[:, :-3]
+        sample_valid[:, 0] &= valid[:, 1]
+        moving = quantities["speed"][:, 0] > 0.5
     elif preset == "body":
-        vel = torch.nn.functional.pad((pos[:, :, 1:] - pos[:, :, :-1]) / dt, (0, 0, 1, 0))
-        acc = torch.nn.functional.pad((vel[:, :, 1:] - vel[:, :, :-1]) / dt, (0, 0, 1, 0))
+        vel = torch.nn.functional.pad((pos[:, 1:] - pos[:, :-1]) / dt, (0, 0, 1, 0))
+        acc = torch.nn.functional.pad((vel[:, 1:] - vel[:, :-1]) / dt, (0, 0, 1, 0))
         heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
         normal = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)
         lon = (acc * heading).sum(-1)
@@ -103,14 +124,14 @@ def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[s
             "speed": torch.linalg.vector_norm(vel, dim=-1),
             "lon_acc": lon,
             "lat_acc": (acc * normal).sum(-1),
-            "jerk": torch.nn.functional.pad((lon[:, :, 1:] - lon[:, :, :-1]) / dt, (1, 0)),
+            "jerk": torch.nn.functional.pad((lon[:, 1:] - lon[:, :-1]) / dt, (1, 0)),
         }
         run = valid.clone()
         for lag in (1, 2, 3):  # jerk at k reads positions k-3..k; earlier samples have no defined jerk
-            run[:, :, lag:] &= valid[:, :, :-lag]
-            run[:, :, :lag] = False
+            run[:, lag:] &= valid[:, :-lag]
+            run[:, :lag] = False
         sample_valid = run
-        moving = quantities["speed"][:, :, 1] > 0.5
+        moving = quantities["speed"][:, 1] > 0.5
     else:
         raise ValueError(f"`preset` must be 'ctg' or 'body'; got {preset!r}.")
     return quantities, sample_valid, moving
@@ -120,14 +141,24 @@ def scene_histogram(values: torch.Tensor, mask: torch.Tensor, spec: HistogramSpe
     """Scene-normalized histogram: each scene's counts over ``mask``-ed ``values (B, ...)`` divided by the
     scene's total (empty scenes give 0), then averaged over the B scenes; float64 ``(num_bins,)``."""
     b = values.shape[0]
-    flat = values.reshape(b, -1).double()
-    keep = mask.reshape(b, -1) & (flat >= spec.low) & (flat <= spec.high)
+    scene = torch.arange(b, device=values.device)[:, None].expand(b, values[0].numel()).reshape(-1)
+    return grouped_histogram(values.reshape(-1), mask.reshape(-1), scene, b, spec)
+
+
+def grouped_histogram(
+    values: torch.Tensor, mask: torch.Tensor, scene: torch.Tensor, num_scenes: int, spec: HistogramSpec
+) -> torch.Tensor:
+    """:func:`scene_histogram` for flat ``values (N,)`` with ``mask (N,)`` belonging to scenes ``scene (N,)``
+    (ints in ``[0, num_scenes)``); scenes without values count as empty."""
+    flat = values.double()
+    keep = mask & (flat >= spec.low) & (flat <= spec.high)
     index = ((flat - spec.low) / (spec.high - spec.low) * spec.num_bins).floor().long().clamp(0, spec.num_bins - 1)
-    counts = torch.zeros(b, spec.num_bins, dtype=torch.float64, device=values.device)
-    counts.scatter_add_(1, index * keep, keep.double())
+    counts = torch.zeros(num_scenes * spec.num_bins, dtype=torch.float64, device=values.device)
+    counts.scatter_add_(0, (scene * spec.num_bins + index)[keep], torch.ones_like(flat[keep]))
+    counts = counts.reshape(num_scenes, spec.num_bins)
     totals = counts.sum(1, keepdim=True)
     per_scene = torch.where(totals > 0, counts / totals.clamp_min(1), torch.zeros_like(counts))
-    return per_scene.sum(0) / max(b, 1)
+    return per_scene.sum(0) / max(num_scenes, 1)
 
 
 def histogram_distance(reference: torch.Tensor, other: torch.Tensor, spec: HistogramSpec) -> float:
@@ -153,9 +184,16 @@ class RealismMetric(Metric):
 
     def histograms(self, window: ScenarioTensor, controlled: torch.Tensor) -> dict[str, torch.Tensor]:
         """Histograms ``(num_bins,)`` of every quantity for the controlled, moving agents of ``window``."""
-        quantities, sample_valid, moving = kinematics(window, self.preset)
-        mask = sample_valid & (controlled & moving)[:, :, None]
-        return {name: scene_histogram(values, mask, SPECS[name]) for name, values in quantities.items()}
+        scene, agent = controlled.nonzero(as_tuple=True)  # only controlled agents count: skip padding early
+        quantities, sample_valid, moving = agent_kinematics(
+            window.xy[scene, agent], window.yaw[scene, agent], window.valid[scene, agent], window.dt, self.preset
+        )
+        mask = (sample_valid & moving[:, None]).reshape(-1)
+        per_sample_scene = scene[:, None].expand_as(sample_valid).reshape(-1)
+        return {
+            name: grouped_histogram(values.reshape(-1), mask, per_sample_scene, window.num_scenes, SPECS[name])
+            for name, values in quantities.items()
+        }
 
     def compute(self, rollout: Rollout) -> MetricResult:
         """``realism_<preset>`` (mean of the three distances) and each quantity's distance."""
