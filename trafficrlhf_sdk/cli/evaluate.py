@@ -81,14 +81,14 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
     torch.manual_seed(seed)
+    # build the model first: a bad --model/--guidance fails before any data is read
+    policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     options = {"root": root} if root else {}
     scenario_source = get_scenario_source(source, **options)
     scene_ids = scenario_source.scene_ids(split)[:num_scenes]
     if not scene_ids:
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
-    policy_options: dict[str, object] = {"guidance": guidance, "checkpoint": checkpoint, "seed": seed}
-    policy = build_policy(model, policy_options)
     config = EvaluationConfig(batch_size=batch_size, seed=seed)
     report = evaluate_policy(
         policy, scenario, config, progress=True,
