@@ -112,6 +112,8 @@ def check_adapter(
 
     # --- gradients reach the offered parameters only; a step leaves frozen ones bitwise equal
     frozen_before = {name: p.detach().clone() for name, p in adapter.module.named_parameters() if id(p) not in offered}
+    # the check takes a real optimizer step; restore the weights afterwards so the caller's adapter is unchanged
+    weights_before = {name: t.detach().clone() for name, t in adapter.module.state_dict().items()}
     adapter.module.train()
     adapter.module.zero_grad(set_to_none=True)
     lp = adapter.log_prob(context, out.trace.detach())
@@ -134,6 +136,7 @@ def check_adapter(
             _fail(adapter, f"frozen parameter {name!r} changed in a training step on the offered groups",
                   "do not share tensors between offered and frozen parts")
     facts["groups_with_gradient"] = moved
+    adapter.module.load_state_dict(weights_before)
 
     # --- closed-loop planning
     adapter.reset(context)
