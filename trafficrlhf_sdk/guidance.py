@@ -148,23 +148,40 @@ class NoCollisionGuidance(Guidance):
             logged_valid = torch.nn.functional.pad(logged_valid, (0, pad))
         controlled = context.controlled[:, None, :, None, None]
         states = torch.where(controlled, futures, logged[:, None].to(futures))  # (B, S, A, H, 4)
-        valid = torch.where(context.controlled[:, :, None], torch.ones_like(logged_valid), logged_valid)
+        valid = torch.where(context.controlled[:, :, None], torch.ones_like(logged_valid), logged_valid)  # (B, A, H)
+        loss = torch.zeros(b, s, a, dtype=futures.dtype, device=futures.device)
+        # Only pairs that can come within reach matter: prune with each agent's largest excursion from its first
+        # planned position (exact: a pruned pair has zero penalty for every sample and step).
+        present = valid.any(-1)
+        first_xy = states[:, :, :, 0, :2]  # (B, S, A, 2)
+        excursion = torch.linalg.vector_norm(states[..., :2] - first_xy[:, :, :, None], dim=-1).amax((1, 3))
+        size = 0.5 * torch.linalg.vector_norm(context.extent, dim=-1)  # (B, A) half-diagonal covers every disk
+        reach_ij = (excursion + size)[:, :, None] + (excursion + size)[:, None, :] + self.buffer_m
+        gap = torch.linalg.vector_norm(first_xy[:, :, :, None] - first_xy[:, :, None, :], dim=-1).amin(1)  # (B,A,A)
+        close = (gap <= reach_ij) & present[:, :, None] & present[:, None, :]
+        close &= torch.ones(a, a, dtype=torch.bool, device=futures.device).triu(1)
+        scene, i, j = close.nonzero(as_tuple=True)
+        if scene.numel() == 0:
+            return loss
         length, width = context.extent[..., 0], context.extent[..., 1]
-        radius = (width / 2)[:, None, :, None]  # (B, 1, A, 1)
         offsets = torch.linspace(-1.0, 1.0, self.num_disks, device=futures.device)
-        along = (length / 2 - width / 2).clamp_min(0)[:, None, :, None, None] * offsets  # (B, 1, A, 1, D)
-        cos, sin = torch.cos(states[..., 3])[..., None], torch.sin(states[..., 3])[..., None]
-        centres = torch.stack([states[..., 0:1] + along * cos, states[..., 1:2] + along * sin], -1)  # (B,S,A,H,D,2)
-        diff = centres[:, :, :, None, :, :, None] - centres[:, :, None, :, :, None, :]  # (B,S,A,A,H,D,D,2)
-        dist = torch.linalg.vector_norm(diff, dim=-1).amin((-1, -2))  # (B, S, A, A, H)
-        reach = radius[:, :, :, None] + radius[:, :, None, :] + self.buffer_m  # (B, 1, A, A, 1)
-        penalty = torch.relu(1 - dist / reach)
-        pair_valid = valid[:, None, :, None, :] & valid[:, None, None, :, :]
-        pair_valid = pair_valid & ~torch.eye(a, dtype=torch.bool, device=futures.device)[None, None, :, :, None]
-        penalty = penalty * pair_valid
-        weights = _time_weights(h, self.decay, futures.device)
-        others = max(a - 1, 1)
-        return (penalty * weights).sum(-1).sum(-1) / others
+
+        def disk_centres(agent: torch.Tensor) -> torch.Tensor:  # (P, S, H, D, 2)
+            st = states[scene, :, agent]  # (P, S, H, 4)
+            along = (length[scene, agent] / 2 - width[scene, agent] / 2).clamp_min(0)[:, None, None, None] * offsets
+            cos, sin = torch.cos(st[..., 3])[..., None], torch.sin(st[..., 3])[..., None]
+            return torch.stack([st[..., 0:1] + along * cos, st[..., 1:2] + along * sin], -1)
+
+        diff = disk_centres(i)[:, :, :, :, None] - disk_centres(j)[:, :, :, None, :]  # (P, S, H, D, D, 2)
+        dist = torch.linalg.vector_norm(diff, dim=-1).amin((-1, -2))  # (P, S, H)
+        reach = (width[scene, i] / 2 + width[scene, j] / 2 + self.buffer_m)[:, None, None]
+        both = (valid[scene, i] & valid[scene, j])[:, None, :]  # (P, 1, H)
+        penalty = torch.relu(1 - dist / reach) * both
+        per_pair = (penalty * _time_weights(h, self.decay, futures.device)).sum(-1)  # (P, S)
+        flat = loss.permute(0, 2, 1).reshape(b * a, s)  # (B*A, S)
+        flat = flat.index_add(0, scene * a + i, per_pair).index_add(0, scene * a + j, per_pair)
+        others = (present.sum(-1, keepdim=True) - 1).clamp_min(1)  # other agents of the scene
+        return flat.reshape(b, a, s).permute(0, 2, 1) / others[:, None, :].to(futures)
 
 
 class NoOffroadGuidance(Guidance):

@@ -1,0 +1,108 @@
+"""Tests of the ``ctg`` adapter: contract (check_adapter), guidance, exact log-probabilities, registry, CLI.
+
+Data-dependent tests are skipped when ``trafficrlhf_sdk.scenario.default_data_root()`` lacks nuscenes_pred.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.guidance import GuidanceSet, SpeedLimitGuidance
+from trafficrlhf_sdk.scenario import default_data_root
+
+ROOT = os.path.join(default_data_root(), "nuscenes_pred")
+HAS_DATA = os.path.isdir(os.path.join(ROOT, "label"))
+needs_data = pytest.mark.skipif(not HAS_DATA, reason=f"nuscenes_pred data not found under {ROOT!r}")
+
+
+@pytest.fixture(scope="module")
+def scenes():  # type: ignore[no-untyped-def]
+    """The first 3 long-enough val scenes."""
+    if not HAS_DATA:
+        pytest.skip("no data")
+    from trafficrlhf_nuscenes_pred import NuScenesPredSource
+
+    return NuScenesPredSource(root=ROOT).load_batch("val", 3)
+
+
+@pytest.fixture(scope="module")
+def adapter():  # type: ignore[no-untyped-def]
+    """The adapter with the bundled checkpoint."""
+    from trafficrlhf_ctg import CTGAdapter, default_checkpoint
+
+    if not (default_checkpoint() / "model.safetensors").is_file():
+        pytest.skip("bundled CTG checkpoint missing")
+    return CTGAdapter(seed=0)
+
+
+@needs_data
+def test_check_adapter(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.testing.check_adapter import check_adapter
+
+    facts = check_adapter(adapter, scenes)
+    assert facts["log_prob_shape"][3] == adapter.cfg.sample_steps
+    assert set(facts["groups_with_gradient"]) == {"encoder", "decoder"}
+    assert 300_000 <= sum(facts["parameters"].values()) <= 1_500_000
+
+
+@needs_data
+def test_guided_log_prob_is_exact(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
+    guidance = GuidanceSet([SpeedLimitGuidance(limit=2.0)]).fit(scenes)
+    out = adapter.sample(scenes, 3, guidance, torch.Generator().manual_seed(7))
+    assert out.trace.tensors["guide_delta"].abs().sum() > 0, "guidance did not perturb any step"
+    recomputed = adapter.log_prob(scenes, out.trace.detach())
+    assert recomputed.shape == out.log_prob.shape
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-3, rtol=1e-4)
+    # the last step is never guided
+    assert out.trace.tensors["guide_delta"][..., -1, :, :].abs().sum() == 0
+
+
+@needs_data
+def test_guidance_lowers_its_loss(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
+    guidance = GuidanceSet([SpeedLimitGuidance(limit=2.0)]).fit(scenes)
+    agents = scenes.controlled & scenes.valid[:, :, scenes.current_index]
+    plain = adapter.sample(scenes, 8, None, torch.Generator().manual_seed(3))
+    guided = adapter.sample(scenes, 8, guidance, torch.Generator().manual_seed(3))
+    loss = lambda out: guidance.loss(out.futures, scenes.current_index, scenes)[agents[:, None].expand(-1, 8, -1)]  # noqa: E731
+    assert loss(guided).mean() < loss(plain).mean()
+
+
+@needs_data
+def test_stationary_agents_are_held(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
+    now = scenes.current_index
+    states = scenes.states.clone()
+    states[:, :, now, 2] = 0.0  # everybody stopped now
+    stopped = scenes.replace_unchecked(states=states)
+    out = adapter.sample(stopped, 2, None, torch.Generator().manual_seed(0))
+    agents = out.trace.agents
+    xy_now = states[:, :, now, :2][:, None, :, None].expand(-1, 2, -1, adapter.horizon, -1)
+    assert torch.equal(out.futures[..., :2][agents[:, None].expand(-1, 2, -1)],
+                       xy_now[agents[:, None].expand(-1, 2, -1)])
+
+
+def test_registry_entry_point() -> None:
+    from trafficrlhf_sdk import get_traffic_model
+    from trafficrlhf_sdk.plugins import registry
+
+    from trafficrlhf_ctg import CTGAdapter
+
+    assert registry("traffic_models").get("ctg") is CTGAdapter
+    if (pytest.importorskip("trafficrlhf_ctg").default_checkpoint() / "model.safetensors").is_file():
+        model = get_traffic_model("ctg", seed=1)
+        assert isinstance(model, CTGAdapter)
+
+
+@pytest.mark.slow
+@needs_data
+def test_cli_evaluate(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.cli import cli
+
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "ctg", "--scenes", "3", "--guidance", "speed_limit",
+                                      "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "results.json").is_file()

@@ -1,0 +1,208 @@
+"""``CTGAdapter``: the compact CTG (:mod:`ctg_reference`) behind the SDK's :class:`TrafficModelAdapter` contract.
+
+* ``sample`` featurizes the sampled agents (controlled and valid now; other slots hold their current state and
+  get log-probability 0), runs the DDIM sampler in each agent's frame, and rolls the actions out with the
+  unicycle (no bounds, as in training) from each agent's current scene-frame state: futures ``(B, S, A, 20, 4)``.
+* Guidance (CTG): at every non-final denoising step the posterior mean is moved by one sign-gradient step of
+  the :class:`GuidanceSet` loss evaluated on the rolled-out scene-frame futures, clipped to +-sigma. The
+  perturbation is stored in the trace (``guide_delta``) so :meth:`log_prob` recomputes the density the sample
+  was actually drawn from.
+* Trace: ``chain (B, S, A, K+1, 20, 2)`` (normalized x_K .. x_0) and ``guide_delta (B, S, A, K, 20, 2)``;
+  log-probabilities are per denoising step, ``(B, S, A, K)`` with K = 5.
+* Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
+  kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
+  ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from pydantic import Field
+
+import ctg_reference
+from ctg_reference.data import agent_features, future_targets, select_rows, window_mask
+from ctg_reference.model import CTGConfig, CTGModel
+from trafficrlhf_sdk.dynamics import unicycle_rollout
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
+from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["CTGAdapter", "CTGOptions", "default_checkpoint"]
+
+
+def default_checkpoint() -> Path:
+    """The checkpoint bundled with ``trafficrlhf-reference-ctg`` (``reference_models/ctg/checkpoints/ctg_small``)."""
+    return Path(ctg_reference.__file__).resolve().parent.parent / "checkpoints" / "ctg_small"
+
+
+class CTGOptions(AdapterOptions):
+    """Options of :class:`CTGAdapter`."""
+
+    stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed now (m/s) are held still.")
+    imitation_windows: int = Field(4, ge=1, description="Time steps per scene sampled by imitation_loss.")
+
+
+class CTGAdapter(TrafficModelAdapter):
+    """Compact CTG diffusion traffic model (horizon 20 steps = 2 s at 0.1 s)."""
+
+    name = "ctg"
+    Options = CTGOptions
+    horizon = 20
+
+    # ------------------------------------------------------------ construction
+    def build(self, config: dict[str, Any] | None) -> None:
+        """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
+        Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
+        directory = self.options.checkpoint
+        if config is None:
+            directory = directory or str(default_checkpoint())
+            path = os.path.join(directory, "config.json")
+            if not os.path.isfile(path):
+                raise DataNotFoundError(
+                    f"no CTG checkpoint at {directory!r} (missing config.json). Train one with `python -m "
+                    "ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small` or pass checkpoint=DIR."
+                )
+            with open(path, encoding="utf-8") as handle:
+                saved = json.load(handle)
+            if saved.get("adapter") != self.name:
+                raise DataFormatError(f"{directory!r} holds weights for {saved.get('adapter')!r}, not 'ctg'.")
+            config = saved["config"]
+        self.cfg = CTGConfig.from_dict(config)
+        self.horizon = self.cfg.horizon
+        self.model = CTGModel(self.cfg)
+        if directory is not None:
+            tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"))
+            try:
+                self.model.load_state_dict(tensors, strict=True)
+            except RuntimeError as exc:
+                raise DataFormatError(f"weights in {directory!r} do not match the CTG config: "
+                                      f"{str(exc).splitlines()[0]}") from exc
+        self.model.eval()
+
+    def get_config(self) -> dict[str, Any]:
+        """The model's :class:`CTGConfig` as a dict (normalization statistics included)."""
+        return self.model.cfg.to_dict()
+
+    @property
+    def module(self) -> torch.nn.Module:
+        """The :class:`CTGModel`."""
+        return self.model
+
+    def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
+        """``encoder`` (map CNN, history and neighbour MLPs, fusion) and ``decoder`` (the temporal U-Net)."""
+        return {"encoder": list(self.model.encoder.parameters()), "decoder": list(self.model.denoiser.parameters())}
+
+    # ------------------------------------------------------------ helpers
+    def _check_dt(self, context: ScenarioTensor) -> None:
+        if abs(context.dt - self.cfg.dt) > 1e-9:
+            raise ValueError(f"the CTG model runs at dt={self.cfg.dt} s; the scenario has dt={context.dt} s. Load "
+                             "the scenes with dt=0.1.")
+
+    def _encode(self, context: ScenarioTensor, agents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Conditioning ``(N, D)`` and current scene-frame states ``(N, 4)`` of the ``agents (B, A)`` rows."""
+        rows = select_rows(agent_features(context, self.cfg), agents)
+        return self.model.encode(rows), context.states[:, :, context.current_index][agents]
+
+    def _rollout(self, x: torch.Tensor, state_now: torch.Tensor) -> torch.Tensor:
+        """Scene-frame futures ``(N, S, H, 4)`` of normalized actions ``x (N, S, H, 2)``; stationary agents held."""
+        n, s, h, _ = x.shape
+        start = state_now[:, None].expand(n, s, 4)
+        states = unicycle_rollout(start, self.model.unnormalize(x), dt=self.cfg.dt, bounds=None)
+        hold = torch.stack([state_now[:, 0], state_now[:, 1], torch.zeros_like(state_now[:, 0]), state_now[:, 3]], -1)
+        still = (state_now[:, 2].abs() <= self.options.stationary_speed)[:, None, None, None]
+        return torch.where(still, hold[:, None, None].expand(n, s, h, 4), states)
+
+    @staticmethod
+    def _scatter(rows: torch.Tensor, agents: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """Place per-row values ``(N, S, ...)`` into ``base (B, A, S, ...)`` at ``agents``; returns
+        ``(B, S, A, ...)`` (differentiable w.r.t. ``rows``)."""
+        full = base.clone()
+        full[agents] = rows.to(full.dtype)
+        return full.transpose(1, 2)
+
+    # ------------------------------------------------------------ contract
+    def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
+               generator: torch.Generator | None = None) -> SampleOutput:
+        """Draw ``num_samples`` futures ``(B, S, A, 20, 4)`` for the controlled agents valid now."""
+        self._check_dt(context)
+        now = context.current_index
+        b, a, s, h = context.num_scenes, context.num_agents, num_samples, self.horizon
+        k = self.cfg.sample_steps
+        agents = context.controlled & context.valid[:, :, now]
+        current = context.states[:, :, now]  # (B, A, 4)
+        hold = torch.stack([current[..., 0], current[..., 1], torch.zeros_like(current[..., 0]), current[..., 3]], -1)
+        base_futures = hold[:, :, None, None].expand(b, a, s, h, 4)
+        with torch.no_grad():
+            cond, state_now = self._encode(context, agents)
+            guidance_fn = None
+            if guidance is not None and cond.shape[0] > 0:
+                def guidance_fn(mean: torch.Tensor, step: int) -> torch.Tensor:
+                    futures = self._scatter(self._rollout(mean, state_now), agents, base_futures)
+                    loss = guidance.loss(futures, now, context)  # (B, S, A)
+                    return (loss * agents[:, None]).sum()
+
+            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn)
+            futures = self._rollout(self.model.normalize(actions), state_now)
+        dev = context.device
+        trace = PolicyTrace(
+            tensors={
+                "chain": self._scatter(chain, agents, torch.zeros(b, a, s, k + 1, h, 2, device=dev)),
+                "guide_delta": self._scatter(delta, agents, torch.zeros(b, a, s, k, h, 2, device=dev)),
+            },
+            agents=agents,
+            now=now,
+            info={"guidance": None if guidance is None else guidance.names},
+        )
+        return SampleOutput(
+            futures=self._scatter(futures, agents, base_futures),
+            trace=trace,
+            log_prob=self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=dev)),
+        )
+
+    def log_prob(self, context: ScenarioTensor, trace: PolicyTrace) -> torch.Tensor:
+        """Per-denoising-step log-probabilities ``(B, S, A, K)`` of the traced chains (0 for other agents)."""
+        if trace.now != context.current_index:
+            raise ValueError(f"trace.now={trace.now} but context.current_index={context.current_index}; pass the "
+                             "context the sample was drawn from.")
+        agents = trace.agents.to(context.device)
+        chain = trace.tensors["chain"].transpose(1, 2)[agents]  # (N, S, K+1, H, 2)
+        delta = trace.tensors["guide_delta"].transpose(1, 2)[agents]
+        b, s, a = trace.tensors["chain"].shape[:3]
+        k = chain.shape[2] - 1
+        cond, _ = self._encode(context, agents)
+        log_prob = self.model.chain_log_prob(cond, chain, delta)  # (N, S, K)
+        return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
+
+    def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
+        """The diffusion training loss on logged windows of ``batch``: every vehicle with 1 s of valid history
+        and a valid 2 s future at up to ``imitation_windows`` evenly spaced steps. Noise levels and noise are
+        drawn from torch's global generator."""
+        self._check_dt(batch)
+        th, h = self.cfg.history_steps, self.horizon
+        candidates = list(range(th, batch.num_steps - h, 5))
+        if len(candidates) > self.options.imitation_windows:
+            pick = torch.linspace(0, len(candidates) - 1, self.options.imitation_windows).round().long().tolist()
+            candidates = [candidates[i] for i in pick]
+        actions_all = batch.actions()
+        parts: dict[str, list[torch.Tensor]] = {}
+        for t in candidates:  # a few time windows; agents are batched
+            mask = window_mask(batch, t, h, th)
+            if not mask.any():
+                continue
+            rows = select_rows(agent_features(batch.replace_unchecked(current_index=t), self.cfg), mask)
+            acts, states = future_targets(batch, t, h, actions_all)
+            rows["actions"], rows["states"] = acts[mask], states[mask]
+            for key, value in rows.items():
+                parts.setdefault(key, []).append(value)
+        if not parts:
+            return sum(p.sum() * 0.0 for p in self.model.parameters())  # type: ignore[return-value]
+        data = {key: torch.cat(values) for key, values in parts.items()}
+        loss, _ = self.model.loss(self.model.encode(data), data["actions"], data["v0"], data["states"])
+        return loss

@@ -1,0 +1,394 @@
+"""A compact CTG (Controllable Traffic Generation, Zhong et al. 2023) in plain PyTorch.
+
+This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and returns per-agent tensors.
+
+* Context encoder: a small CNN over an agent-centric map crop, an MLP over the agent's recent history (and its
+  box size), an MLP + max-pool over its nearest neighbours, fused into a conditioning vector.
+* Denoiser: a 1-D temporal U-Net (Conv1d residual blocks, GroupNorm, Mish, one down/up level) whose blocks get the
+  diffusion-time embedding concatenated with the conditioning vector as a per-channel bias. It predicts the clean
+  sample x0 (not the noise) over ``horizon`` steps of normalized (acceleration, yaw rate).
+* Diffusion: cosine beta schedule (s = 0.008) with ``diffusion_steps`` training steps. Training loss = MSE on
+  normalized actions + MSE on normalized agent-frame states rebuilt from the actions by a unicycle rollout.
+* Sampling: DDIM over ``sample_steps`` of the training steps with ``eta`` > 0, so every step is a Gaussian
+  ``p(x_prev | x_k) = N(mu_theta(x_k) + delta_k, sigma_k^2)``. ``delta_k`` is the CTG guidance perturbation
+  (one sign-gradient step of size ``guidance_step`` on the posterior mean, clipped to +-sigma_k, none at the
+  last step); it is stored with the chain so :meth:`CTGModel.chain_log_prob` recomputes exactly the density the
+  sample was drawn from.
+
+Agent frame: origin at the agent's current position, x along its current heading. States are
+``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
+
+    x' = x + dt cos(yaw) (v + a dt / 2),  y' = y + dt sin(yaw) (v + a dt / 2),  v' = v + a dt,  yaw' = yaw + w dt
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["CTGConfig", "CTGModel", "ContextEncoder", "TemporalUNet", "cosine_alphas_bar", "unicycle_from_origin"]
+
+LOG_2PI = math.log(2 * math.pi)
+
+
+@dataclass
+class CTGConfig:
+    """Architecture, diffusion and normalization settings (JSON-serializable via :meth:`to_dict`)."""
+
+    horizon: int = 20
+    dt: float = 0.1
+    map_channels: int = 3
+    map_size: int = 48
+    history_steps: int = 10
+    num_neighbours: int = 8
+    cond_dim: int = 128
+    map_dim: int = 128
+    unet_dims: tuple[int, int] = (32, 64)
+    kernel_size: int = 3
+    groups: int = 8
+    time_dim: int = 32
+    diffusion_steps: int = 100
+    sample_steps: int = 5
+    eta: float = 1.0
+    guidance_step: float = 0.3
+    x0_clip: float = 6.0
+    state_loss_weight: float = 1.0
+    # normalization (filled from data by the training script)
+    action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
+    state_std: list[float] = field(default_factory=lambda: [10.0, 1.0, 3.0, 0.1])
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (tuples as lists)."""
+        d = asdict(self)
+        d["unet_dims"] = list(self.unet_dims)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CTGConfig:
+        """Inverse of :meth:`to_dict` (unknown keys are an error)."""
+        d = dict(d)
+        if "unet_dims" in d:
+            d["unet_dims"] = tuple(d["unet_dims"])
+        return cls(**d)
+
+
+# --------------------------------------------------------------------------------------------- utilities
+def cosine_alphas_bar(steps: int, s: float = 0.008) -> torch.Tensor:
+    """Cumulative products of (1 - beta) of the cosine schedule (Nichol & Dhariwal), ``(steps,)`` float64."""
+    x = torch.linspace(0, steps, steps + 1, dtype=torch.float64)
+    f = torch.cos(((x / steps) + s) / (1 + s) * math.pi / 2) ** 2
+    f = f / f[0]
+    betas = (1 - f[1:] / f[:-1]).clamp(0, 0.999)
+    return torch.cumprod(1 - betas, 0)
+
+
+def unicycle_from_origin(actions: torch.Tensor, v0: torch.Tensor, dt: float) -> torch.Tensor:
+    """Unicycle rollout (no bounds) from ``(0, 0, v0, 0)``: actions ``(..., H, 2)``, ``v0 (...)`` ->
+    states ``(..., H, 4)`` (yaw not wrapped; it stays small in the agent frame)."""
+    acc, yaw_rate = actions.unbind(-1)
+    v0 = v0[..., None]
+    v = v0 + dt * torch.cumsum(acc, -1)
+    yaw = dt * torch.cumsum(yaw_rate, -1)
+    v_prev = torch.cat([v0, v[..., :-1]], -1)
+    yaw_prev = torch.cat([torch.zeros_like(v0), yaw[..., :-1]], -1)
+    travel = dt * (v_prev + 0.5 * dt * acc)
+    x = torch.cumsum(travel * torch.cos(yaw_prev), -1)
+    y = torch.cumsum(travel * torch.sin(yaw_prev), -1)
+    return torch.stack([x, y, v, yaw], -1)
+
+
+def _mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
+    return nn.Sequential(*layers)
+
+
+# --------------------------------------------------------------------------------------------- encoder
+class ContextEncoder(nn.Module):
+    """Map crop CNN + history MLP + neighbour MLP/max-pool -> conditioning vector ``(N, cond_dim)``.
+
+    Inputs (all in the agent frame):
+        map ``(N, C, S, S)`` in {0, 1}; history ``(N, Th, 5)`` (x, y, speed, cos, sin of relative yaw) with
+        ``history_valid (N, Th)``; extent ``(N, 2)`` (length, width); neighbours ``(N, K, 7)`` (x, y, cos, sin,
+        speed, length, width) with ``neighbour_valid (N, K)``.
+    """
+
+    def __init__(self, cfg: CTGConfig) -> None:
+        super().__init__()
+        c = cfg.map_channels
+        self.cnn = nn.Sequential(
+            nn.Conv2d(c, 8, 3, stride=2, padding=1), nn.GroupNorm(4, 8), nn.Mish(),
+            nn.Conv2d(8, 16, 3, stride=2, padding=1), nn.GroupNorm(4, 16), nn.Mish(),
+            nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.GroupNorm(8, 32), nn.Mish(),
+            nn.Conv2d(32, 64, 3, stride=2, padding=1), nn.GroupNorm(8, 64), nn.Mish(),
+            nn.Flatten(),
+        )
+        with torch.no_grad():
+            flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
+        self.map_head = nn.Sequential(nn.Linear(flat, cfg.map_dim), nn.Mish())
+        self.history = _mlp([cfg.history_steps * 6 + 2, 128, 64])
+        self.neighbour = _mlp([8, 64, 64])
+        self.fuse = _mlp([cfg.map_dim + 64 + 64, 256, cfg.cond_dim])
+        # fixed input scales (m, m/s): keep inputs O(1)
+        self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
+        self.register_buffer("neighbour_scale", torch.tensor([20.0, 20.0, 1.0, 1.0, 10.0, 5.0, 2.0]),
+                             persistent=False)
+
+    def forward(self, map_crop: torch.Tensor, history: torch.Tensor, history_valid: torch.Tensor,
+                extent: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor) -> torch.Tensor:
+        """Conditioning ``(N, cond_dim)``."""
+        m = self.map_head(self.cnn(map_crop.float()))
+        hv = history_valid.float()
+        h = torch.cat([history / self.history_scale * hv[..., None], hv[..., None]], -1).flatten(1)
+        h = self.history(torch.cat([h, extent / 5.0], -1))
+        nv = neighbour_valid.float()
+        n = self.neighbour(torch.cat([neighbours / self.neighbour_scale, nv[..., None]], -1))  # (N, K, 64)
+        n = torch.where(neighbour_valid[..., None], n, torch.full_like(n, -1e4)).amax(1)
+        n = torch.where(neighbour_valid.any(1, keepdim=True), n, torch.zeros_like(n))
+        return self.fuse(torch.cat([m, h, n], -1))
+
+
+# --------------------------------------------------------------------------------------------- denoiser
+class SinusoidalEmbedding(nn.Module):
+    """Sinusoidal embedding of the (integer) diffusion step."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dim = dim
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` -> ``(N, dim)``."""
+        half = self.dim // 2
+        freq = torch.exp(-math.log(10000) * torch.arange(half, device=t.device, dtype=torch.float32) / (half - 1))
+        arg = t.float()[:, None] * freq[None]
+        return torch.cat([arg.sin(), arg.cos()], -1)
+
+
+class ResBlock1d(nn.Module):
+    """Two Conv1d + GroupNorm + Mish with the embedding added as a per-channel bias, plus a residual path."""
+
+    def __init__(self, cin: int, cout: int, emb_dim: int, kernel: int, groups: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv1d(cin, cout, kernel, padding=kernel // 2)
+        self.norm1 = nn.GroupNorm(groups, cout)
+        self.conv2 = nn.Conv1d(cout, cout, kernel, padding=kernel // 2)
+        self.norm2 = nn.GroupNorm(groups, cout)
+        self.emb = nn.Sequential(nn.Mish(), nn.Linear(emb_dim, cout))
+        self.skip = nn.Conv1d(cin, cout, 1) if cin != cout else nn.Identity()
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        """``(N, cin, L)`` -> ``(N, cout, L)``."""
+        h = F.mish(self.norm1(self.conv1(x))) + self.emb(emb)[..., None]
+        h = F.mish(self.norm2(self.conv2(h)))
+        return h + self.skip(x)
+
+
+class TemporalUNet(nn.Module):
+    """1-D temporal U-Net with one down/up level over ``(N, 2, H)`` normalized actions."""
+
+    def __init__(self, cfg: CTGConfig) -> None:
+        super().__init__()
+        d1, d2 = cfg.unet_dims
+        k, g = cfg.kernel_size, cfg.groups
+        self.time = nn.Sequential(SinusoidalEmbedding(cfg.time_dim), nn.Linear(cfg.time_dim, 64), nn.Mish(),
+                                  nn.Linear(64, cfg.time_dim))
+        emb = cfg.time_dim + cfg.cond_dim
+        self.down1 = ResBlock1d(2, d1, emb, k, g)
+        self.down2 = ResBlock1d(d1, d1, emb, k, g)
+        self.downsample = nn.Conv1d(d1, d1, 3, stride=2, padding=1)
+        self.mid1 = ResBlock1d(d1, d2, emb, k, g)
+        self.mid2 = ResBlock1d(d2, d2, emb, k, g)
+        self.upsample = nn.ConvTranspose1d(d2, d2, 4, stride=2, padding=1)
+        self.up1 = ResBlock1d(d2 + d1, d1, emb, k, g)
+        self.up2 = ResBlock1d(d1, d1, emb, k, g)
+        self.out = nn.Sequential(nn.Conv1d(d1, d1, k, padding=k // 2), nn.GroupNorm(g, d1), nn.Mish(),
+                                 nn.Conv1d(d1, 2, 1))
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """x ``(N, H, 2)``, t ``(N,)`` int, cond ``(N, cond_dim)`` -> x0 prediction ``(N, H, 2)``."""
+        emb = torch.cat([self.time(t), cond], -1)
+        h = x.transpose(1, 2)
+        length = h.shape[-1]
+        h = self.down2(self.down1(h, emb), emb)
+        skip = h
+        h = self.downsample(h)
+        h = self.mid2(self.mid1(h, emb), emb)
+        h = self.upsample(h)[..., :length]
+        h = self.up2(self.up1(torch.cat([h, skip], 1), emb), emb)
+        return self.out(h).transpose(1, 2)
+
+
+# --------------------------------------------------------------------------------------------- model
+GuidanceFn = Callable[[torch.Tensor, int], torch.Tensor]
+
+
+class CTGModel(nn.Module):
+    """Encoder + denoiser + diffusion utilities. Actions are normalized with the config's mean/std."""
+
+    def __init__(self, cfg: CTGConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or CTGConfig()
+        self.encoder = ContextEncoder(self.cfg)
+        self.denoiser = TemporalUNet(self.cfg)
+        self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
+        self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
+        self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
+        self.register_buffer("alphas_bar", cosine_alphas_bar(self.cfg.diffusion_steps).float(), persistent=False)
+
+    # ------------------------------------------------------------ schedule
+    @property
+    def sample_schedule(self) -> list[tuple[int, int]]:
+        """DDIM transitions ``(k, k_prev)``: ``sample_steps`` evenly spaced steps from K-1 down to 0."""
+        k = self.cfg.diffusion_steps
+        points = [round((k - 1) * (1 - i / self.cfg.sample_steps)) for i in range(self.cfg.sample_steps + 1)]
+        return list(zip(points[:-1], points[1:]))
+
+    def set_normalization(self, action_mean: torch.Tensor, action_std: torch.Tensor, state_std: torch.Tensor) -> None:
+        """Set the normalization statistics (buffers and config)."""
+        self.action_mean.copy_(action_mean)
+        self.action_std.copy_(action_std)
+        self.state_std.copy_(state_std)
+        self.cfg.action_mean = [float(v) for v in action_mean]
+        self.cfg.action_std = [float(v) for v in action_std]
+        self.cfg.state_std = [float(v) for v in state_std]
+
+    def normalize(self, actions: torch.Tensor) -> torch.Tensor:
+        """Physical actions -> normalized."""
+        return (actions - self.action_mean) / self.action_std
+
+    def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalized actions -> physical (m/s^2, rad/s)."""
+        return x * self.action_std + self.action_mean
+
+    def rollout(self, x: torch.Tensor, v0: torch.Tensor) -> torch.Tensor:
+        """Agent-frame states ``(..., H, 4)`` of normalized actions ``x (..., H, 2)`` from speed ``v0 (...)``."""
+        return unicycle_from_origin(self.unnormalize(x), v0, self.cfg.dt)
+
+    # ------------------------------------------------------------ networks
+    def encode(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Conditioning ``(N, cond_dim)`` from a feature dict (keys: map, history, history_valid, extent,
+        neighbours, neighbour_valid)."""
+        return self.encoder(features["map"], features["history"], features["history_valid"], features["extent"],
+                            features["neighbours"], features["neighbour_valid"])
+
+    def predict_x0(self, x: torch.Tensor, k: torch.Tensor | int, cond: torch.Tensor) -> torch.Tensor:
+        """Denoiser output (clean normalized actions) for noisy ``x (N, H, 2)`` at step ``k``."""
+        if not isinstance(k, torch.Tensor):
+            k = torch.full((x.shape[0],), int(k), dtype=torch.long, device=x.device)
+        return self.denoiser(x, k, cond)
+
+    # ------------------------------------------------------------ training
+    def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
+             target_states: torch.Tensor | None = None, generator: torch.Generator | None = None
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Diffusion loss on physical ``actions (N, H, 2)`` with agent-frame ``target_states (N, H, 4)``
+        (default: the unicycle rollout of ``actions``) and current speeds ``v0 (N,)``.
+
+        Returns ``(loss, parts)`` with ``parts = {"action": ..., "state": ...}`` (both normalized MSEs).
+        """
+        n = actions.shape[0]
+        x0 = self.normalize(actions)
+        k = torch.randint(0, self.cfg.diffusion_steps, (n,), generator=generator, device=actions.device)
+        noise = torch.randn(x0.shape, generator=generator, device=actions.device)
+        ab = self.alphas_bar[k][:, None, None]
+        xk = ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+        pred = self.predict_x0(xk, k, cond)
+        action_loss = F.mse_loss(pred, x0)
+        if target_states is None:
+            target_states = unicycle_from_origin(actions, v0, self.cfg.dt)
+        states = self.rollout(pred, v0)
+        diff = states - target_states
+        diff = torch.cat([diff[..., :3], torch.atan2(torch.sin(diff[..., 3:]), torch.cos(diff[..., 3:]))], -1)
+        state_loss = ((diff / self.state_std) ** 2).mean()
+        return action_loss + self.cfg.state_loss_weight * state_loss, {"action": action_loss.detach(),
+                                                                        "state": state_loss.detach()}
+
+    # ------------------------------------------------------------ sampling
+    def _transition(self, x: torch.Tensor, k: torch.Tensor | int, k_prev: torch.Tensor | int, cond: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """DDIM mean ``mu_theta(x_k)`` ``(N, H, 2)`` and std (scalar, or ``(N, 1, 1)`` for per-row steps) of
+        ``x_{k_prev}`` given ``x_k``."""
+        ab, ab_prev = self.alphas_bar[k], self.alphas_bar[k_prev]
+        if ab.dim() == 1:
+            ab, ab_prev = ab[:, None, None], ab_prev[:, None, None]
+        x0 = self.predict_x0(x, k, cond).clamp(-self.cfg.x0_clip, self.cfg.x0_clip)
+        eps = (x - ab.sqrt() * x0) / (1 - ab).sqrt()
+        sigma = self.cfg.eta * ((1 - ab_prev) / (1 - ab)).sqrt() * (1 - ab / ab_prev).clamp_min(0).sqrt()
+        mean = ab_prev.sqrt() * x0 + (1 - ab_prev - sigma**2).clamp_min(0).sqrt() * eps
+        return mean, sigma
+
+    @staticmethod
+    def _gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """Sum over (H, 2) of log N(x; mean, sigma^2)."""
+        z = (x - mean) / sigma
+        return (-0.5 * z**2 - torch.log(sigma) - 0.5 * LOG_2PI).sum((-1, -2))
+
+    def sample(self, cond: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
+               guidance_fn: GuidanceFn | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Draw ``num_samples`` normalized action sequences per conditioning row.
+
+        Args:
+            cond: ``(N, cond_dim)``.
+            num_samples: S.
+            generator: source of all the randomness.
+            guidance_fn: optional ``f(mean (N, S, H, 2) normalized, step index) -> scalar`` objective to lower;
+                each non-final step's mean moves by ``-guidance_step * sign(grad)``, clipped to +-sigma.
+
+        Returns:
+            actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
+            guide_delta ``(N, S, K, H, 2)`` the perturbation added to each step's mean; log_prob ``(N, S, K)``.
+        """
+        n, s = cond.shape[0], num_samples
+        h = self.cfg.horizon
+        c = cond[:, None].expand(n, s, cond.shape[-1]).reshape(n * s, -1)
+        x = torch.randn((n * s, h, 2), generator=generator, device=cond.device)
+        schedule = self.sample_schedule
+        chain, deltas, log_probs = [x], [], []
+        for i, (k, k_prev) in enumerate(schedule):
+            mean, sigma = self._transition(x, k, k_prev, c)
+            delta = torch.zeros_like(mean)
+            if guidance_fn is not None and i < len(schedule) - 1:
+                with torch.enable_grad():
+                    m = mean.detach().reshape(n, s, h, 2).requires_grad_(True)
+                    objective = guidance_fn(m, i)
+                    grad = torch.autograd.grad(objective, m, allow_unused=True)[0] if objective.requires_grad else None
+                if grad is not None:
+                    step = self.cfg.guidance_step * torch.sign(grad.reshape(n * s, h, 2))
+                    delta = torch.minimum(torch.maximum(-step, -sigma), sigma)
+            mean = mean + delta
+            noise = torch.randn(mean.shape, generator=generator, device=cond.device)
+            x = (mean + sigma * noise).detach()
+            chain.append(x)
+            deltas.append(delta.detach())
+            log_probs.append(self._gaussian_log_prob(x, mean, sigma))
+        chain_t = torch.stack(chain, 1).reshape(n, s, len(schedule) + 1, h, 2)
+        delta_t = torch.stack(deltas, 1).reshape(n, s, len(schedule), h, 2)
+        log_prob = torch.stack(log_probs, -1).reshape(n, s, len(schedule))
+        return self.unnormalize(chain_t[:, :, -1]), chain_t, delta_t, log_prob
+
+    def chain_log_prob(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None
+                       ) -> torch.Tensor:
+        """Per-step log-probabilities ``(N, S, K)`` of a stored chain ``(N, S, K+1, H, 2)`` under the current
+        parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims."""
+        n, s, steps1, h, _ = chain.shape
+        k_steps = steps1 - 1
+        schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
+        c = cond[:, None, None].expand(n, s, k_steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
+        k = schedule[:, 0].repeat(n * s)
+        k_prev = schedule[:, 1].repeat(n * s)
+        x = chain[:, :, :-1].reshape(-1, h, 2)
+        mean, sigma = self._transition(x, k, k_prev, c)  # one batched network call for all steps
+        if guide_delta is not None:
+            mean = mean + guide_delta.reshape(-1, h, 2)
+        log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean, sigma)
+        return log_prob.reshape(n, s, k_steps)

@@ -1,0 +1,268 @@
+"""Train the compact CTG on the nuScenes train split (one seeded command, a few minutes on 2 CPU cores).
+
+    .venv/bin/python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small --minutes 14
+
+Samples are (scene, vehicle, step t) with 1 s of valid history up to t and a fully valid 2 s future, t every
+``--stride`` steps. Features come from the SDK's feature functions, targets from its inverse dynamics. The
+validation set is taken from val scenes that the standard 100-scene evaluation does *not* use.
+``--minutes`` bounds the whole run (data preparation included); the learning-rate schedule follows the elapsed
+fraction of the budget unless ``--steps`` fixes the number of steps (bit-reproducible).
+
+Writes ``config.json`` (loadable by the ``ctg`` adapter), ``model.safetensors`` (EMA weights),
+``training_curve.png`` and ``training_log.json``. nuScenes data: CC BY-NC-SA 4.0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+
+import torch
+from safetensors.torch import save_file
+from tqdm.auto import tqdm
+
+from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features, to_agent_frame
+from trafficrlhf_sdk.scenario.agents import AgentType
+
+from ctg_reference.model import CTGConfig, CTGModel
+
+STORE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0", "actions",
+              "states")
+
+
+def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor] | None:
+    """All usable windows of one scene (B = 1), featurized at once: the candidate "now" steps are stacked along
+    the batch axis (history window only, no map) for history/neighbour features, and the selected (t, agent)
+    rows become the agents of a single-step, one-scene context for the map crops (no raster copies)."""
+    h, th = cfg.horizon, cfg.history_steps
+    steps = torch.arange(th, scene.num_steps - h, stride)
+    if len(steps) == 0:
+        return None
+    a = scene.num_agents
+    valid = scene.valid[0]  # (A, T)
+    span = steps[:, None] + torch.arange(-th, h + 1)  # (n, th + h + 1)
+    mask = valid[:, span].all(-1).T & (scene.agent_type[0] == int(AgentType.VEHICLE))  # (n, A)
+    if not mask.any():
+        return None
+    hist_idx = steps[:, None] + torch.arange(-th + 1, 1)  # (n, th): steps now-th+1 .. now
+    n = len(steps)
+    stacked = scene.replace_unchecked(
+        states=scene.states[0][:, hist_idx].permute(1, 0, 2, 3).contiguous(),
+        valid=valid[:, hist_idx].permute(1, 0, 2).contiguous(),
+        extent=scene.extent.expand(n, a, 2), agent_type=scene.agent_type.expand(n, a),
+        controlled=scene.controlled.expand(n, a), map=None, origin=None, current_index=th - 1,
+    )
+    history, history_valid = history_features(stacked, th)
+    neighbours, neighbour_valid = neighbour_features(stacked, cfg.num_neighbours)
+    now = stacked.states[:, :, -1]  # (n, A, 4)
+    rows = now[mask]  # (N, 4)
+    single = scene.replace_unchecked(
+        states=rows[None, :, None], valid=torch.ones(1, len(rows), 1, dtype=torch.bool),
+        extent=stacked.extent[mask][None], agent_type=stacked.agent_type[mask][None],
+        controlled=torch.ones(1, len(rows), dtype=torch.bool), current_index=0,
+    )
+    crops = map_crops(single, size_px=cfg.map_size, resolution_m=1.0, behind_fraction=0.25)[0]
+    fut_idx = steps[:, None] + torch.arange(1, h + 1)  # (n, H)
+    future = scene.states[0][:, fut_idx].permute(1, 0, 2, 3)[mask]  # (N, H, 4)
+    actions = scene.actions()[0][:, fut_idx - 1].permute(1, 0, 2, 3)[mask]  # action t: step t -> t+1
+    pose = torch.stack([rows[:, 0], rows[:, 1], rows[:, 3]], -1)[None]  # (1, N, 3)
+    local = to_agent_frame(future[None, :, :, :2], pose)[0]
+    yaw = wrap_angle(future[..., 3] - rows[:, 3:4])
+    return {
+        "map": crops.to(torch.uint8), "history": history[mask], "history_valid": history_valid[mask],
+        "extent": stacked.extent[mask], "neighbours": neighbours[mask], "neighbour_valid": neighbour_valid[mask],
+        "v0": rows[:, 2], "actions": actions, "states": torch.cat([local, future[..., 2:3], yaw[..., None]], -1),
+    }
+
+
+def build_samples(source, split: str, scene_ids: list[str], cfg: CTGConfig, stride: int,
+                  desc: str = "") -> dict[str, torch.Tensor]:
+    """Featurize every usable (scene, vehicle, t) window of ``scene_ids``; map crops stored as uint8."""
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in STORE_KEYS}
+    scenes = source.iter_scenes(split, scene_ids)
+    for scene in tqdm(scenes, total=len(scene_ids), desc=desc or f"featurizing {split}", unit="scene"):
+        samples = scene_samples(scene, cfg, stride)
+        if samples is not None:
+            for k in STORE_KEYS:
+                parts[k].append(samples[k])
+    return {k: torch.cat(v) for k, v in parts.items()}
+
+
+def batch_of(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Rows ``idx`` of the stored samples, map crops as float."""
+    out = {k: v[idx] for k, v in data.items()}
+    out["map"] = out["map"].float()
+    return out
+
+
+@torch.no_grad()
+def validate(model: CTGModel, data: dict[str, torch.Tensor], num_samples: int = 5, seed: int = 123
+             ) -> dict[str, float]:
+    """Diffusion loss (fixed noise) and minADE/minFDE (m) of ``num_samples`` DDIM samples."""
+    model.eval()
+    gen = torch.Generator().manual_seed(seed)
+    b = batch_of(data, torch.arange(data["v0"].shape[0]))
+    cond = model.encode(b)
+    loss, parts = model.loss(cond, b["actions"], b["v0"], b["states"], generator=gen)
+    actions, _, _, _ = model.sample(cond, num_samples, gen)
+    pos = model.rollout(model.normalize(actions), b["v0"][:, None].expand(-1, num_samples))[..., :2]
+    err = torch.linalg.vector_norm(pos - b["states"][:, None, :, :2], dim=-1)  # (N, S, H)
+    model.train()
+    return {"loss": float(loss), "action": float(parts["action"]), "state": float(parts["state"]),
+            "min_ade": float(err.mean(-1).amin(-1).mean()), "min_fde": float(err[..., -1].amin(-1).mean())}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command-line entry point."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True, help="Output directory.")
+    parser.add_argument("--minutes", type=float, default=12.0, help="Wall-clock budget of the whole run.")
+    parser.add_argument("--steps", type=int, default=None, help="Fixed number of steps (overrides the time budget).")
+    parser.add_argument("--batch-size", type=int, default=128)
+    parser.add_argument("--lr", type=float, default=1.5e-3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--stride", type=int, default=2, help="Steps between training windows of one agent.")
+    parser.add_argument("--train-scenes", type=int, default=None, help="Use only the first N train scenes.")
+    parser.add_argument("--val-samples", type=int, default=400)
+    parser.add_argument("--val-every", type=int, default=200)
+    parser.add_argument("--ema", type=float, default=0.995)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--root", default=None, help="nuscenes_pred data directory (default: shared data).")
+    args = parser.parse_args(argv)
+
+    began = time.perf_counter()
+    budget = args.minutes * 60.0
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    from trafficrlhf_sdk import get_scenario_source
+
+    options = {"root": args.root} if args.root else {}
+    # history_s=0: windows start at the first logged step; we pick "now" ourselves. min_future_s=2: every scene.
+    source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=2.0, **options)
+    cfg = CTGConfig()
+    train_ids = source.scene_ids("train")[: args.train_scenes]
+    train = build_samples(source, "train", train_ids, cfg, args.stride)
+    # validation: val scenes outside the first 100 long-enough ones (those are the evaluation scenes)
+    eval_source = get_scenario_source("nuscenes_pred", **options)
+    held_out = set(eval_source.scene_ids("val")[:100])
+    val_ids = [s for s in source.scene_ids("val") if s not in held_out]
+    val = build_samples(source, "val", val_ids, cfg, stride=10, desc="featurizing val")
+    pick = torch.linspace(0, val["v0"].shape[0] - 1, min(args.val_samples, val["v0"].shape[0])).long()
+    val = {k: v[pick] for k, v in val.items()}
+    prep_time = time.perf_counter() - began
+    n_train = train["v0"].shape[0]
+    print(f"{n_train} training windows from {len(train_ids)} scenes, {val['v0'].shape[0]} validation windows "
+          f"from {len(val_ids)} scenes; data ready in {prep_time:.0f} s")
+
+    model = CTGModel(cfg)
+    acts = train["actions"].reshape(-1, 2)
+    states = train["states"].reshape(-1, 4)
+    model.set_normalization(acts.mean(0), acts.std(0).clamp_min(1e-3), states.std(0).clamp_min(1e-3))
+    ema = CTGModel(CTGConfig.from_dict(model.cfg.to_dict()))
+    ema.load_state_dict(model.state_dict())
+    ema.requires_grad_(False)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    gen = torch.Generator().manual_seed(args.seed)
+    num_params = sum(p.numel() for p in model.parameters())
+    print(f"model: {num_params} parameters")
+
+    train_budget = budget - prep_time - 45.0  # keep time for the final validation and writing
+    warmup = 100
+    curve: dict[str, list] = {"step": [], "train_loss": [], "val_step": [], "val_loss": [], "val_min_ade": []}
+    running, step = [], 0
+    loop_began = time.perf_counter()
+    bar = tqdm(total=args.steps, desc="training", unit="step")
+    while True:
+        elapsed = time.perf_counter() - loop_began
+        frac = step / args.steps if args.steps else elapsed / max(train_budget, 1.0)
+        if frac >= 1.0:
+            break
+        lr = args.lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        idx = torch.randint(0, n_train, (args.batch_size,), generator=gen)
+        b = batch_of(train, idx)
+        loss, parts = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        step += 1
+        with torch.no_grad():
+            decay = 0.0 if step < warmup else args.ema
+            for pe, pm in zip(ema.parameters(), model.parameters()):
+                pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+        running.append(float(loss.detach()))
+        if step % 10 == 0:
+            curve["step"].append(step)
+            curve["train_loss"].append(sum(running) / len(running))
+            bar.set_postfix(loss=f"{curve['train_loss'][-1]:.3f}", lr=f"{lr:.1e}")
+            running = []
+        if step % args.val_every == 0:
+            v = validate(ema, val)
+            curve["val_step"].append(step)
+            curve["val_loss"].append(v["loss"])
+            curve["val_min_ade"].append(v["min_ade"])
+            tqdm.write(f"step {step}: val loss {v['loss']:.4f} minADE@5 {v['min_ade']:.3f} m")
+        bar.update(1)
+    bar.close()
+    train_time = time.perf_counter() - loop_began
+    final = validate(ema, val)
+    curve["val_step"].append(step)
+    curve["val_loss"].append(final["loss"])
+    curve["val_min_ade"].append(final["min_ade"])
+    final_train = validate(ema, {k: v[torch.linspace(0, n_train - 1, len(val["v0"])).long()] for k, v in train.items()})
+
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "config.json"), "w", encoding="utf-8") as handle:
+        json.dump({"adapter": "ctg", "config": ema.cfg.to_dict()}, handle, indent=2)
+    state = {k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}
+    save_file(state, os.path.join(args.out, "model.safetensors"), metadata={"format": "pt", "adapter": "ctg"})
+    plot_curve(curve, os.path.join(args.out, "training_curve.png"))
+    log = {
+        "command": "python -m ctg_reference.train " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "seed": args.seed, "steps": step, "batch_size": args.batch_size, "lr": args.lr, "ema": args.ema,
+        "parameters": num_params, "train_windows": n_train, "train_scenes": len(train_ids),
+        "val_windows": int(val["v0"].shape[0]), "val_scenes": len(val_ids), "stride": args.stride,
+        "data_prep_s": round(prep_time, 1), "train_loop_s": round(train_time, 1),
+        "wall_time_s": round(time.perf_counter() - began, 1), "threads": args.threads,
+        "machine": f"{platform.machine()} {platform.processor()}".strip(), "torch": torch.__version__,
+        "final_val": final, "final_train_ema": final_train,
+        "curve": curve,
+        "data_licence": "nuScenes, CC BY-NC-SA 4.0",
+    }
+    with open(os.path.join(args.out, "training_log.json"), "w", encoding="utf-8") as handle:
+        json.dump(log, handle, indent=2)
+    print(json.dumps({k: log[k] for k in ("steps", "wall_time_s", "final_val", "final_train_ema")}, indent=2))
+
+
+def plot_curve(curve: dict[str, list], path: str) -> None:
+    """Train (running mean) and validation loss vs step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
+    ax[0].plot(curve["step"], curve["train_loss"], label="train (running mean)")
+    ax[0].plot(curve["val_step"], curve["val_loss"], "o-", label="val (EMA weights)")
+    ax[0].set_xlabel("step")
+    ax[0].set_ylabel("diffusion loss")
+    ax[0].set_yscale("log")
+    ax[0].legend()
+    ax[1].plot(curve["val_step"], curve["val_min_ade"], "o-", color="tab:green")
+    ax[1].set_xlabel("step")
+    ax[1].set_ylabel("val minADE@5 (m)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
