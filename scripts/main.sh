@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
-# closed loop on the first 100 long-enough val scenes. Outputs land in out/main/.
+# closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
+# guidance. Outputs land in out/main/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -12,7 +13,8 @@ $T sources
 $T inspect nuscenes_pred --split val
 first_scene=$(.venv/bin/python -c "import trafficrlhf_sdk as t; print(t.get_scenario_source('nuscenes_pred').scene_ids('val')[0])")
 $T render nuscenes_pred "$first_scene" --split val -o "$OUT/$first_scene.png"
-for model in log_replay constant_velocity; do
+for model in log_replay constant_velocity ctg; do
   $T evaluate --model "$model" --source nuscenes_pred --split val --scenes 100 --out "$OUT/$model"
 done
+$T evaluate --model ctg --guidance no_collision --source nuscenes_pred --split val --scenes 100 --out "$OUT/ctg_no_collision"
 echo "main job done: results in $OUT/"
