@@ -8,13 +8,21 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load, load_file, save, save_file
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, ScenarioValidationError
 from trafficrlhf_sdk.scenario.map import MapRaster
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["load_scenario", "safe_load_file", "save_scenario"]
+__all__ = [
+    "load_scenario",
+    "safe_load_file",
+    "save_scenario",
+    "scenario_from_bytes",
+    "scenario_from_tensors",
+    "scenario_tensors",
+    "scenario_to_bytes",
+]
 
 FORMAT_VERSION = "1"
 _TENSOR_FIELDS = ("states", "valid", "extent", "agent_type", "controlled", "origin")
@@ -23,6 +31,29 @@ _MAP_FIELDS = ("raster", "world_to_pixel", "polylines", "polyline_valid", "polyl
 
 def save_scenario(scenario: ScenarioTensor, path: str | os.PathLike[str]) -> None:
     """Write ``scenario`` to ``path`` (a ``.safetensors`` file)."""
+    tensors, metadata = scenario_tensors(scenario)
+    save_file(tensors, os.fspath(path), metadata=metadata)
+
+
+def scenario_to_bytes(scenario: ScenarioTensor) -> bytes:
+    """``scenario`` as the bytes of a safetensors file (what :func:`save_scenario` writes), e.g. for a database."""
+    tensors, metadata = scenario_tensors(scenario)
+    return save(tensors, metadata=metadata)
+
+
+def scenario_from_bytes(data: bytes, name: str = "<bytes>") -> ScenarioTensor:
+    """Read bytes written by :func:`scenario_to_bytes`; ``name`` labels the blob in error messages."""
+    try:
+        tensors = load(bytes(data))
+        header_len = int.from_bytes(bytes(data[:8]), "little")
+        metadata = dict(json.loads(bytes(data[8 : 8 + header_len])).get("__metadata__") or {})
+    except (SafetensorError, ValueError, RuntimeError, TypeError) as exc:
+        raise DataFormatError(f"{name} is not a readable safetensors blob ({exc}); it may be truncated.") from exc
+    return scenario_from_tensors(tensors, metadata, name)
+
+
+def scenario_tensors(scenario: ScenarioTensor) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """The tensors (CPU, contiguous) and string metadata that :func:`save_scenario` writes."""
     tensors: dict[str, torch.Tensor] = {}
     for name in _TENSOR_FIELDS:
         value = getattr(scenario, name)
@@ -44,7 +75,7 @@ def save_scenario(scenario: ScenarioTensor, path: str | os.PathLike[str]) -> Non
         "extras": json.dumps(scenario.extras),
         "map_layers": json.dumps(list(scenario.map.layers) if scenario.map is not None else None),
     }
-    save_file(tensors, os.fspath(path), metadata=metadata)
+    return tensors, metadata
 
 
 def safe_load_file(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -68,9 +99,14 @@ def safe_load_file(path: str | os.PathLike[str], device: str | torch.device = "c
 def load_scenario(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> ScenarioTensor:
     """Read a scenario written by :func:`save_scenario`."""
     tensors, meta = safe_load_file(path, device)
+    return scenario_from_tensors(tensors, meta, repr(os.fspath(path)))
+
+
+def scenario_from_tensors(tensors: dict[str, torch.Tensor], meta: dict[str, str], label: str) -> ScenarioTensor:
+    """Build the scenario from tensors and header metadata; ``label`` names the file or blob in errors."""
     if meta.get("trafficrlhf_scenario") != FORMAT_VERSION:
         raise DataFormatError(
-            f"{os.fspath(path)!r} is a safetensors file but not a TrafficRLHF scenario (header key "
+            f"{label} is a safetensors file but not a TrafficRLHF scenario (header key "
             f"'trafficrlhf_scenario' is {meta.get('trafficrlhf_scenario')!r}, expected {FORMAT_VERSION!r})."
         )
     required = [name for name in _TENSOR_FIELDS if name != "origin"]
@@ -79,7 +115,7 @@ def load_scenario(path: str | os.PathLike[str], device: str | torch.device = "cp
     missing = [name for name in required if name not in tensors]
     if missing:
         raise DataFormatError(
-            f"{os.fspath(path)!r} is a TrafficRLHF scenario header without the tensors {missing}; the file is "
+            f"{label} is a TrafficRLHF scenario header without the tensors {missing}; the file is "
             "incomplete: re-save it."
         )
     try:
@@ -102,6 +138,6 @@ def load_scenario(path: str | os.PathLike[str], device: str | torch.device = "cp
             extras=decoded["extras"],
         )
     except (KeyError, json.JSONDecodeError, TypeError) as exc:
-        raise DataFormatError(f"{os.fspath(path)!r}: scenario metadata is missing or malformed ({exc!r}).") from exc
+        raise DataFormatError(f"{label}: scenario metadata is missing or malformed ({exc!r}).") from exc
     except ScenarioValidationError as exc:
-        raise DataFormatError(f"{os.fspath(path)!r} holds an invalid scenario: {exc}") from exc
+        raise DataFormatError(f"{label} holds an invalid scenario: {exc}") from exc

@@ -1,0 +1,236 @@
+"""``trafficrlhf feedback ...``: campaigns, annotators, synthetic labeling, export, renders, status.
+
+``feedback serve`` (the browser app) is added by the ``trafficrlhf-annotation-web`` plugin through the
+``register_commands(cli)`` hook; it finds this group as ``cli.commands["feedback"]``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import click
+
+from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.errors import TrafficRLHFError
+
+__all__ = ["feedback"]
+
+db_option = click.option("--db", "db_path", required=True, type=click.Path(dir_okay=False, path_type=str),
+                         help="The feedback database (SQLite file).")
+campaign_option = click.option("--campaign", required=True, help="Campaign name.")
+
+
+def _store(db_path: str, must_exist: bool = True) -> Any:
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+
+    if must_exist and not os.path.isfile(db_path):
+        raise TrafficRLHFError(f"feedback database {db_path!r} does not exist; create it with `trafficrlhf feedback "
+                               "create --db ...`.")
+    return FeedbackStore(db_path)
+
+
+def _parse_options(pairs: tuple[str, ...]) -> dict[str, Any]:
+    options: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"expected KEY=VALUE, got {pair!r}", param_hint="--model-option")
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
+    return options
+
+
+@cli.group("feedback")
+def feedback() -> None:
+    """Collect human feedback: best-of-N realism choices over traffic futures (stage I of TrafficRLHF)."""
+
+
+@feedback.command("create")
+@db_option
+@click.option("--name", required=True, help="Campaign name (unique in the database).")
+@click.option("--model", default=None, help="Registered traffic model (required for a new campaign).")
+@click.option("--guidance", default=None, help="Guidance spec for models that accept one.")
+@click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
+              help="Extra traffic-model option (JSON value), repeatable, e.g. checkpoint=dir.")
+@click.option("--source", default="nuscenes_pred", show_default=True, help="Registered scenario source.")
+@click.option("--split", default="val", show_default=True, help="Split of the source.")
+@click.option("--root", default=None, help="Data directory of the source.")
+@click.option("--scenes", "num_contexts", type=click.IntRange(min=1), default=None,
+              help="K: the first K long-enough scenes of the split [default: 10].")
+@click.option("--scene-id", "scene_ids", multiple=True, help="A scene to use (repeatable) instead of --scenes.")
+@click.option("--candidates", "num_candidates", type=click.IntRange(2, 9), default=5, show_default=True,
+              help="N candidate futures per context.")
+@click.option("--seconds", "candidate_seconds", type=click.FloatRange(min=0.5, max=30), default=5.0,
+              show_default=True, help="Length of each candidate (s).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Campaign seed.")
+@click.option("--labels-per-item", type=click.IntRange(min=1), default=None,
+              help="Annotators per item (default: every annotator labels every item).")
+@click.option("--extend", is_flag=True, help="Add contexts to an existing campaign (its stored settings are kept).")
+def create_command(db_path: str, name: str, model: str | None, guidance: str | None, model_options: tuple[str, ...],
+                   source: str, split: str, root: str | None, num_contexts: int | None, scene_ids: tuple[str, ...],
+                   num_candidates: int, candidate_seconds: float, seed: int, labels_per_item: int | None,
+                   extend: bool) -> None:
+    """Generate N candidates for each of K contexts with a traffic model and store them (with the log)."""
+    from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign, extend_campaign
+
+    store = _store(db_path, must_exist=extend)
+    report_line = lambda scene: click.echo(f"  + {scene}")  # noqa: E731
+    if extend:
+        report = extend_campaign(store, name, scene_ids=list(scene_ids) or None, num_contexts=num_contexts,
+                                 root=root, on_context=report_line)
+    else:
+        if model is None:
+            raise click.UsageError("--model is required for a new campaign (or pass --extend).")
+        config = CampaignConfig(
+            name=name, model=model, guidance=guidance, model_options=_parse_options(model_options), source=source,
+            split=split, root=root, scene_ids=list(scene_ids) or None, num_contexts=num_contexts or 10,
+            num_candidates=num_candidates, candidate_seconds=candidate_seconds, seed=seed,
+            labels_per_item=labels_per_item)
+        click.echo(f"campaign {name!r}: {config.model} ({config.guidance or 'no guidance'}), N = {num_candidates}, "
+                   f"{candidate_seconds:g} s candidates")
+        report = create_campaign(store, config, on_context=report_line)
+    items = store.counts(report.campaign)["items"]
+    skipped = f", {len(report.skipped)} already present" if report.skipped else ""
+    click.echo(f"added {len(report.added)} contexts{skipped}; campaign {name!r} now has {items} items in {db_path}")
+
+
+@feedback.group("annotator")
+def annotator_group() -> None:
+    """Manage annotators and their tokens."""
+
+
+@annotator_group.command("add")
+@db_option
+@click.argument("name")
+def annotator_add(db_path: str, name: str) -> None:
+    """Create annotator NAME and print its token (shown once; only a hash is stored)."""
+    _, token = _store(db_path, must_exist=False).add_annotator(name)
+    click.echo(token)
+
+
+@annotator_group.command("token")
+@db_option
+@click.argument("name")
+def annotator_token(db_path: str, name: str) -> None:
+    """Issue a new token for NAME (the old one stops working) and print it."""
+    click.echo(_store(db_path).new_token(name))
+
+
+@annotator_group.command("list")
+@db_option
+def annotator_list(db_path: str) -> None:
+    """List annotators."""
+    for a in _store(db_path).annotators():
+        click.echo(f"{a.name}\tcreated {a.created_at}{'' if a.active else ' (revoked)'}")
+
+
+@feedback.command("label")
+@db_option
+@campaign_option
+@click.option("--synthetic", is_flag=True, help="Label with the synthetic annotator (people use `feedback serve`).")
+@click.option("--annotator", "name", default="synthetic", show_default=True, help="Annotator name.")
+@click.option("--beta", type=float, default=20.0, show_default=True,
+              help="Rationality (inverse temperature on realism 0..1); 0 means perfectly rational.")
+@click.option("--epsilon", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="Mistake rate.")
+@click.option("--none-threshold", type=click.FloatRange(0, 1), default=0.35, show_default=True,
+              help="'None realistic' when the best realism is at or below this.")
+@click.option("--skip-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="Random skips.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the annotator's draws.")
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Label at most this many items.")
+def label_command(db_path: str, campaign: str, synthetic: bool, name: str, beta: float, epsilon: float,
+                  none_threshold: float, skip_rate: float, seed: int, limit: int | None) -> None:
+    """Label a campaign's items through the same store API as people."""
+    from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotator, SyntheticAnnotatorConfig
+
+    if not synthetic:
+        raise click.UsageError("only --synthetic labeling runs here; people label in the browser "
+                               "(`trafficrlhf feedback serve`).")
+    config = SyntheticAnnotatorConfig(beta=beta if beta > 0 else None, epsilon=epsilon, none_threshold=none_threshold,
+                                      skip_rate=skip_rate, seed=seed)
+    counts = SyntheticAnnotator(_store(db_path), name, config).label(campaign, limit=limit)
+    click.echo(f"{name}: labeled {counts['labeled']} items ({counts['none_realistic']} 'none realistic'), "
+               f"skipped {counts['skipped']}")
+
+
+@feedback.command("export")
+@db_option
+@campaign_option
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
+              help="Directory for preferences.safetensors + metadata.json.")
+@click.option("--val-fraction", type=click.FloatRange(0, 1, max_open=True), default=0.2, show_default=True,
+              help="Share of contexts (never pairs) held out for validation.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the train/val split.")
+@click.option("--only", type=click.Choice(["all", "human", "synthetic"]), default="all", show_default=True,
+              help="Which labels to export.")
+def export_command(db_path: str, campaign: str, out_dir: str, val_fraction: float, seed: int, only: str) -> None:
+    """Export a PreferenceDataset (N-1 pairs per choice; logged ≻ each candidate on 'none')."""
+    from trafficrlhf_sdk.feedback.preference import export_preferences
+
+    sources = ("human", "synthetic") if only == "all" else (only,)
+    dataset = export_preferences(_store(db_path), campaign, val_fraction=val_fraction, seed=seed, sources=sources)
+    dataset.save(out_dir)
+    n_val = sum(s == "val" for s in dataset.context_split)
+    click.echo(f"{len(dataset)} pairs from {dataset.num_choices} choices over {dataset.num_contexts} contexts "
+               f"({dataset.num_contexts - n_val} train / {n_val} val) -> {out_dir}")
+
+
+@feedback.command("render")
+@db_option
+@campaign_option
+@click.option("--item", "item_id", type=int, default=None, help="Item (context) id; default: the first item.")
+@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="Output: .png (strip) or .gif / .mp4 (animation).")
+@click.option("--with-log", is_flag=True, help="Add the logged future as a last panel.")
+@click.option("--step", type=int, default=None, help="Time step of the PNG strip (default: late in the window).")
+def render_command(db_path: str, campaign: str, item_id: int | None, out_path: str, with_log: bool,
+                   step: int | None) -> None:
+    """Render a candidate set as a PNG strip or an animation for sharing."""
+    from trafficrlhf_sdk.feedback.render import save_candidate_animation, save_candidate_strip
+
+    store = _store(db_path)
+    camp = store.campaign(campaign)
+    if item_id is None:
+        keys = store.context_keys(camp)
+        if not keys:
+            raise TrafficRLHFError(f"campaign {campaign!r} has no items yet.")
+        item_id = keys[0]["id"]
+    record = store.load_context(item_id, camp)
+    if out_path.lower().endswith(".png"):
+        save_candidate_strip(record, out_path, step=step, include_logged=with_log)
+    else:
+        save_candidate_animation(record, out_path, include_logged=with_log)
+    click.echo(f"item {item_id} ({record.scene_id}) -> {out_path}")
+
+
+@feedback.command("status")
+@db_option
+@click.option("--campaign", default=None, help="One campaign (default: all).")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def status_command(db_path: str, campaign: str | None, as_json: bool) -> None:
+    """Campaigns with their items, labels, skips and agreement."""
+    from trafficrlhf_sdk.feedback.agreement import campaign_agreement
+
+    store = _store(db_path)
+    camps = [store.campaign(campaign)] if campaign else store.campaigns()
+    rows = []
+    for camp in camps:
+        agreement = campaign_agreement(store, camp)
+        rows.append({"campaign": camp.name, "model": camp.model, "guidance": camp.guidance, "seed": camp.seed,
+                     "candidates": camp.num_candidates, "sdk_version": camp.sdk_version, **store.counts(camp),
+                     "fleiss_kappa": agreement["fleiss_kappa"], "pairwise_agreement": agreement["pairwise_agreement"],
+                     "items_multi": agreement["items_multi"]})
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+        return
+    if not rows:
+        click.echo(f"no campaigns in {db_path}")
+    fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
+    for r in rows:
+        click.echo(f"{r['campaign']}: model {r['model']} ({r['guidance'] or 'no guidance'}), N = {r['candidates']}, "
+                   f"{r['items']} items, {r['labels']} labels ({r['none_realistic']} none) by {r['annotators']} "
+                   f"annotators, {r['skips']} skips; Fleiss' kappa {fmt(r['fleiss_kappa'])}, pairwise agreement "
+                   f"{fmt(r['pairwise_agreement'])} over {r['items_multi']} items with >= 2 labels")

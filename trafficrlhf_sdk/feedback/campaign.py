@@ -1,0 +1,245 @@
+"""Feedback campaigns: K contexts (logged scenes), each with N candidate futures from one traffic model.
+
+**How candidates are made.** For each context the scene is copied N times into one batch and the registered
+traffic model drives every controlled agent in the SDK's closed-loop simulator
+(:func:`~trafficrlhf_sdk.simulation.simulate`, replanning at 2 Hz, agents not controlled replay the log) for
+``candidate_seconds`` (default 5 s) from the end of the logged history. Copy k of the batch is candidate k.
+This is what the paper's annotators compare: N whole scenario futures of all agents from the same context, as
+the model would produce them in simulation, rather than N open-loop 2 s samples of
+:meth:`TrafficModelAdapter.sample`, which are too short to judge and never feel the consequences of their own
+actions. It works for every registered traffic model (adapters and the built-in policies alike), and one
+batched rollout per context keeps it cheap. The model is built with a seed derived from the campaign seed and
+the scene (:func:`context_seed`), and ``reset`` re-seeds it, so a context's candidates depend only on (model,
+guidance, campaign seed, scene): extending a campaign later regenerates nothing and changes nothing that
+exists, and the same command reproduces the same candidates.
+
+The logged future over the same window is stored as the hidden reference ("none realistic" makes it the
+winner). Maps are cropped to the agents' area plus a margin so the database stays small.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
+from trafficrlhf_sdk.scenario.map import MapRaster
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+__all__ = ["CampaignConfig", "CampaignReport", "build_policy", "context_seed", "create_campaign", "crop_map",
+           "extend_campaign", "generate_candidates"]
+
+MAX_CANDIDATES = 9  # keys 1..9 pick a candidate in the app
+
+
+class CampaignConfig(BaseModel):
+    """Everything that defines a campaign; stored as JSON with it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(..., min_length=1, max_length=100, description="Campaign name, unique in the database.")
+    model: str = Field(..., description="Registered traffic model or built-in policy (see `trafficrlhf plugins`).")
+    guidance: str | None = Field(None, description="Guidance spec for models that accept one, e.g. 'no_collision'.")
+    model_options: dict[str, Any] = Field(
+        default_factory=dict, description="Extra options of the traffic model (e.g. {'checkpoint': 'dir'})."
+    )
+    source: str = Field("nuscenes_pred", description="Registered scenario source of the contexts.")
+    split: str = Field("val", description="Split of the source.")
+    root: str | None = Field(None, description="Data directory of the source; None uses the source's default.")
+    scene_ids: list[str] | None = Field(None, description="Scenes to use; None takes the first `num_contexts`.")
+    num_contexts: int = Field(10, ge=1, description="K: first K long-enough scenes of the split (sorted by name).")
+    num_candidates: int = Field(5, ge=2, le=MAX_CANDIDATES, description="N candidate futures per context.")
+    candidate_seconds: float = Field(5.0, gt=0, le=30, description="Length of each candidate future (s).")
+    history_seconds: float = Field(3.0, ge=0.5, description="Logged history before the candidates start (s).")
+    seed: int = Field(0, ge=0, description="Campaign seed: per-context model seeds and per-annotator shuffles.")
+    labels_per_item: int | None = Field(
+        None, ge=1, description="Annotators per item; None: every annotator labels every item."
+    )
+    map_margin_m: float = Field(25.0, ge=0, description="Map kept around the agents' positions (m).")
+
+
+@dataclass(frozen=True)
+class CampaignReport:
+    """What a create/extend call did: the campaign, ids of the added contexts, scenes already present."""
+
+    campaign: Campaign
+    added: list[int]
+    skipped: list[str]
+
+
+def context_seed(campaign_seed: int, source: str, split: str, scene_id: str) -> int:
+    """The model seed of one context (31 bits), a hash of the campaign seed and the scene."""
+    return _shuffle_key(campaign_seed, source, split, scene_id) % (2**31 - 1)
+
+
+def build_policy(model: str, guidance: str | None, seed: int, options: dict[str, Any] | None = None) -> Any:
+    """Instantiate registered traffic model ``model`` with the options its factory accepts.
+
+    ``guidance`` for a model that takes none is an error (silently dropping it would mislabel the campaign);
+    ``seed`` is passed where accepted (deterministic policies have none).
+    """
+    from trafficrlhf_sdk.plugins import registry
+
+    factory = registry("traffic_models").get(model)
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        params = {}  # type: ignore[assignment]
+    takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in params.values())
+    kwargs = dict(options or {})
+    if guidance:
+        if not takes_any and "guidance" not in params:
+            raise TrafficRLHFError(f"traffic model {model!r} does not accept guidance (got {guidance!r}); drop the "
+                                   "guidance or pick a model that supports it.")
+        kwargs["guidance"] = guidance
+    if takes_any or "seed" in params:
+        kwargs["seed"] = seed
+    unknown = [k for k in kwargs if not takes_any and k not in params]
+    if unknown:
+        raise TrafficRLHFError(f"traffic model {model!r} does not accept the options {unknown}; it takes "
+                               f"{sorted(params)}.")
+    return factory(**kwargs)
+
+
+def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRaster:
+    """Keep the raster pixels under the bounding box of ``xy (K, 2)`` (scene-frame m) plus ``margin_m``.
+
+    One scene (B = 1). The transform is shifted so every world point keeps its map value.
+    """
+    if xy.numel() == 0:
+        return scene_map
+    lo, hi = xy.min(0).values.double() - margin_m, xy.max(0).values.double() + margin_m
+    corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
+    ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()
+    h, w = scene_map.raster.shape[-2:]
+    i0, i1 = max(int(math.floor(ij[:, 0].min())), 0), min(int(math.ceil(ij[:, 0].max())) + 1, h)
+    j0, j1 = max(int(math.floor(ij[:, 1].min())), 0), min(int(math.ceil(ij[:, 1].max())) + 1, w)
+    if i0 >= i1 or j0 >= j1:  # agents entirely off the raster: keep one empty pixel
+        i0, i1, j0, j1 = 0, 1, 0, 1
+    m = scene_map.world_to_pixel.clone()
+    m[:, 0, 2] -= i0
+    m[:, 1, 2] -= j0
+    return MapRaster(raster=scene_map.raster[:, :, i0:i1, j0:j1].contiguous(), world_to_pixel=m,
+                     layers=scene_map.layers)
+
+
+def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int, seconds: float,
+                        map_margin_m: float) -> tuple[ScenarioTensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                      torch.Tensor]:
+    """Roll ``policy`` out ``num_candidates`` times from one logged scene (B = 1).
+
+    Returns:
+        context: the logged scene over steps ``0 .. end`` (B = 1, ``current_index`` = start, ``controlled`` =
+            the agents the policy drove, map cropped); candidates ``(N, A, H, 4)`` and their valid ``(N, A, H)``;
+            the logged future ``(A, H, 4)`` and its valid ``(A, H)``, with H = ``seconds / dt`` steps.
+    """
+    batch = ScenarioTensor.concat([scene] * num_candidates)
+    rollout = simulate(policy, batch, SimulationConfig(duration_s=seconds))
+    start, end = rollout.start_index, rollout.end_index
+    future = slice(start + 1, end + 1)
+    candidates = rollout.simulated.states[:, :, future].contiguous()
+    candidate_valid = rollout.simulated.valid[:, :, future].contiguous()
+    logged = rollout.logged[0]
+    context = logged.replace_unchecked(controlled=rollout.controlled[:1].clone())
+    if context.map is not None:
+        shown = torch.cat([batch.xy[0][batch.valid[0]], candidates[..., :2][candidate_valid]])
+        context = context.replace_unchecked(map=crop_map(context.map, shown, map_margin_m))
+    context = ScenarioTensor(**{f: getattr(context, f) for f in context.__dataclass_fields__})  # validate
+    return (context, candidates, candidate_valid, logged.states[0, :, future].clone(),
+            logged.valid[0, :, future].clone())
+
+
+def _open_source(cfg: CampaignConfig) -> Any:
+    from trafficrlhf_sdk import get_scenario_source
+
+    options: dict[str, Any] = {"history_s": cfg.history_seconds, "min_future_s": cfg.candidate_seconds,
+                               "max_future_s": cfg.candidate_seconds + 1.0}
+    if cfg.root is not None:
+        options["root"] = cfg.root
+    return get_scenario_source(cfg.source, **options)
+
+
+def _provenance(model: str) -> dict[str, Any]:
+    from trafficrlhf_sdk.plugins import list_plugins, registry
+
+    owner = registry("traffic_models").owner(model)
+    versions = {p["name"]: p["version"] for p in list_plugins()}
+    return {"model_plugin": owner, "model_plugin_version": versions.get(owner)}
+
+
+def create_campaign(store: FeedbackStore, config: CampaignConfig,
+                    on_context: Callable[[str], None] | None = None) -> CampaignReport:
+    """Create campaign ``config.name`` in ``store`` and generate its contexts (one transaction per context)."""
+    from trafficrlhf_sdk import __version__
+
+    source = _open_source(config)
+    source.check_split(config.split)
+    policy_check = build_policy(config.model, config.guidance, config.seed, config.model_options)  # fail early
+    del policy_check
+    stored = config.model_dump(mode="json")
+    stored["provenance"] = _provenance(config.model)
+    campaign = store.create_campaign(config.name, config.model, config.guidance, config.seed, config.num_candidates,
+                                     stored, __version__)
+    return _fill(store, campaign, source, _scene_list(source, config), on_context)
+
+
+def extend_campaign(store: FeedbackStore, name: str, scene_ids: Sequence[str] | None = None,
+                    num_contexts: int | None = None, root: str | None = None,
+                    on_context: Callable[[str], None] | None = None) -> CampaignReport:
+    """Add contexts to campaign ``name`` with its stored model, guidance, seed and sizes.
+
+    ``scene_ids`` adds those scenes; ``num_contexts`` grows the campaign to cover the first ``num_contexts``
+    scenes of its split. Scenes already present are skipped, never regenerated.
+    """
+    campaign = store.campaign(name)
+    stored = {k: v for k, v in campaign.config.items() if k != "provenance"}
+    if root is not None:
+        stored["root"] = root
+    config = CampaignConfig(**{**stored, "scene_ids": list(scene_ids) if scene_ids else None,
+                               "num_contexts": num_contexts or stored.get("num_contexts", 10)})
+    source = _open_source(config)
+    return _fill(store, campaign, source, _scene_list(source, config), on_context)
+
+
+def _scene_list(source: Any, config: CampaignConfig) -> list[str]:
+    available = source.scene_ids(config.split)
+    if config.scene_ids is None:
+        return available[: config.num_contexts]
+    missing = [s for s in config.scene_ids if s not in available]
+    if missing:
+        raise TrafficRLHFError(
+            f"scenes {missing} are not long enough scenes of {config.source}/{config.split} (history "
+            f"{config.history_seconds} s + {config.candidate_seconds} s); pick others (`trafficrlhf inspect`)."
+        )
+    return list(config.scene_ids)
+
+
+def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list[str],
+          on_context: Callable[[str], None] | None) -> CampaignReport:
+    from trafficrlhf_sdk import __version__
+
+    cfg = campaign.config
+    present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
+    added, skipped = [], []
+    for scene_id in scene_ids:
+        if (cfg["source"], cfg["split"], scene_id) in present:
+            skipped.append(scene_id)
+            continue
+        seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
+        policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
+        scene = source.load_scene(cfg["split"], scene_id)
+        with torch.no_grad():
+            context, cands, cand_valid, logged, logged_valid = generate_candidates(
+                policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
+        added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
+                                       cand_valid, logged, logged_valid, __version__))
+        if on_context is not None:
+            on_context(scene_id)
+    return CampaignReport(store.campaign(campaign.id), added, skipped)
