@@ -248,3 +248,25 @@ def test_render_unknown_scene_and_bad_step(data_root: str, tmp_path: Path,
                             "--step", "100000")
     assert code == 2 and "`step` must be in" in err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_compare_builds_a_table_from_evaluate_runs(tmp_path) -> None:
+    """`compare` reads results.json of several runs into one markdown table; a missing folder is one clear error."""
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.cli import get_cli
+
+    import json
+
+    for name, rate in (("a", 0.25), ("b", 0.5)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps({
+            "metrics": {"failure_rate": rate}, "metadata": {"model": name, "guidance": "no_collision" if name == "b" else None},
+            "simulation_time_s": 1.0, "num_scenes": 2, "num_controlled_agents": 3}))
+    runner = CliRunner()
+    result = runner.invoke(get_cli(), ["compare", str(tmp_path / "a"), str(tmp_path / "b")])
+    assert result.exit_code == 0, result.output
+    assert "| metric | a | b + no_collision |" in result.output
+    assert "| failure rate | 0.2500 | 0.5000 |" in result.output
+    missing = runner.invoke(get_cli(), ["compare", str(tmp_path / "nope")])
+    assert missing.exit_code != 0

@@ -122,9 +122,5 @@ def main(args: Sequence[str] | None = None) -> None:
 # Command modules attach themselves to `cli` on import, so they come after its definition.
 from trafficrlhf_sdk.cli import data_commands  # noqa: E402, F401
 from trafficrlhf_sdk.cli import feedback_commands  # noqa: E402, F401
-
-try:
-    from trafficrlhf_sdk.cli import evaluate  # noqa: F401, E402  # optional: present once it is written
-except ModuleNotFoundError as _exc:
-    if _exc.name != "trafficrlhf_sdk.cli.evaluate":
-        raise
+from trafficrlhf_sdk.cli import evaluate  # noqa: E402, F401
+from trafficrlhf_sdk.cli import compare  # noqa: E402, F401
