@@ -9,7 +9,6 @@ Run: .venv/bin/python benchmarks/bench_simulator.py  [--threads N]
 
 from __future__ import annotations
 
-import torch
 
 from _common import header, load_val, peak_rss_mb, timed  # noqa: I001
 

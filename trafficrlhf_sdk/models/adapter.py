@@ -19,7 +19,14 @@ from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
 
-__all__ = ["AdapterOptions", "PolicyTrace", "SampleOutput", "TrafficModelAdapter", "extend_constant_velocity"]
+__all__ = [
+    "AdapterOptions",
+    "PolicyTrace",
+    "SampleOutput",
+    "TrafficModelAdapter",
+    "extend_constant_velocity",
+    "read_adapter_config",
+]
 
 
 class AdapterOptions(BaseModel):
@@ -60,6 +67,32 @@ class SampleOutput(NamedTuple):
     futures: torch.Tensor
     trace: PolicyTrace
     log_prob: torch.Tensor
+
+
+def read_adapter_config(directory: str, adapter_name: str, train_hint: str = "") -> dict[str, Any]:
+    """The architecture config that :meth:`TrafficModelAdapter.save_pretrained` wrote to ``directory``.
+
+    Raises ``DataNotFoundError`` (with ``train_hint``, e.g. the training command) when there is none and
+    ``DataFormatError`` for invalid JSON or weights of another adapter.
+    """
+    path = os.path.join(directory, "config.json")
+    if not os.path.isfile(path):
+        hint = f" Train one with `{train_hint}` or" if train_hint else ""
+        raise DataNotFoundError(
+            f"no {adapter_name} checkpoint at {directory!r} (missing config.json).{hint} pass checkpoint=DIR with a "
+            "directory written by save_pretrained."
+        )
+    with open(path, encoding="utf-8") as handle:
+        try:
+            saved = json.load(handle)
+        except json.JSONDecodeError as exc:
+            raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
+    if saved.get("adapter") != adapter_name:
+        raise DataFormatError(
+            f"{directory!r} holds weights for adapter {saved.get('adapter')!r}, not {adapter_name!r}; load it with "
+            "that adapter."
+        )
+    return saved.get("config") or {}
 
 
 def extend_constant_velocity(futures: torch.Tensor, horizon: int, dt: float) -> torch.Tensor:
@@ -162,23 +195,24 @@ class TrafficModelAdapter(abc.ABC):
     @classmethod
     def from_pretrained(cls, directory: str, **options: Any) -> TrafficModelAdapter:
         """Rebuild an adapter saved with :meth:`save_pretrained` (never unpickles anything)."""
-        config_path = os.path.join(directory, "config.json")
-        if not os.path.isfile(config_path):
-            raise DataNotFoundError(f"no config.json in {directory!r}; pass a directory written by save_pretrained.")
-        with open(config_path, encoding="utf-8") as handle:
-            try:
-                saved = json.load(handle)
-            except json.JSONDecodeError as exc:
-                raise DataFormatError(f"{config_path}: invalid JSON ({exc}).") from exc
-        if saved.get("adapter") != cls.name:
-            raise DataFormatError(
-                f"{directory!r} holds weights for adapter {saved.get('adapter')!r}, not {cls.name!r}; load it with that "
-                "adapter."
-            )
-        options = {**options, "checkpoint": None}
-        adapter = cls(config=saved.get("config"), **options)
+        config = read_adapter_config(directory, cls.name)
+        adapter = cls(config=config, **{**options, "checkpoint": None})
         adapter.load_weights(directory)
         return adapter
+
+    def resolve_checkpoint(
+        self, config: dict[str, Any] | None, default_directory: str, train_hint: str = ""
+    ) -> tuple[dict[str, Any], str | None]:
+        """For :meth:`build`: the architecture config and the weights directory to load (None: fresh weights).
+
+        ``config`` None reads both from ``options.checkpoint`` or else ``default_directory`` (the bundled
+        checkpoint); an explicit ``config`` loads weights only when ``options.checkpoint`` is set.
+        """
+        directory = self.options.checkpoint
+        if config is None:
+            directory = directory or default_directory
+            config = read_adapter_config(directory, self.name, train_hint)
+        return config, directory
 
     def load_weights(self, directory: str) -> None:
         """Load ``model.safetensors`` from ``directory`` into :attr:`module` (shapes must match)."""
@@ -187,5 +221,5 @@ class TrafficModelAdapter(abc.ABC):
             self.module.load_state_dict(tensors, strict=True)
         except RuntimeError as exc:
             raise DataFormatError(
-                f"weights in {directory!r} do not match the {self.name!r} architecture: {str(exc).splitlines()[0]}"
+                f"weights in {directory!r} do not match the {self.name!r} config: {str(exc).splitlines()[0]}"
             ) from exc

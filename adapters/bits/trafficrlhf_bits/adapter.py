@@ -20,8 +20,6 @@
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -32,7 +30,6 @@ import bits_reference
 from bits_reference.data import agent_features, future_targets, select_rows, window_mask
 from bits_reference.model import BITSConfig, BITSModel, disk_collision, selection_score
 from trafficrlhf_sdk.dynamics import wrap_angle
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 from trafficrlhf_sdk.guidance import GuidanceSet, select_samples
 from trafficrlhf_sdk.metrics.geometry import box_corners
 from trafficrlhf_sdk.models.adapter import (
@@ -43,7 +40,6 @@ from trafficrlhf_sdk.models.adapter import (
     extend_constant_velocity,
 )
 from trafficrlhf_sdk.models.features import from_agent_frame
-from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
 
@@ -87,30 +83,14 @@ class BITSAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        directory = self.options.checkpoint
-        if config is None:
-            directory = directory or str(default_checkpoint())
-            path = os.path.join(directory, "config.json")
-            if not os.path.isfile(path):
-                raise DataNotFoundError(
-                    f"no BITS checkpoint at {directory!r} (missing config.json). Train one with `python -m "
-                    "bits_reference.train --out reference_models/bits/checkpoints/bits_small` or pass checkpoint=DIR."
-                )
-            with open(path, encoding="utf-8") as handle:
-                saved = json.load(handle)
-            if saved.get("adapter") != self.name:
-                raise DataFormatError(f"{directory!r} holds weights for {saved.get('adapter')!r}, not 'bits'.")
-            config = saved["config"]
+        config, directory = self.resolve_checkpoint(
+            config, str(default_checkpoint()), "python -m bits_reference.train --out reference_models/bits/checkpoints/bits_small"
+        )
         self.cfg = BITSConfig.from_dict(config)
         self.horizon = self.cfg.horizon
         self.model = BITSModel(self.cfg)
         if directory is not None:
-            tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"))
-            try:
-                self.model.load_state_dict(tensors, strict=True)
-            except RuntimeError as exc:
-                raise DataFormatError(f"weights in {directory!r} do not match the BITS config: "
-                                      f"{str(exc).splitlines()[0]}") from exc
+            self.load_weights(directory)
         self.model.policy.requires_grad_(False)  # frozen in TrafficRLHF: never offered, never differentiated
         self.model.eval()
 

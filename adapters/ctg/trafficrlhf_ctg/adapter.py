@@ -16,8 +16,6 @@
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +26,8 @@ import ctg_reference
 from ctg_reference.data import agent_features, future_targets, select_rows, window_mask
 from ctg_reference.model import CTGConfig, CTGModel
 from trafficrlhf_sdk.dynamics import unicycle_rollout
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
-from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["CTGAdapter", "CTGOptions", "default_checkpoint"]
@@ -60,30 +56,14 @@ class CTGAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        directory = self.options.checkpoint
-        if config is None:
-            directory = directory or str(default_checkpoint())
-            path = os.path.join(directory, "config.json")
-            if not os.path.isfile(path):
-                raise DataNotFoundError(
-                    f"no CTG checkpoint at {directory!r} (missing config.json). Train one with `python -m "
-                    "ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small` or pass checkpoint=DIR."
-                )
-            with open(path, encoding="utf-8") as handle:
-                saved = json.load(handle)
-            if saved.get("adapter") != self.name:
-                raise DataFormatError(f"{directory!r} holds weights for {saved.get('adapter')!r}, not 'ctg'.")
-            config = saved["config"]
+        config, directory = self.resolve_checkpoint(
+            config, str(default_checkpoint()), "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small"
+        )
         self.cfg = CTGConfig.from_dict(config)
         self.horizon = self.cfg.horizon
         self.model = CTGModel(self.cfg)
         if directory is not None:
-            tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"))
-            try:
-                self.model.load_state_dict(tensors, strict=True)
-            except RuntimeError as exc:
-                raise DataFormatError(f"weights in {directory!r} do not match the CTG config: "
-                                      f"{str(exc).splitlines()[0]}") from exc
+            self.load_weights(directory)
         self.model.eval()
 
     def get_config(self) -> dict[str, Any]:

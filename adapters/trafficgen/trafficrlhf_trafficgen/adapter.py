@@ -21,8 +21,6 @@
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +30,6 @@ from pydantic import Field
 import trafficgen_reference
 from trafficgen_reference.data import forecaster_features, future_targets, initialize_scene, select_rows, window_mask
 from trafficgen_reference.model import Forecaster, ForecastOutput, TrafficGenConfig, TrafficGenModel, unicycle_rollout
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import (
     AdapterOptions,
@@ -41,7 +38,6 @@ from trafficrlhf_sdk.models.adapter import (
     TrafficModelAdapter,
     extend_constant_velocity,
 )
-from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
 
@@ -75,31 +71,14 @@ class TrafficGenAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        directory = self.options.checkpoint
-        if config is None:
-            directory = directory or str(default_checkpoint())
-            path = os.path.join(directory, "config.json")
-            if not os.path.isfile(path):
-                raise DataNotFoundError(
-                    f"no TrafficGen checkpoint at {directory!r} (missing config.json). Train one with `python -m "
-                    "trafficgen_reference.train --out reference_models/trafficgen/checkpoints/trafficgen_small` or "
-                    "pass checkpoint=DIR."
-                )
-            with open(path, encoding="utf-8") as handle:
-                saved = json.load(handle)
-            if saved.get("adapter") != self.name:
-                raise DataFormatError(f"{directory!r} holds weights for {saved.get('adapter')!r}, not 'trafficgen'.")
-            config = saved["config"]
+        config, directory = self.resolve_checkpoint(
+            config, str(default_checkpoint()), "python -m trafficgen_reference.train --out reference_models/trafficgen/checkpoints/trafficgen_small"
+        )
         self.cfg = TrafficGenConfig.from_dict(config)
         self.horizon = self.cfg.horizon
         self.model = TrafficGenModel(self.cfg)
         if directory is not None:
-            tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"))
-            try:
-                self.model.load_state_dict(tensors, strict=True)
-            except RuntimeError as exc:
-                raise DataFormatError(f"weights in {directory!r} do not match the TrafficGen config: "
-                                      f"{str(exc).splitlines()[0]}") from exc
+            self.load_weights(directory)
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
 
