@@ -1,7 +1,8 @@
 """TrafficRLHF SDK: align traffic-simulation models with human preferences.
 
 Public API (see docs/): scenario data (:class:`ScenarioTensor`, sources), dynamics, the closed-loop
-simulator and its metrics, and the plugin registries.
+simulator and its metrics, the plugin registries, and :func:`align` (stage III: PPO fine-tuning of a traffic
+model against a reward model; the classes live in :mod:`trafficrlhf_sdk.align`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ __all__ = [
     "SourceConfig",
     "TrafficRLHFError",
     "__version__",
+    "align",
     "get_metric",
     "get_scenario_source",
     "get_traffic_model",
@@ -46,3 +48,8 @@ def get_traffic_model(name: str, **options: Any) -> Any:
 def get_metric(name: str) -> Any:
     """The registered metric ``name``."""
     return registry("metrics").get(name)
+
+
+# Last, so that the name `trafficrlhf_sdk.align` is the function (the subpackage stays importable by its full
+# path: `from trafficrlhf_sdk.align import AlignConfig`).
+from trafficrlhf_sdk.align import align  # noqa: E402

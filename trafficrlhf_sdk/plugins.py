@@ -25,6 +25,7 @@ ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 DEFAULT_PLUGINS = (
     "trafficrlhf_sdk.default_plugins.policies",
     "trafficrlhf_sdk.default_plugins.metrics",
+    "trafficrlhf_sdk.default_plugins.reward_models",
 )
 KINDS = {
     "traffic_models": ("register_traffic_models", "traffic model"),

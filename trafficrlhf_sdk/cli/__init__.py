@@ -122,5 +122,7 @@ def main(args: Sequence[str] | None = None) -> None:
 # Command modules attach themselves to `cli` on import, so they come after its definition.
 from trafficrlhf_sdk.cli import data_commands  # noqa: E402, F401
 from trafficrlhf_sdk.cli import feedback_commands  # noqa: E402, F401
+from trafficrlhf_sdk.cli import rm_commands  # noqa: E402, F401
 from trafficrlhf_sdk.cli import evaluate  # noqa: E402, F401
 from trafficrlhf_sdk.cli import compare  # noqa: E402, F401
+from trafficrlhf_sdk.cli import align_commands  # noqa: E402, F401

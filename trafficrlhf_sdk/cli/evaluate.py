@@ -68,9 +68,12 @@ def _fmt(value: float | None) -> str:
 @click.option("--batch-size", type=click.IntRange(min=1), default=50, show_default=True,
               help="Scenes per simulated batch.")
 @click.option("--out", "out_dir", default=None, help="Directory for results.json and histograms.png.")
+@click.option("--reward-model", "reward_model_dir", default=None,
+              help="Saved reward model (`trafficrlhf rm train`): adds the reward-cost metric.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int, guidance: str | None,
-                     checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None, as_json: bool) -> None:
+                     checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None,
+                     reward_model_dir: str | None, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -80,6 +83,12 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     from trafficrlhf_sdk import get_scenario_source
     from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
+    extra_metrics = []
+    if reward_model_dir is not None:  # load before simulating: a bad folder fails at once
+        from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric
+        from trafficrlhf_sdk.reward import RewardModel
+
+        extra_metrics.append(RewardCostMetric(RewardModel.from_pretrained(reward_model_dir).step_rewards))
     torch.manual_seed(seed)
     # build the model first: a bad --model/--guidance fails before any data is read
     policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
@@ -91,9 +100,9 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
     config = EvaluationConfig(batch_size=batch_size, seed=seed)
     report = evaluate_policy(
-        policy, scenario, config, progress=True,
+        policy, scenario, config, extra_metrics=extra_metrics, progress=True,
         metadata={"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
-                  "scene_ids": list(scene_ids)},
+                  "reward_model": reward_model_dir, "scene_ids": list(scene_ids)},
     )
     paths = report.save(out_dir) if out_dir else []
     if as_json:

@@ -1,0 +1,183 @@
+"""Alignment (stage III): the PPO fine-tuner over the adapter contract, and the Gymnasium environment.
+
+Uses the ``example_gru`` plugin on a few real nuScenes train scenes and hand-written rewards, so it runs in
+well under a minute on one CPU thread.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.metrics.failure import collisions_per_step
+from trafficrlhf_sdk.scenario import ScenarioTensor
+
+gru = pytest.importorskip("trafficrlhf_example_gru")
+
+FAST = dict(epochs=2, contexts_per_epoch=4, samples_per_context=3, minibatch_contexts=2, ppo_epochs=2,
+            progress_bar=False, log_formats=("csv",))
+
+
+class SlowDownReward:
+    """Per-step reward: how much the controlled agents slowed down since ``current_index`` (easy to learn)."""
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        now = scenario.current_index
+        mask = (scenario.controlled[:, :, None] & scenario.valid & scenario.valid[:, :, now, None]).float()
+        drop = (scenario.states[:, :, now, None, 2] - scenario.states[..., 2]) / 2.0
+        per_step = (drop * mask).sum(1) / mask.sum(1).clamp_min(1)
+        return per_step.clamp(-1, 1)
+
+
+class NoCollisionReward:
+    """Per-step reward: minus the share of controlled agents in a collision."""
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        mask = scenario.controlled[:, :, None] & scenario.valid
+        bad = (collisions_per_step(scenario) & mask).sum(1).float()
+        return -(bad / mask.sum(1).clamp_min(1))
+
+
+@pytest.fixture(scope="module")
+def train_scenes(nuscenes_source) -> ScenarioTensor:  # type: ignore[no-untyped-def]
+    return nuscenes_source.load_batch("train", 6)
+
+
+def _model():  # type: ignore[no-untyped-def]
+    torch.manual_seed(0)
+    return gru.ExampleGRUAdapter()
+
+
+def _state(model) -> dict[str, torch.Tensor]:  # type: ignore[no-untyped-def]
+    return {k: v.detach().clone() for k, v in model.module.state_dict().items()}
+
+
+def test_frozen_groups_stay_bitwise_equal(train_scenes: ScenarioTensor) -> None:
+    model = _model()
+    before = _state(model)
+    encoder = {id(p) for p in model.parameter_groups()["encoder"]}
+    names = {n for n, p in model.module.named_parameters() if id(p) in encoder}
+    align(model, NoCollisionReward(), alpha=1.0, scenes=train_scenes, groups=("decoder",), **FAST)
+    after = _state(model)
+    assert names, "the example model offers an encoder group"
+    for key, value in before.items():
+        if key in names:
+            assert torch.equal(value, after[key]), key
+    assert any(not torch.equal(before[k], after[k]) for k in before if k not in names), "the decoder must train"
+    assert all(p.requires_grad for p in model.module.parameters()), "requires_grad is restored after training"
+
+
+def test_first_ppo_epoch_ratios_are_one(train_scenes: ScenarioTensor) -> None:
+    model = _model()
+    result = align(model, NoCollisionReward(), alpha=1.0, scenes=train_scenes, reward_horizon=30, **FAST)
+    for stats in result.history:
+        assert stats["first_ratio_max_dev"] == 0.0  # before any update the ratio is exactly 1
+        assert stats["sample_log_prob_gap"] < 1e-3  # adapter.log_prob reproduces the sampling log-prob
+    # with a zero learning rate nothing moves, so every ratio of every pass is 1: no clipping, KL 0
+    frozen = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes,
+                   **{**FAST, "learning_rate": 0.0})
+    assert all(s["approx_kl"] == 0.0 and s["clip_fraction"] == 0.0 for s in frozen.history)
+
+
+def test_mean_reward_rises_on_a_small_problem(train_scenes: ScenarioTensor) -> None:
+    model = _model()
+    config = {**FAST, "epochs": 12, "contexts_per_epoch": 6, "samples_per_context": 4, "minibatch_contexts": 3,
+              "imitation_coef": 0.0, "learning_rate": 3e-3, "ppo_epochs": 2}
+    history = align(model, SlowDownReward(), alpha=1.0, scenes=train_scenes, **config).history
+    first = sum(h["reward_mean"] for h in history[:3]) / 3
+    last = sum(h["reward_mean"] for h in history[-3:]) / 3
+    assert last > first + 0.05, (first, last)
+
+
+def test_interrupted_and_resumed_run_matches_uninterrupted(train_scenes: ScenarioTensor, tmp_path) -> None:
+    config = {**FAST, "epochs": 3, "save_every": 1, "kl_coef": 0.1, "closed_loop_fraction": 0.5,
+              "closed_loop_max_s": 1.0}
+    full = _model()
+    align(full, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "full"), **config)
+
+    part = _model()
+    align(part, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
+          callback=lambda epoch, stats: epoch < 0, **config)  # "interrupted" after the first epoch
+    assert os.path.isdir(tmp_path / "cut" / "checkpoints" / "checkpoint-1")
+    resumed = _model()  # a fresh process: the starting weights, then the checkpoint
+    result = align(resumed, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
+                   resume=True, **config)
+    assert len(result.history) == 3
+    for key, value in _state(full).items():
+        assert torch.equal(value, _state(resumed)[key]), key
+    assert os.path.isfile(tmp_path / "cut" / "logs" / "progress.csv")
+    # the final folder is a save_pretrained checkpoint the adapter (and `trafficrlhf evaluate`) loads
+    loaded = gru.ExampleGRUAdapter(checkpoint=str(tmp_path / "cut"))
+    for key, value in _state(full).items():
+        assert torch.equal(value, _state(loaded)[key]), key
+
+
+def test_config_errors_are_clear(train_scenes: ScenarioTensor) -> None:
+    with pytest.raises(ValueError, match="evaluation split"):
+        AlignConfig(split="val")
+    with pytest.raises(ValueError, match="extra"):
+        AlignConfig(learning_rat=1e-3)
+    with pytest.raises(ValueError, match="output_dir"):
+        AlignConfig(resume=True)
+    with pytest.raises(TrafficRLHFError, match="offers"):
+        AlignTrainer(_model(), NoCollisionReward(), AlignConfig(groups=("initializer",)), scenes=train_scenes)
+
+
+def test_gymnasium_env_passes_check_env_and_trains_with_sb3(train_scenes: ScenarioTensor) -> None:
+    pytest.importorskip("gymnasium")
+    sb3 = pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.env_checker import check_env
+
+    from trafficrlhf_sdk.align import TrafficRLHFEnv
+
+    env = TrafficRLHFEnv(train_scenes[:3], NoCollisionReward())
+    check_env(env, warn=True)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs) and "ego" in info
+    steps, done = 0, False
+    while not done:  # 10 s at 0.5 s per action = 20 steps
+        obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert -1.0 <= reward <= 1.0
+        steps, done = steps + 1, terminated or truncated
+    assert steps == 20
+    agent = sb3.PPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu")
+    agent.learn(256)
+    action, _ = agent.predict(obs, deterministic=True)
+    assert env.action_space.contains(action)
+
+
+def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path) -> None:
+    import json
+
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.cli import get_cli
+
+    out = str(tmp_path / "aligned")
+    runner = CliRunner()
+    result = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:collision",
+                                       "--out", out, "--epochs", "2", "--contexts", "2", "--samples", "2",
+                                       "--scenes", "3", "--threads", "1", "--quiet"], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert "aligned example_gru for 2 epochs" in result.output
+    summary = json.load(open(os.path.join(out, "align_summary.json"), encoding="utf-8"))
+    assert summary["alpha"] == 0.3 and summary["epochs"] == 2
+    result = runner.invoke(get_cli(), ["evaluate", "--model", "example_gru", "--checkpoint", out, "--scenes", "2",
+                                       "--json"], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output[result.output.index("{"):])
+    assert report["metadata"]["checkpoint"] == out and 0 <= report["metrics"]["failure_rate"] <= 1
+    bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:nope", "--out", out])
+    assert bad.exit_code != 0
+
+
+def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> None:
+    config = {**FAST, "epochs": 1, "ppo_epochs": 4, "learning_rate": 1e-2}
+    full = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes, **config).history[0]
+    early = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes, target_kl=1e-9, **config).history[0]
+    assert full["early_stop"] == 0.0 and full["updates"] == 8.0  # 4 passes x 2 minibatches
+    assert early["early_stop"] == 1.0 and early["updates"] < full["updates"]

@@ -1,0 +1,102 @@
+"""``AlignConfig``: every knob of the PPO fine-tuner (stage III), with the paper's defaults."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = ["PAPER_ALPHA", "AlignConfig", "paper_alpha"]
+
+PAPER_ALPHA: dict[str, float] = {"ctg": 0.1, "bits": 0.5, "trafficgen": 0.3}
+"""Weight of the PPO surrogate (the paper's alpha in r + alpha * r_HF) per traffic model."""
+
+
+def paper_alpha(model_name: str, default: float = 0.3) -> float:
+    """The paper's alpha for ``model_name`` (``default`` for models the paper does not cover)."""
+    return PAPER_ALPHA.get(model_name, default)
+
+
+class AlignConfig(BaseModel):
+    """How :class:`~trafficrlhf_sdk.align.AlignTrainer` fine-tunes a traffic model against a reward model.
+
+    One *epoch* = a rollout phase (``contexts_per_epoch`` logged contexts, ``samples_per_context`` futures each,
+    scored by the reward model) followed by ``ppo_epochs`` passes of minibatch updates over those samples.
+    The loss of a minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # ---------------------------------------------------------------- objective
+    alpha: float = Field(0.3, ge=0, description="Weight of the PPO surrogate (paper: CTG 0.1, BITS 0.5, "
+                                                "TrafficGen 0.3).")
+    imitation_coef: float = Field(1.0, ge=0, description="Weight of the model's own imitation loss (0 disables it).")
+    kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
+                                                  "(0: no reference model is kept).")
+    target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
+                                                            "to the sampling policy exceeds 1.5 x this (SB3 rule).")
+    clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "
+                                                     "gradient when that would help.")
+    advantage_clip: float = Field(5.0, gt=0, description="Normalized advantages are clipped to +- this (DDPO).")
+    advantage_eps: float = Field(1e-6, gt=0, description="Added to the per-context reward std before dividing.")
+
+    # ---------------------------------------------------------------- schedule
+    epochs: int = Field(70, ge=1, description="Rollout + optimization rounds (paper: 70).")
+    contexts_per_epoch: int = Field(16, ge=1, description="Logged contexts sampled per epoch.")
+    samples_per_context: int = Field(4, ge=2, description="Futures drawn per context (S); advantages are "
+                                                          "normalized among them.")
+    ppo_epochs: int = Field(2, ge=1, description="Passes over an epoch's samples.")
+    minibatch_contexts: int = Field(8, ge=1, description="Contexts per optimizer step (with all their samples).")
+    learning_rate: float = Field(1e-4, ge=0, description="AdamW learning rate.")
+    weight_decay: float = Field(0.0, ge=0, description="AdamW weight decay (trained parameters only).")
+    max_grad_norm: float | None = Field(1.0, gt=0, description="Gradient-norm clip; None disables it.")
+    groups: tuple[str, ...] | None = Field(None, description="Parameter groups to train, from the adapter's "
+                                                             "parameter_groups() (e.g. ('decoder',)); None: all "
+                                                             "groups it offers.")
+
+    # ---------------------------------------------------------------- rollouts
+    guidance: str | None = Field(None, description="Guidance spec used while sampling, e.g. 'no_collision'.")
+    history_steps: int = Field(30, ge=1, description="Logged steps kept before each context's start step (3 s).")
+    horizon: int | None = Field(None, ge=1, description="Future steps scored per sample; None: the model's "
+                                                        "horizon.")
+    closed_loop_fraction: float = Field(0.0, ge=0, le=1, description="Share of each epoch's contexts whose history "
+                                        "comes from a closed-loop rollout of the current model (its own plan, "
+                                        "with `guidance`) instead of the log: trains on the states the model "
+                                        "reaches itself. Their imitation loss still uses the logged scene.")
+    closed_loop_max_s: float = Field(6.0, gt=0, description="Longest closed-loop lead-in (s); each epoch draws a "
+                                                            "multiple of 0.5 s up to this.")
+    reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
+                                       "longer value than the model's horizon extends the sample at constant "
+                                       "speed and heading (denser failure signal); None: the horizon.")
+    reward_history_steps: int = Field(10, ge=0, description="History steps handed to the reward model in front "
+                                                            "of the sampled future (it sees step_dt back).")
+
+    # ---------------------------------------------------------------- data
+    source: str = Field("nuscenes_pred", description="Registered scenario source of the training contexts.")
+    split: str = Field("train", description="Split the contexts come from (never the evaluation split).")
+    root: str | None = Field(None, description="Data directory of the source (None: the source's default).")
+    num_scenes: int | None = Field(None, ge=1, description="First N long-enough scenes of the split; None: all.")
+
+    # ---------------------------------------------------------------- bookkeeping
+    seed: int = Field(0, description="Seed of every generator (contexts, sampling, minibatch order, imitation "
+                                     "noise); each epoch's randomness is a function of (seed, epoch).")
+    output_dir: str | None = Field(None, description="Folder for logs and checkpoints; None: nothing is written.")
+    save_every: int = Field(10, ge=1, description="Write a checkpoint every N epochs (and after the last).")
+    save_total_limit: int | None = Field(2, ge=1, description="Keep only the newest N checkpoints; None keeps all.")
+    resume: bool = Field(False, description="Continue from the newest checkpoint in output_dir if there is one.")
+    log_formats: tuple[Literal["stdout", "csv", "tensorboard", "json", "log"], ...] = Field(
+        ("stdout", "csv", "tensorboard"),
+        description="stable-baselines3 logger outputs (tensorboard is skipped if it is not installed)."
+    )
+    progress_bar: bool = Field(True, description="Show a tqdm progress bar over epochs.")
+
+    @model_validator(mode="after")
+    def _check(self) -> AlignConfig:
+        if self.split in ("val", "test"):
+            raise ValueError(f"`split` is {self.split!r}: alignment must not train on an evaluation split; use "
+                             "'train'.")
+        if self.resume and self.output_dir is None:
+            raise ValueError("`resume=True` needs `output_dir` (the folder holding the checkpoints).")
+        if self.groups is not None and len(self.groups) == 0:
+            raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
+        return self

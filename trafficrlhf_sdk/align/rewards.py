@@ -1,0 +1,39 @@
+"""Hand-written per-step rewards with the reward-model protocol (``step_rewards(scenario) -> (B, T)``).
+
+They need no training and serve as stand-ins for a learned r_HF (tests, the Gymnasium environment's default,
+quick experiments); the alignment results in the docs use a learned reward model.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["FailureReward"]
+
+
+class FailureReward:
+    """Per-step reward in [-1, 0]: minus the share of controlled agents (all valid agents in a scene without
+    controlled ones) that collide, or whose centre is off the drivable area (when the scenario has a map).
+
+    Args:
+        collision: count collisions; offroad: count off-road centres.
+    """
+
+    def __init__(self, collision: bool = True, offroad: bool = True) -> None:
+        self.collision = collision
+        self.offroad = offroad
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, T)`` rewards (0 where no agent is scored)."""
+        agents = scenario.controlled & scenario.valid.any(-1)
+        agents = torch.where(agents.any(-1, keepdim=True), agents, scenario.valid.any(-1))
+        mask = agents[:, :, None] & scenario.valid
+        bad = torch.zeros_like(mask)
+        if self.collision:
+            bad |= collisions_per_step(scenario)
+        if self.offroad and scenario.map is not None:
+            bad |= offroad_per_step(scenario)
+        return -((bad & mask).sum(1).float() / mask.sum(1).clamp_min(1))

@@ -1,0 +1,550 @@
+"""``AlignTrainer``: PPO fine-tuning of any :class:`~trafficrlhf_sdk.models.TrafficModelAdapter` against a reward
+model, through the adapter contract only (``sample``, ``log_prob``, ``imitation_loss``, ``parameter_groups``).
+
+One epoch:
+
+1. **Rollout.** ``contexts_per_epoch`` logged contexts are cut from the training scenes at random start steps
+   (``history_steps`` before, at least ``horizon`` after); optionally a share of them starts from states the
+   current model reached in a short closed-loop lead-in (``closed_loop_fraction``). Per context the adapter draws
+   ``samples_per_context``
+   futures (with the configured guidance, no gradient). Each sample becomes a scenario: the context's history,
+   then the sample's future for the sampled (controlled) agents and the log for everyone else. Its reward is the
+   reward model's score of that scenario (mean over its scored steps).
+2. **Advantages.** ``A = (r - mean_context) / (std_context + eps)``, clipped to ``+- advantage_clip``. The reward
+   model scores whole scenes, so one advantage per (context, sample) is shared by every controlled agent of the
+   context (and, for per-step log-probabilities such as a diffusion chain, by every step: DDPO).
+3. **Optimization.** ``ppo_epochs`` passes over minibatches of contexts: ``ratio = exp(log_prob - log_prob_old)``
+   elementwise (per agent, per denoising step where the adapter returns ``(B, S, A, K)``), surrogate
+   ``min(ratio * A, clip(ratio) * A)`` averaged over sampled agents (and steps), loss
+   ``imitation_coef * imitation_loss - alpha * surrogate (+ kl_coef * KL to the frozen starting model)``,
+   gradient clipping, and SB3's early stop once the approximate KL passes ``1.5 * target_kl``.
+
+``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
+pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
+by ``(seed, e)``, which makes a resumed run match an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple, Protocol, Sequence
+
+import torch
+from safetensors.torch import save_file
+
+from trafficrlhf_sdk.align.config import AlignConfig
+from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, extend_constant_velocity
+from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "scenario_scores"]
+
+STATE_FILE = "trainer_state.json"
+OPTIMIZER_FILE = "optimizer.safetensors"
+
+
+class RewardLike(Protocol):
+    """What the fine-tuner needs from a reward model: per-step rewards ``(B, T)`` in [-1, 1] of a scenario."""
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:  # pragma: no cover - protocol
+        """Per-step rewards ``(B, T)`` in [-1, 1]."""
+
+
+def scenario_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor:
+    """Scenario rewards ``(B,)``: the model's own ``score`` if it has one (a
+    :class:`~trafficrlhf_sdk.reward.RewardModel`), else the mean of ``step_rewards`` over the steps after
+    ``current_index``; a plain callable is treated as a per-step reward function ``(B, T)``."""
+    with torch.no_grad():
+        if callable(getattr(reward_model, "score", None)):
+            scores = reward_model.score(scenario)
+        else:
+            fn = getattr(reward_model, "step_rewards", None) or reward_model
+            if not callable(fn):
+                raise TypeError("`reward_model` needs a `step_rewards(scenario) -> (B, T)` method (or a `score` "
+                                f"method); got {type(reward_model).__name__}.")
+            per_step = fn(scenario)
+            if per_step.shape != (scenario.num_scenes, scenario.num_steps):
+                raise ValueError(f"step_rewards returned shape {tuple(per_step.shape)}; expected (B, T) = "
+                                 f"({scenario.num_scenes}, {scenario.num_steps}).")
+            scores = per_step[:, scenario.current_index + 1:].float().mean(1)
+    scores = scores.detach().float().cpu()
+    if not torch.isfinite(scores).all():
+        raise ValueError("the reward model returned non-finite scores.")
+    return scores
+
+
+class AlignResult(NamedTuple):
+    """What :func:`trafficrlhf_sdk.align` returns: the aligned adapter (the same object, updated in place) and
+    one dict of statistics per epoch."""
+
+    model: TrafficModelAdapter
+    history: list[dict[str, float]]
+
+
+@dataclass
+class _Rollout:
+    contexts: ScenarioTensor
+    logged: ScenarioTensor  # the same windows of the log (imitation loss)
+    trace: PolicyTrace
+    rewards: torch.Tensor  # (B, S)
+    advantages: torch.Tensor  # (B, S)
+    sample_log_prob: torch.Tensor  # as returned by adapter.sample
+
+
+def _seed(*parts: Any) -> int:
+    """A 62-bit seed that is a pure function of ``parts``."""
+    return int(hashlib.sha256(repr(parts).encode()).hexdigest()[:15], 16)
+
+
+def _generator(*parts: Any) -> torch.Generator:
+    return torch.Generator().manual_seed(_seed(*parts))
+
+
+def _select_trace(trace: PolicyTrace, index: torch.Tensor) -> PolicyTrace:
+    return PolicyTrace({k: v[index] for k, v in trace.tensors.items()}, trace.agents[index], trace.now,
+                       dict(trace.info))
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    mask = mask.to(values.dtype)
+    return (values * mask).sum() / mask.sum().clamp_min(1)
+
+
+def _entry_mask(log_prob: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
+    """bool mask shaped like ``log_prob (B, S, A[, K])`` of the sampled agents."""
+    mask = agents[:, None, :].expand(log_prob.shape[:3])
+    if log_prob.dim() == 4:
+        mask = mask[..., None].expand(log_prob.shape)
+    return mask
+
+
+def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
+    """Per-(context, sample) advantages ``(B, S)`` broadcast to ``log_prob``'s shape."""
+    adv = adv[:, :, None]
+    if log_prob.dim() == 4:
+        adv = adv[..., None]
+    return adv.to(log_prob.dtype).expand(log_prob.shape)
+
+
+class AlignTrainer:
+    """PPO fine-tuner of a traffic-model adapter against a reward model (see the module docstring).
+
+    Args:
+        model: the adapter to align; it is updated in place.
+        reward_model: anything with ``step_rewards(scenario) -> (B, T)`` (or a ``score(scenario) -> (B,)``).
+        config: an :class:`AlignConfig`.
+        scenes: training scenes (each ``B = 1`` or a batch, split into single scenes); None loads
+            ``config.split`` of ``config.source``.
+    """
+
+    def __init__(self, model: TrafficModelAdapter, reward_model: Any, config: AlignConfig | None = None,
+                 scenes: ScenarioTensor | Sequence[ScenarioTensor] | None = None) -> None:
+        self.model = model
+        self.reward_model = reward_model
+        self.config = config or AlignConfig()
+        self.horizon = self.config.horizon or int(getattr(model, "horizon", 20))
+        self.future_steps = max(self.horizon, self.config.reward_horizon or 0)  # log steps kept after "now"
+        offered = model.parameter_groups()
+        names = tuple(offered) if self.config.groups is None else self.config.groups
+        unknown = [n for n in names if n not in offered]
+        if unknown:
+            name = model.name or type(model).__name__
+            raise TrafficRLHFError(f"parameter group(s) {unknown} are not offered by {name!r}; it offers "
+                                   f"{sorted(offered)}.")
+        self.group_names = names
+        seen: set[int] = set()
+        self.trainable: list[torch.nn.Parameter] = []
+        for name in names:
+            for p in offered[name]:
+                if id(p) not in seen:
+                    seen.add(id(p))
+                    self.trainable.append(p)
+        if not self.trainable:
+            raise TrafficRLHFError(f"parameter groups {list(names)} hold no parameters; nothing to train.")
+        self.optimizer = torch.optim.AdamW(self.trainable, lr=self.config.learning_rate,
+                                           weight_decay=self.config.weight_decay)
+        self.guidance = GuidanceSet.parse(self.config.guidance)
+        self.reference = copy.deepcopy(model) if self.config.kl_coef > 0 else None
+        if self.reference is not None:
+            for p in self.reference.module.parameters():
+                p.requires_grad_(False)
+        self.scenes = self._split_scenes(scenes) if scenes is not None else None
+        self.history: list[dict[str, float]] = []
+        self.start_epoch = 0
+        self.logger: Any = None
+
+    # ------------------------------------------------------------------ data
+    @staticmethod
+    def _split_scenes(scenes: ScenarioTensor | Sequence[ScenarioTensor]) -> list[ScenarioTensor]:
+        items = [scenes] if isinstance(scenes, ScenarioTensor) else list(scenes)
+        return [s[i] for s in items for i in range(s.num_scenes)]
+
+    def _load_scenes(self) -> list[ScenarioTensor]:
+        if self.scenes is None:
+            from trafficrlhf_sdk import get_scenario_source
+
+            cfg = self.config
+            source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+            ids = source.scene_ids(cfg.split)[: cfg.num_scenes]
+            if not ids:
+                raise DataNotFoundError(f"split {cfg.split!r} of {cfg.source!r} has no scene long enough.")
+            self.scenes = [source.load_scene(cfg.split, i) for i in ids]
+        return self.scenes
+
+    def _contexts(self, epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
+        """``contexts_per_epoch`` windows ``[t - history_steps, t + horizon]`` with ``current_index =
+        history_steps``, and the same windows of the log (for the imitation loss). Scenes and start steps ``t``
+        are drawn from a generator seeded by ``(seed, epoch)``; a ``closed_loop_fraction`` of the contexts has
+        a history simulated by the current model."""
+        cfg, scenes, hist, h = self.config, self._load_scenes(), self.config.history_steps, self.future_steps
+        gen = _generator(cfg.seed, epoch, "contexts")
+        total = cfg.contexts_per_epoch
+        closed = min(total, round(cfg.closed_loop_fraction * total))
+        parts: list[ScenarioTensor] = []
+        for _ in range(100 * total):
+            if len(parts) == total - closed:
+                break
+            scene = scenes[int(torch.randint(len(scenes), (1,), generator=gen))]
+            last = scene.num_steps - 1 - h
+            if last < hist:
+                continue
+            t = int(torch.randint(hist, last + 1, (1,), generator=gen))
+            if not (scene.controlled & scene.valid[:, :, t]).any():
+                continue
+            parts.append(self._window(scene, t - hist))
+        if len(parts) < total - closed:
+            raise DataNotFoundError(f"could not find {total} contexts with controlled agents and {hist} history + "
+                                    f"{h} future steps in the training scenes.")
+        contexts = logged = ScenarioTensor.concat(parts) if parts else None
+        if closed:
+            sim, log = self._closed_loop_contexts(epoch, closed, gen)
+            contexts = sim if contexts is None else ScenarioTensor.concat([contexts, sim])
+            logged = log if logged is None else ScenarioTensor.concat([logged, log])
+        assert contexts is not None and logged is not None
+        return contexts, logged
+
+    def _window(self, scene: ScenarioTensor, start: int) -> ScenarioTensor:
+        hist = self.config.history_steps
+        window = scene.time_slice(start, start + hist + self.future_steps + 1)
+        return window.replace_unchecked(current_index=hist, controlled=window.controlled & window.valid.any(-1))
+
+    def _closed_loop_contexts(self, epoch: int, count: int,
+                              gen: torch.Generator) -> tuple[ScenarioTensor, ScenarioTensor]:
+        """``count`` contexts at ``t = history_steps + d``, where steps ``history_steps+1 .. t`` were simulated by
+        the current model (its ``plan``, with the trainer's guidance) and the rest is the log."""
+        from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+        cfg, scenes, hist, h = self.config, self._load_scenes(), self.config.history_steps, self.future_steps
+        dt = scenes[0].dt
+        replan = max(1, round(0.5 / dt))
+        most = max(1, int(cfg.closed_loop_max_s / (replan * dt) + 1e-9))
+        lead = replan * int(torch.randint(1, most + 1, (1,), generator=gen))
+        fits = [s for s in scenes if s.num_steps >= hist + lead + h + 1]
+        if not fits:
+            raise DataNotFoundError(f"no training scene is long enough for a {lead * dt:.1f} s closed-loop lead-in.")
+        picks = [fits[int(torch.randint(len(fits), (1,), generator=gen))] for _ in range(count)]
+        batch = ScenarioTensor.concat([s.time_slice(0, hist + lead + h + 1) for s in picks])
+        batch = batch.replace_unchecked(current_index=hist)
+        saved = self.model.guidance
+        self.model.guidance = self.guidance if self.guidance is not None else saved
+        try:
+            with torch.no_grad():
+                rollout = simulate(self.model, batch, SimulationConfig(duration_s=lead * dt, start_index=hist))
+        finally:
+            self.model.guidance = saved
+        t = hist + lead
+        states = torch.cat([rollout.simulated.states[:, :, : t + 1], batch.states[:, :, t + 1:]], 2)
+        valid = torch.cat([rollout.simulated.valid[:, :, : t + 1], batch.valid[:, :, t + 1:]], 2)
+        hybrid = batch.replace_unchecked(states=states * valid[..., None], valid=valid,
+                                         controlled=rollout.controlled)
+        sim = self._window(hybrid, lead)
+        sim = sim.replace_unchecked(controlled=sim.controlled & sim.valid[:, :, hist])
+        log = self._window(batch.replace_unchecked(controlled=rollout.controlled), lead)
+        return sim, log
+
+    # ------------------------------------------------------------------ rollout
+    def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
+        guidance = self.guidance
+        if guidance is not None:
+            guidance.fit(contexts)
+            with torch.enable_grad():
+                return self.model.sample(contexts, self.config.samples_per_context, guidance, generator)
+        with torch.no_grad():
+            return self.model.sample(contexts, self.config.samples_per_context, None, generator)
+
+    def sample_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor,
+                         agents: torch.Tensor) -> ScenarioTensor:
+        """``B * S`` scenarios (context-major): each context's history, then sample ``s``'s future for the
+        sampled ``agents (B, A)`` and the logged future for every other agent; cut to the reward window."""
+        b, s = futures.shape[:2]
+        now, h = contexts.current_index, self.future_steps
+        futures = extend_constant_velocity(futures.detach(), h, contexts.dt).to(contexts.states.dtype)
+        futures = torch.cat([futures[..., :3], wrap_angle(futures[..., 3:])], -1)
+        log_states = contexts.states[:, :, now + 1: now + 1 + h]
+        log_valid = contexts.valid[:, :, now + 1: now + 1 + h]
+        pick = agents[:, None, :, None]  # (B, 1, A, 1)
+        states = torch.where(pick[..., None], futures, log_states[:, None])  # (B, S, A, H, 4)
+        valid = torch.where(pick, torch.ones_like(log_valid[:, None]), log_valid[:, None]).expand(b, s, -1, -1)
+        states = states * valid[..., None]
+        repeat = torch.arange(b).repeat_interleave(s)
+        scenario = contexts[repeat].with_future(states.reshape(b * s, *states.shape[2:]),
+                                                valid.reshape(b * s, *valid.shape[2:]))
+        return scenario.time_slice(max(0, now - self.config.reward_history_steps))
+
+    def _rollout(self, epoch: int) -> _Rollout:
+        contexts, logged = self._contexts(epoch)
+        gen = _generator(self.config.seed, epoch, "sample")
+        out = self._sample(contexts, gen)
+        trace = out.trace.detach()
+        scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
+        rewards = scenario_scores(self.reward_model, scenario).reshape(contexts.num_scenes, -1)
+        mean = rewards.mean(1, keepdim=True)
+        std = rewards.std(1, unbiased=False, keepdim=True)
+        adv = ((rewards - mean) / (std + self.config.advantage_eps)).clamp(-self.config.advantage_clip,
+                                                                          self.config.advantage_clip)
+        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach())
+
+    # ------------------------------------------------------------------ optimization
+    def _minibatches(self, epoch: int, ppo_epoch: int, n: int) -> list[torch.Tensor]:
+        perm = torch.randperm(n, generator=_generator(self.config.seed, epoch, "order", ppo_epoch))
+        size = self.config.minibatch_contexts
+        return [perm[i:i + size] for i in range(0, n, size)]
+
+    @torch.no_grad()
+    def _log_probs(self, model: TrafficModelAdapter, rollout: _Rollout, batches: list[torch.Tensor]) -> torch.Tensor:
+        result: torch.Tensor | None = None
+        for idx in batches:
+            lp = model.log_prob(rollout.contexts[idx], _select_trace(rollout.trace, idx)).detach()
+            if result is None:
+                result = torch.zeros(rollout.contexts.num_scenes, *lp.shape[1:], dtype=lp.dtype)
+            result[idx] = lp
+        assert result is not None
+        return result
+
+    def _optimize(self, epoch: int, rollout: _Rollout) -> dict[str, float]:
+        cfg = self.config
+        n = rollout.contexts.num_scenes
+        first = self._minibatches(epoch, 0, n)
+        old = self._log_probs(self.model, rollout, first)
+        ref = self._log_probs(self.reference, rollout, first) if self.reference is not None else None
+        stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
+                                                         "clip_fraction", "kl_ref", "grad_norm")}
+        first_dev = float("nan")
+        stopped = 0.0
+        updates = 0
+        for p in range(cfg.ppo_epochs):
+            batches = first if p == 0 else self._minibatches(epoch, p, n)
+            for j, idx in enumerate(batches):
+                ctx, trace = rollout.contexts[idx], _select_trace(rollout.trace, idx)
+                new = self.model.log_prob(ctx, trace)
+                mask = _entry_mask(new, trace.agents)
+                logr = new - old[idx]
+                ratio = torch.exp(logr)
+                adv = _broadcast(rollout.advantages[idx], new)
+                clipped = torch.clamp(ratio, 1 - cfg.clip_range, 1 + cfg.clip_range)
+                surrogate = _masked_mean(torch.minimum(ratio * adv, clipped * adv), mask)
+                loss = -cfg.alpha * surrogate
+                if cfg.imitation_coef > 0:
+                    torch.manual_seed(_seed(cfg.seed, epoch, "imitation", p, j))
+                    imitation = self.model.imitation_loss(rollout.logged[idx])
+                    loss = loss + cfg.imitation_coef * imitation
+                    stats["imitation_loss"].append(float(imitation.detach()))
+                if ref is not None:
+                    d = ref[idx] - new
+                    kl_ref = _masked_mean(torch.exp(d) - 1 - d, mask)
+                    loss = loss + cfg.kl_coef * kl_ref
+                    stats["kl_ref"].append(float(kl_ref.detach()))
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.max_grad_norm is not None:
+                    norm = torch.nn.utils.clip_grad_norm_(self.trainable, cfg.max_grad_norm)
+                    stats["grad_norm"].append(float(norm))
+                self.optimizer.step()
+                updates += 1
+                with torch.no_grad():
+                    approx_kl = float(_masked_mean((ratio - 1) - logr, mask))
+                    clip_fraction = float(_masked_mean(((ratio - 1).abs() > cfg.clip_range).float(), mask))
+                    if p == 0 and j == 0:
+                        first_dev = float(((ratio - 1).abs() * mask).max()) if mask.any() else 0.0
+                stats["loss"].append(float(loss.detach()))
+                stats["surrogate"].append(float(surrogate.detach()))
+                stats["approx_kl"].append(approx_kl)
+                stats["clip_fraction"].append(clip_fraction)
+                if cfg.target_kl is not None and approx_kl > 1.5 * cfg.target_kl:
+                    stopped = 1.0
+                    break
+            if stopped:
+                break
+        result = {k: (sum(v) / len(v) if v else float("nan")) for k, v in stats.items()}
+        result.update(first_ratio_max_dev=first_dev, early_stop=stopped, updates=float(updates))
+        mask = _entry_mask(old, rollout.trace.agents)
+        gap = ((old - rollout.sample_log_prob).abs() * mask).max() if mask.any() else torch.zeros(())
+        result["sample_log_prob_gap"] = float(gap)
+        return result
+
+    # ------------------------------------------------------------------ checkpoints
+    def _checkpoint_root(self) -> str | None:
+        return None if self.config.output_dir is None else os.path.join(self.config.output_dir, "checkpoints")
+
+    def save_checkpoint(self, epochs_done: int) -> str:
+        """Write ``checkpoints/checkpoint-N``: the adapter (``save_pretrained``), the optimizer state as
+        safetensors and ``trainer_state.json`` (epochs done, history, optimizer hyper-parameters, RNG state)."""
+        root = self._checkpoint_root()
+        if root is None:
+            raise TrafficRLHFError("set `output_dir` to save checkpoints.")
+        final = os.path.join(root, f"checkpoint-{epochs_done}")
+        tmp = final + ".tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        self.model.save_pretrained(tmp)
+        state = self.optimizer.state_dict()
+        tensors: dict[str, torch.Tensor] = {}
+        scalars: dict[str, Any] = {}
+        for index, entry in state["state"].items():
+            for key, value in entry.items():
+                if isinstance(value, torch.Tensor):
+                    tensors[f"{index}.{key}"] = value.detach().cpu().contiguous()
+                else:
+                    scalars[f"{index}.{key}"] = value
+        save_file(tensors, os.path.join(tmp, OPTIMIZER_FILE), metadata={"format": "pt"})
+        payload = {
+            "epochs_done": epochs_done,
+            "groups": list(self.group_names),
+            "config": self.config.model_dump(mode="json"),
+            "history": self.history,
+            "optimizer_param_groups": state["param_groups"],
+            "optimizer_scalars": scalars,
+            "torch_rng_state": torch.get_rng_state().tolist(),
+        }
+        with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
+            json.dump(payload, handle, indent=1)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        limit = self.config.save_total_limit
+        if limit is not None:
+            for old in self.list_checkpoints()[:-limit]:
+                shutil.rmtree(old, ignore_errors=True)
+        return final
+
+    def list_checkpoints(self) -> list[str]:
+        """Complete checkpoint folders in ``output_dir``, oldest first."""
+        root = self._checkpoint_root()
+        if root is None or not os.path.isdir(root):
+            return []
+        found = []
+        for name in os.listdir(root):
+            path = os.path.join(root, name)
+            complete = os.path.isfile(os.path.join(path, STATE_FILE))
+            if name.startswith("checkpoint-") and name[11:].isdigit() and complete:
+                found.append((int(name[11:]), path))
+        return [p for _, p in sorted(found)]
+
+    def load_checkpoint(self, directory: str) -> None:
+        """Restore weights, optimizer state, history and the epoch counter from a checkpoint folder."""
+        with open(os.path.join(directory, STATE_FILE), encoding="utf-8") as handle:
+            payload = json.load(handle)
+        if list(payload["groups"]) != list(self.group_names):
+            raise TrafficRLHFError(f"checkpoint {directory!r} trained groups {payload['groups']}, this run trains "
+                                   f"{list(self.group_names)}; resume with the same `groups`.")
+        self.model.load_weights(directory)
+        tensors, _ = safe_load_file(os.path.join(directory, OPTIMIZER_FILE))
+        per_param: dict[int, dict[str, Any]] = {}
+        for key, value in tensors.items():
+            index, name = key.split(".", 1)
+            per_param.setdefault(int(index), {})[name] = value
+        for key, value in payload.get("optimizer_scalars", {}).items():
+            index, name = key.split(".", 1)
+            per_param.setdefault(int(index), {})[name] = value
+        self.optimizer.load_state_dict({"state": per_param, "param_groups": payload["optimizer_param_groups"]})
+        torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
+        self.history = list(payload["history"])
+        self.start_epoch = int(payload["epochs_done"])
+
+    # ------------------------------------------------------------------ logging
+    def _configure_logger(self) -> Any:
+        from stable_baselines3.common.logger import configure
+
+        formats = list(self.config.log_formats)
+        if "tensorboard" in formats:
+            try:
+                import tensorboard  # noqa: F401
+            except ImportError:
+                formats.remove("tensorboard")
+        if self.config.output_dir is None:
+            formats = [f for f in formats if f == "stdout"]
+        folder = None if self.config.output_dir is None else os.path.join(self.config.output_dir, "logs")
+        return configure(folder, formats)
+
+    # ------------------------------------------------------------------ main loop
+    def train(self, callback: Callable[[int, dict[str, float]], bool | None] | None = None) -> list[dict[str, float]]:
+        """Run the remaining epochs; returns the history. ``callback(epoch, stats)`` after each epoch may return
+        False to stop (the state is checkpointed first when ``output_dir`` is set)."""
+        cfg = self.config
+        if cfg.resume:
+            found = self.list_checkpoints()
+            if found:
+                self.load_checkpoint(found[-1])
+        self.logger = self._configure_logger()
+        flags = {id(p): p.requires_grad for p in self.model.module.parameters()}
+        chosen = {id(p) for p in self.trainable}
+        for p in self.model.module.parameters():
+            p.requires_grad_(id(p) in chosen)
+        bar = None
+        if cfg.progress_bar:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=cfg.epochs, initial=self.start_epoch, desc=f"align {self.model.name}", unit="epoch")
+        try:
+            for epoch in range(self.start_epoch, cfg.epochs):
+                start = time.perf_counter()
+                rollout = self._rollout(epoch)
+                stats = {"epoch": float(epoch + 1),
+                         "reward_mean": float(rollout.rewards.mean()),
+                         "reward_std": float(rollout.rewards.std(1, unbiased=False).mean()),
+                         "reward_min": float(rollout.rewards.min()),
+                         "reward_max": float(rollout.rewards.max())}
+                stats.update(self._optimize(epoch, rollout))
+                stats["time_s"] = time.perf_counter() - start
+                self.history.append(stats)
+                self._log(stats)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(reward=f"{stats['reward_mean']:.3f}", kl=f"{stats['approx_kl']:.2g}")
+                done = epoch + 1
+                if cfg.output_dir is not None and (done % cfg.save_every == 0 or done == cfg.epochs):
+                    self.save_checkpoint(done)
+                if callback is not None and callback(epoch, stats) is False:
+                    if cfg.output_dir is not None and done % cfg.save_every != 0:
+                        self.save_checkpoint(done)
+                    break
+        finally:
+            if bar is not None:
+                bar.close()
+            for p in self.model.module.parameters():
+                p.requires_grad_(flags[id(p)])
+            if self.logger is not None:
+                self.logger.close()
+        if cfg.output_dir is not None and len(self.history) == cfg.epochs:
+            self.model.save_pretrained(cfg.output_dir)
+            with open(os.path.join(cfg.output_dir, "align_history.json"), "w", encoding="utf-8") as handle:
+                json.dump({"config": cfg.model_dump(mode="json"), "groups": list(self.group_names),
+                           "history": self.history}, handle, indent=1)
+        return self.history
+
+    def _log(self, stats: dict[str, float]) -> None:
+        rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max")
+        for key, value in stats.items():
+            if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
+                continue
+            prefix = "rollout" if key in rollout_keys else ("time" if key == "time_s" else "train")
+            self.logger.record(f"{prefix}/{key}", value)
+        self.logger.dump(step=int(stats["epoch"]))

@@ -1,0 +1,202 @@
+"""``trafficrlhf rm ...``: train a reward model from preferences, evaluate it, inspect a saved one."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import sys
+from typing import Any
+
+import click
+
+from trafficrlhf_sdk.cli import cli
+
+__all__ = ["rm"]
+
+
+def _echo_metrics(title: str, metrics: dict[str, Any]) -> None:
+    click.echo(title)
+    for key, value in metrics.items():
+        shown = f"{value:.4f}" if isinstance(value, float) else value
+        click.echo(f"  {key:<28} {shown}")
+
+
+def _parse_options(pairs: tuple[str, ...]) -> dict[str, Any]:
+    options: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"expected KEY=VALUE, got {pair!r}", param_hint="--architecture-option")
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
+    return options
+
+
+@cli.group("rm")
+def rm() -> None:
+    """Reward models (stage II): train r_HF from preferences, evaluate it, inspect a saved one."""
+
+
+@rm.command("train")
+@click.option("--db", "db_path", default=None, help="Feedback database (SQLite) holding the campaign.")
+@click.option("--campaign", default=None, help="Campaign whose labels train the model (with --db).")
+@click.option("--data", "data_dir", default=None, help="Instead of --db: a folder from `feedback export`.")
+@click.option("--annotator", "annotators", multiple=True, help="Use only this annotator's labels (repeatable).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
+              help="Folder for config.json, model.safetensors, README.md and training_log.json.")
+@click.option("--val-fraction", type=click.FloatRange(0, 1, max_open=True), default=0.15, show_default=True,
+              help="Share of contexts (never pairs) held out for validation and early stopping.")
+@click.option("--split-seed", type=int, default=0, show_default=True, help="Seed of the train/val split.")
+@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Maximum epochs [default: RewardConfig].")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Learning rate.")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Contexts per optimiser step.")
+@click.option("--margin", type=click.FloatRange(min=0), default=None, help="Bradley–Terry margin.")
+@click.option("--center-coef", type=click.FloatRange(min=0), default=None, help="Reward-centring coefficient.")
+@click.option("--patience", type=click.IntRange(min=1), default=None, help="Early-stopping patience (epochs).")
+@click.option("--ensemble", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Members of an ensemble (their spread is the uncertainty).")
+@click.option("--bootstrap/--no-bootstrap", default=True, show_default=True,
+              help="Ensemble members train on contexts drawn with replacement (else all, with other seeds).")
+@click.option("--half", is_flag=True, help="Store the weights in float16 (half the size; rounded before testing).")
+@click.option("--architecture", default="ctg_mlp", show_default=True, help="Registered architecture.")
+@click.option("--architecture-option", "arch_options", multiple=True, metavar="KEY=VALUE",
+              help="Architecture option (JSON value), repeatable, e.g. hidden_sizes=[256,32].")
+@click.option("--seed", type=int, default=0, show_default=True, help="Training seed.")
+@click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")
+@click.option("--test-campaign", default=None, help="Held-out campaign (same --db) to evaluate and record in the card.")
+@click.option("--test-annotator", "test_annotators", multiple=True, help="Its annotator(s), e.g. a noise-free one.")
+@click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Test pairs whose hidden realism differs by at most this count as ties (strict accuracy).")
+@click.option("--title", default=None, help="Title of the model card.")
+@click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
+@click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
+def train_command(db_path: str | None, campaign: str | None, data_dir: str | None, annotators: tuple[str, ...],
+                  out_dir: str, val_fraction: float, split_seed: int, epochs: int | None, lr: float | None,
+                  batch_size: int | None, margin: float | None, center_coef: float | None, patience: int | None,
+                  ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
+                  seed: int, threads: int | None,
+                  test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
+                  title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
+    """Train a reward model with the Bradley–Terry loss and save it with its model card."""
+    import torch
+
+    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer
+    from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
+
+    dataset, store = load_preferences(db_path, campaign, data_dir, annotators, val_fraction, split_seed)
+    overrides = {"max_epochs": epochs, "learning_rate": lr, "batch_size": batch_size, "margin": margin,
+                 "center_rewards_coefficient": center_coef, "early_stopping_patience": patience}
+    config = RewardConfig(architecture=architecture, architecture_config=_parse_options(arch_options),
+                          ensemble_size=ensemble, bootstrap=bootstrap, seed=seed, num_threads=threads,
+                          val_fraction=val_fraction,
+                          progress=not quiet, **{k: v for k, v in overrides.items() if v is not None})
+
+    def log(row: dict[str, float]) -> None:
+        if not quiet:
+            shown = {k: round(v, 4) for k, v in row.items() if k.startswith(("train_loss", "train_acc", "val_loss",
+                                                                              "val_acc", "val_margin"))}
+            click.echo(f"  member {int(row['member'])} epoch {int(row['epoch'])}: {shown} ({row['seconds']:.1f} s)")
+
+    trainer = RewardTrainer(config, train_dataset=dataset, log=log)
+    info = trainer.dataset_info
+    click.echo(f"training {architecture} on {info['train_pairs']} pairs / {info['train_contexts']} contexts, "
+               f"validating on {info['val_pairs']} pairs / {info['val_contexts']} contexts "
+               f"(featurized in {trainer.featurize_seconds:.1f} s)")
+    result = trainer.train()
+    model = result.model
+    if half:  # round to float16 now, so the test metrics below are those of the weights that are saved
+        model.half().float()
+    card: dict[str, Any] = {"metrics": dict(result.metrics)}
+    if test_campaign is not None:
+        if store is None:
+            raise click.UsageError("--test-campaign needs --db (the campaign is read from the same database).")
+        test, _ = load_preferences(db_path, test_campaign, None, test_annotators)
+        test_metrics = evaluate_model(model, test, store, tie_tolerance)
+        card["metrics"].update({f"test_{k}": v for k, v in test_metrics.items()})
+        card["data"] = {**model.card_info.get("data", {}), "test_campaign": test_campaign,
+                        "test_annotators": list(test_annotators) or "all"}
+    if db_path is not None:
+        card.setdefault("data", dict(model.card_info.get("data", {})))
+        card["data"].update({"campaign": campaign, "annotators": list(annotators) or "all",
+                             "scenes": sorted({f"{k['source']}/{k['split']}" for k in dataset.context_keys})})
+    if title:
+        card["title"] = title
+    if notes:
+        card["notes"] = "\n\n".join(notes)
+    if os.path.basename(sys.argv[0]) == "trafficrlhf":  # the command line that made this model, for the card
+        card["commands"] = ["trafficrlhf " + shlex.join(sys.argv[1:])]
+    model.save_pretrained(out_dir, card, dtype=torch.float16 if half else None)
+    with open(os.path.join(out_dir, "training_log.json"), "w", encoding="utf-8") as handle:
+        json.dump({"history": result.history, "best_epochs": result.best_epochs,
+                   "train_seconds": result.train_seconds, "featurize_seconds": result.featurize_seconds}, handle,
+                  indent=2)
+    _echo_metrics(f"trained in {result.train_seconds:.1f} s (best epochs {result.best_epochs}) -> {out_dir}",
+                  card["metrics"])
+
+
+@rm.command("eval")
+@click.option("--model", "model_dir", required=True, help="Folder of a saved reward model.")
+@click.option("--db", "db_path", default=None, help="Feedback database holding the campaign.")
+@click.option("--campaign", default=None, help="Campaign whose labels are the test pairs (with --db).")
+@click.option("--data", "data_dir", default=None, help="Instead of --db: a folder from `feedback export`.")
+@click.option("--annotator", "annotators", multiple=True, help="Use only this annotator's labels (repeatable).")
+@click.option("--subset", type=click.Choice(["all", "train", "val"]), default="all", show_default=True,
+              help="Contexts of an exported dataset to use.")
+@click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="With --db: pairs whose hidden realism differs by at most this are ties (strict accuracy).")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
+                 annotators: tuple[str, ...], subset: str, tie_tolerance: float, as_json: bool) -> None:
+    """Accuracy (share of pairs with r(S_w) > r(S_l)), margin and rewards on a campaign's preference pairs."""
+    from trafficrlhf_sdk.reward import RewardModel
+    from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
+
+    model = RewardModel.from_pretrained(model_dir)
+    dataset, store = load_preferences(db_path, campaign, data_dir, annotators)
+    if subset != "all":
+        dataset = dataset.subset(subset)
+    metrics = evaluate_model(model, dataset, store, tie_tolerance)
+    if as_json:
+        click.echo(json.dumps(metrics, indent=2))
+        return
+    _echo_metrics(f"{model.architecture} from {model_dir} on {campaign or data_dir}", metrics)
+
+
+@rm.command("info")
+@click.argument("model_dir", required=False)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def info_command(model_dir: str | None, as_json: bool) -> None:
+    """Describe a saved reward model (architecture, size, data, metrics); without MODEL_DIR, list architectures."""
+    from trafficrlhf_sdk.reward.model import reward_model_architectures
+    from trafficrlhf_sdk.reward.serialization import read_config, sha256_file
+
+    registry = reward_model_architectures()
+    if model_dir is None:
+        rows = [{"architecture": name, "plugin": registry.owner(name)} for name in registry.names()]
+        if as_json:
+            click.echo(json.dumps(rows, indent=2))
+        for row in [] if as_json else rows:
+            click.echo(f"{row['architecture']}\t(plugin {row['plugin']})")
+        return
+    config = read_config(model_dir)
+    weights = os.path.join(model_dir, config.get("weights", {}).get("file", "model.safetensors"))
+    ok = os.path.isfile(weights) and sha256_file(weights) == config.get("weights", {}).get("sha256")
+    summary = {"path": model_dir, "architecture": config["architecture"],
+               "registered": config["architecture"] in registry, "num_parameters": config.get("num_parameters"),
+               "weights_sha256_ok": ok, "sdk_version": config.get("sdk_version"), "config": config["config"],
+               "data": {k: v for k, v in config.get("data", {}).items() if k != "metadata"},
+               "metrics": config.get("metrics", {})}
+    if as_json:
+        click.echo(json.dumps(summary, indent=2))
+        return
+    members = config["config"].get("num_members") if config["architecture"] == "ensemble" else None
+    kind = (f"{summary['architecture']} of {members} x {config['config'].get('member_architecture')}" if members
+            else summary["architecture"])
+    click.echo(f"{model_dir}: {kind} ({'registered' if summary['registered'] else 'NOT registered'}"
+               f"), {summary['num_parameters']:,} parameters, weights {'ok' if ok else 'MODIFIED OR MISSING'}, "
+               f"SDK {summary['sdk_version']}")
+    _echo_metrics("data", summary["data"])
+    _echo_metrics("metrics", summary["metrics"])

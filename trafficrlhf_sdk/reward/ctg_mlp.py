@@ -1,0 +1,135 @@
+"""The paper's reward model (``"ctg_mlp"``): a CTG-style context encoder and a 512-512-512-128-32 Tanh MLP.
+
+For every selected agent and every scored step (every ``step_dt``, 2 Hz by default) the encoder builds the
+agent-centric inputs of :mod:`trafficrlhf_sdk.reward.features`: a map crop (three layers, 16 x 16 cells of
+1 m) through a small CNN, the agent's recent states, its neighbours and drivable-area look-ups. The MLP maps
+them to a reward with Tanh after every layer, the 1-unit output included, so each (agent, step) reward lies in
+[-1, 1]. The per-step reward is the mean over the agents present at that step and the scenario reward the mean
+over the scored steps. Nothing depends on T or A: the model is applied step by step (iteratively over time),
+so any length, any number of agents and any padding work; invalid steps and padding agents are skipped.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+from trafficrlhf_sdk.reward.features import FeatureSpec, StepInputs, compute_step_inputs
+from trafficrlhf_sdk.reward.model import RewardModel
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["CTGMLPConfig", "CTGMLPRewardModel"]
+
+
+class CTGMLPConfig(BaseModel):
+    """Options of :class:`CTGMLPRewardModel` (stored in ``config.json``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
+                                          description="MLP widths (the paper's 512-512-512-128-32); Tanh after each.")
+    step_dt: float = Field(0.5, gt=0, description="Seconds between scored steps (2 Hz as the paper's reward cost).")
+    history_steps: int = Field(0, ge=0, description="Raw past states seen per step, every `step_dt` (the "
+                                                     "kinematics always use the last two); 0 generalises best.")
+    num_neighbours: int = Field(6, ge=0, description="Nearest other agents seen per step.")
+    neighbour_radius_m: float = Field(40.0, gt=0, description="Agents farther than this (m) are not neighbours.")
+    crop_size: int = Field(16, ge=4, description="Map crop cells per side (multiple of 4).")
+    crop_resolution_m: float = Field(1.0, gt=0, description="Size of a crop cell (m).")
+    crop_supersample: int = Field(2, ge=1, le=15, description="Raster samples per cell side (averaged).")
+    crop_behind_fraction: float = Field(0.25, ge=0, le=1, description="Share of the crop behind the agent.")
+    map_layers: tuple[str, ...] = Field(("drivable", "road_divider", "lane_divider"),
+                                        description="Map layers of the crop, by name (missing ones are empty).")
+    map_channels: tuple[int, int] = Field((16, 32), description="Channels of the two stride-2 conv layers.")
+    map_embedding: int = Field(64, ge=1, description="Size of the map code fed to the MLP.")
+    agents: str = Field("controlled", pattern="^(controlled|all)$",
+                        description="Agents averaged: 'controlled' (those a model drove, else all) or 'all'.")
+
+    def feature_spec(self) -> FeatureSpec:
+        """The feature extraction settings."""
+        return FeatureSpec(step_dt=self.step_dt, history_steps=self.history_steps, num_neighbours=self.num_neighbours,
+                           neighbour_radius_m=self.neighbour_radius_m, crop_size=self.crop_size,
+                           crop_resolution_m=self.crop_resolution_m, crop_supersample=self.crop_supersample,
+                           crop_behind_fraction=self.crop_behind_fraction, map_layers=self.map_layers,
+                           agents=self.agents)
+
+
+class CTGMLPRewardModel(RewardModel):
+    """CTG-style context encoder + 512-512-512-128-32 Tanh MLP + Linear(32, 1) + Tanh, per agent and step."""
+
+    architecture = "ctg_mlp"
+    Config = CTGMLPConfig
+
+    def __init__(self, config: CTGMLPConfig | dict[str, Any] | None = None) -> None:
+        super().__init__(config)
+        cfg: CTGMLPConfig = self.config  # type: ignore[assignment]
+        if cfg.crop_size % 4:
+            raise ValueError(f"`crop_size` must be a multiple of 4 (two stride-2 convolutions); got {cfg.crop_size}.")
+        self.spec = cfg.feature_spec()
+        c1, c2 = cfg.map_channels
+        side = cfg.crop_size // 4
+        self.map_encoder = nn.Sequential(
+            nn.Conv2d(len(cfg.map_layers), c1, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(c1, c2, 3, stride=2, padding=1), nn.ReLU(), nn.Flatten(),
+            nn.Linear(c2 * side * side, cfg.map_embedding), nn.Tanh(),
+        )
+        layers: list[nn.Module] = []
+        width = self.spec.num_features + cfg.map_embedding
+        for size in (*cfg.hidden_sizes, 1):
+            layers += [nn.Linear(width, size), nn.Tanh()]
+            width = size
+        self.mlp = nn.Sequential(*layers)
+        # Glorot init with the Tanh gain keeps activations alive through six Tanh layers (PyTorch's default
+        # shrinks them layer by layer); a small output layer starts every reward near 0, far from saturation
+        linears = [m for m in self.mlp if isinstance(m, nn.Linear)]
+        for i, linear in enumerate(linears):
+            gain = 0.1 if i == len(linears) - 1 else nn.init.calculate_gain("tanh")
+            nn.init.xavier_uniform_(linear.weight, gain=gain)
+            nn.init.zeros_(linear.bias)
+
+    # ---------------------------------------------------------------- internals
+    def item_rewards(self, inputs: StepInputs) -> torch.Tensor:
+        """Reward of every (agent, step) item ``(N,)`` in [-1, 1]."""
+        crops = inputs.crops.to(torch.float32) / inputs.crop_max
+        code = self.map_encoder(crops)
+        return self.mlp(torch.cat([inputs.features, code], -1)).squeeze(-1)
+
+    @staticmethod
+    def _per_step(inputs: StepInputs, rewards: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean item reward per (scene, step) ``(B, T)`` and the number of items there ``(B, T)``."""
+        b, t = inputs.num_scenes, inputs.num_steps
+        key = inputs.scene * t + inputs.step
+        total = torch.zeros(b * t, dtype=rewards.dtype).index_add(0, key, rewards)
+        count = torch.zeros(b * t, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
+        return (total / count.clamp_min(1)).reshape(b, t), count.reshape(b, t)
+
+    # ----------------------------------------------------------------- contract
+    def prepare(self, scenario: ScenarioTensor) -> StepInputs:
+        """Inputs at the scored steps (no gradient needed; compute once, score many times)."""
+        return compute_step_inputs(scenario, self.spec)
+
+    def score_prepared(self, prepared: StepInputs) -> torch.Tensor:
+        """Scenario rewards ``(B,)``: mean over scored steps of the mean over agents; 0 for empty scenes."""
+        per_step, count = self._per_step(prepared, self.item_rewards(prepared))
+        present = (count > 0).to(per_step.dtype)
+        return (per_step * present).sum(1) / present.sum(1).clamp_min(1)
+
+    def forward(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Scenario rewards ``(B,)`` in [-1, 1].
+
+        The mean of the per-step rewards every ``step_dt`` after ``current_index``; steps without a selected valid
+        agent do not count and an empty scene scores 0.
+        """
+        return self.score_prepared(self.prepare(scenario))
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Per-step rewards ``(B, T)`` in [-1, 1] at every step of ``scenario``.
+
+        Each is the mean over the selected agents valid at that step (0 where there is none); each step sees the
+        states ``step_dt`` and ``2 * step_dt`` before it.
+        """
+        inputs = compute_step_inputs(scenario, self.spec, torch.arange(scenario.num_steps))
+        per_step, _ = self._per_step(inputs, self.item_rewards(inputs))
+        return per_step

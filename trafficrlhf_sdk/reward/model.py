@@ -1,0 +1,219 @@
+"""``RewardModel``: r_HF, a learned score of how realistic a traffic scenario is.
+
+Contract (every architecture):
+
+- :meth:`RewardModel.step_rewards` maps a scenario ``(B, A, T)`` to per-step rewards ``(B, T)`` in [-1, 1]
+  (the :data:`~trafficrlhf_sdk.metrics.reward_cost.RewardFn` of the reward-cost metric);
+- :meth:`RewardModel.forward` (= :meth:`score`) maps it to one reward per scene ``(B,)`` in [-1, 1]: the mean of
+  the per-step rewards over the steps the architecture scores (for the built-in one: every ``step_dt`` after
+  ``current_index``, so the history that two candidates share never counts);
+- :meth:`prepare` / :meth:`score_prepared` split scoring into a no-grad part computed once and a trainable part,
+  so :class:`~trafficrlhf_sdk.reward.trainer.RewardTrainer` featurizes a dataset once and not every epoch.
+  The defaults keep the scenario and call :meth:`forward`, so an architecture only has to implement
+  :meth:`step_rewards` and :meth:`forward`.
+
+Architectures are registered by plugins (``register_reward_model_architectures``) under the name stored in
+``config.json``; :meth:`RewardModel.from_pretrained` resolves the class from that registry, never from pickle.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, ClassVar, Sequence
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "get_reward_model_architecture",
+           "reward_model_architectures"]
+
+
+class ScenarioInputs:
+    """The default prepared input: the scenario itself (selectable by scene like :class:`StepInputs`)."""
+
+    def __init__(self, scenario: ScenarioTensor) -> None:
+        self.scenario = scenario
+
+    @property
+    def num_scenes(self) -> int:
+        """B."""
+        return self.scenario.num_scenes
+
+    def select(self, scenes: torch.Tensor | Sequence[int]) -> ScenarioInputs:
+        """The scenes at ``scenes`` (repeats allowed)."""
+        return ScenarioInputs(self.scenario[torch.as_tensor(scenes, dtype=torch.long)])
+
+    @staticmethod
+    def concat(parts: Sequence[ScenarioInputs]) -> ScenarioInputs:
+        """Scenes of all parts, in order."""
+        return ScenarioInputs(ScenarioTensor.concat([p.scenario for p in parts]))
+
+
+class RewardModel(nn.Module):
+    """Base class of reward-model architectures.
+
+    Subclasses set :attr:`architecture` (the registry name) and :attr:`Config` (a pydantic model of their
+    constructor options, written to ``config.json``), take ``config`` as their only constructor argument and
+    implement :meth:`step_rewards` and :meth:`forward`.
+    """
+
+    architecture: ClassVar[str] = ""
+    Config: ClassVar[type[BaseModel]]
+
+    def __init__(self, config: BaseModel | dict[str, Any] | None = None) -> None:
+        super().__init__()
+        if config is None:
+            config = self.Config()
+        elif isinstance(config, dict):
+            config = self.Config(**config)
+        elif not isinstance(config, self.Config):
+            raise TypeError(f"`config` must be a {self.Config.__name__} or a dict; got {type(config).__name__}.")
+        self.config = config
+        self.card_info: dict[str, Any] = {}  # provenance and metrics for the model card (set by the trainer)
+
+    # ------------------------------------------------------------------ scoring
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Per-step rewards ``(B, T)`` in [-1, 1]."""
+        raise NotImplementedError
+
+    def forward(self, scenario: ScenarioTensor) -> torch.Tensor:  # noqa: D102
+        raise NotImplementedError
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Scenario rewards ``(B,)`` in [-1, 1]; the same as calling the model."""
+        return self(scenario)
+
+    def prepare(self, scenario: ScenarioTensor) -> Any:
+        """The no-grad part of scoring (default: the scenario itself); selectable by scene and concatenable."""
+        return ScenarioInputs(scenario)
+
+    def score_prepared(self, prepared: Any) -> torch.Tensor:
+        """Scenario rewards ``(B,)`` from the output of :meth:`prepare` (differentiable)."""
+        return self(prepared.scenario)
+
+    @property
+    def num_parameters(self) -> int:
+        """Number of trainable values."""
+        return sum(p.numel() for p in self.parameters())
+
+    # ----------------------------------------------------------------------- io
+    def config_dict(self) -> dict[str, Any]:
+        """The constructor options as JSON-ready values."""
+        return self.config.model_dump(mode="json")
+
+    def save_pretrained(self, directory: str | os.PathLike[str], card: dict[str, Any] | None = None,
+                        dtype: torch.dtype | None = None) -> str:
+        """Write ``config.json``, ``model.safetensors`` and a ``README.md`` model card into ``directory``.
+
+        ``card`` adds to (and overrides) :attr:`card_info`: keys ``data``, ``training``, ``metrics``,
+        ``commands``, ``notes`` (see :func:`~trafficrlhf_sdk.reward.serialization.render_model_card`).
+        ``dtype=torch.float16`` stores the weights in half precision (they load back as float32).
+        """
+        from trafficrlhf_sdk.reward.serialization import save_reward_model
+
+        return save_reward_model(self, directory, {**self.card_info, **(card or {})}, dtype)
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike[str], verify: bool = True,
+                        device: str | torch.device = "cpu") -> RewardModel:
+        """Load a model saved by :meth:`save_pretrained`; the class comes from the architecture registry.
+
+        Args:
+            directory: the folder with ``config.json`` and ``model.safetensors``.
+            verify: check the weights file against the SHA-256 recorded in ``config.json`` (refuses edited or
+                truncated files).
+            device: where to put the weights.
+
+        Raises:
+            DataNotFoundError: the folder or a file is missing.
+            DataFormatError: unreadable, tampered, truncated or mis-shaped files.
+            UnknownComponentError: ``config.json`` names an architecture no installed plugin registers.
+        """
+        from trafficrlhf_sdk.reward.serialization import load_reward_model
+
+        model = load_reward_model(directory, verify=verify, device=device)
+        if not isinstance(model, cls):
+            raise DataFormatError(f"{os.fspath(directory)!r} holds a {type(model).__name__} "
+                                  f"({model.architecture!r}), not a {cls.__name__}; load it with "
+                                  "RewardModel.from_pretrained.")
+        return model
+
+
+def reward_model_architectures() -> Any:
+    """The registry of reward-model architectures (built from the plugins on each call)."""
+    from trafficrlhf_sdk.plugins import registry
+
+    return registry("reward_model_architectures")
+
+
+def get_reward_model_architecture(name: str) -> type[RewardModel]:
+    """The class registered as ``name``; unknown names raise ``UnknownComponentError`` listing the known ones."""
+    cls = reward_model_architectures().get(name)
+    if not (isinstance(cls, type) and issubclass(cls, RewardModel)):
+        raise DataFormatError(f"reward-model architecture {name!r} is registered as {cls!r}, which is not a "
+                              "RewardModel subclass; fix the plugin that registers it.")
+    return cls
+
+
+class EnsembleConfig(BaseModel):
+    """Options of :class:`RewardEnsemble`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    member_architecture: str = Field("ctg_mlp", description="Registered architecture of every member.")
+    member_config: dict[str, Any] = Field(default_factory=dict, description="Options of the member architecture.")
+    num_members: int = Field(2, ge=1, description="Number of members.")
+
+
+class RewardEnsemble(RewardModel):
+    """Members of one architecture (bootstrap ensemble); rewards are the members' mean, the spread their std.
+
+    ``uncertainty(scenario)`` gives the standard deviation across members of the scenario reward ``(B,)``.
+    """
+
+    architecture = "ensemble"
+    Config = EnsembleConfig
+
+    def __init__(self, config: EnsembleConfig | dict[str, Any] | None = None,
+                 members: Sequence[RewardModel] | None = None) -> None:
+        if members is not None and config is None:
+            first = members[0]
+            config = EnsembleConfig(member_architecture=first.architecture, member_config=first.config_dict(),
+                                    num_members=len(members))
+        super().__init__(config)
+        cfg: EnsembleConfig = self.config  # type: ignore[assignment]
+        if members is None:
+            member_cls = get_reward_model_architecture(cfg.member_architecture)
+            members = [member_cls(cfg.member_config) for _ in range(cfg.num_members)]
+        if len(members) != cfg.num_members:
+            raise ValueError(f"`members` holds {len(members)} models but `num_members` is {cfg.num_members}.")
+        self.members = nn.ModuleList(members)
+
+    def member_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Scenario rewards of every member ``(M, B)``."""
+        return torch.stack([m(scenario) for m in self.members])
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Mean over members of the per-step rewards ``(B, T)``."""
+        return torch.stack([m.step_rewards(scenario) for m in self.members]).mean(0)
+
+    def forward(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Mean over members of the scenario rewards ``(B,)``."""
+        return self.member_scores(scenario).mean(0)
+
+    def uncertainty(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Standard deviation across members of the scenario rewards ``(B,)`` (0 for one member)."""
+        scores = self.member_scores(scenario)
+        return scores.std(0) if len(self.members) > 1 else torch.zeros_like(scores[0])
+
+    def prepare(self, scenario: ScenarioTensor) -> Any:
+        """The first member's prepared inputs (members share an architecture and so their inputs)."""
+        return self.members[0].prepare(scenario)
+
+    def score_prepared(self, prepared: Any) -> torch.Tensor:
+        """Mean over members of :meth:`RewardModel.score_prepared`."""
+        return torch.stack([m.score_prepared(prepared) for m in self.members]).mean(0)
