@@ -3,8 +3,8 @@
 #   1. feedback campaigns of the compact CTG with no-collision guidance, 5 candidates of 5 s per context:
 #      every long-enough nuScenes *train* scene (469) for training, the first 100 long-enough *val* scenes as a
 #      held-out test set;
-#   2. synthetic labels: a noisy B-Pref-style annotator (beta 20, 10 % mistakes) on both campaigns and a
-#      noise-free one (beta -> inf, no mistakes) on the test campaign;
+#   2. synthetic labels: a noisy B-Pref-style annotator (beta 20, 10 % mistakes) and a noise-free one
+#      (beta -> inf, no mistakes) on both campaigns; training uses the noisy labels only;
 #   3. `trafficrlhf rm train` on the noisy train labels (400 contexts train, 69 early-stopping, split by context):
 #      an ensemble of 3 members that differ only in their seed, weights stored in float16, evaluated on the
 #      noise-free test labels and saved with its model card.
@@ -34,6 +34,8 @@ echo "candidates generated in ${SECONDS} s"
 $T feedback label --synthetic --db "$DB" --campaign ctg-nc-train --annotator synth-noisy --beta 20 --epsilon 0.1 --seed 0
 $T feedback label --synthetic --db "$DB" --campaign ctg-nc-val --annotator synth-noisy --beta 20 --epsilon 0.1 --seed 0
 $T feedback label --synthetic --db "$DB" --campaign ctg-nc-val --annotator oracle --beta 0 --epsilon 0 --seed 0
+# noise-free labels of the training campaign too: for diagnostics only (rm train below uses synth-noisy alone)
+$T feedback label --synthetic --db "$DB" --campaign ctg-nc-train --annotator oracle --beta 0 --epsilon 0 --seed 0
 
 $T rm train --db "$DB" --campaign ctg-nc-train --annotator synth-noisy --val-fraction 0.1472 --seed 0 \
   --ensemble 3 --no-bootstrap --half \

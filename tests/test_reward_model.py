@@ -223,6 +223,45 @@ def test_plugin_architecture_is_resolved(scenes: ScenarioTensor, tmp_path: Path)
         RewardModel.from_pretrained(tmp_path / "c")
 
 
+class SpeedReward(RewardModel):
+    """A plugin-style architecture without a fast path: r = tanh(w * speed), averaged over valid agent-steps."""
+
+    architecture = "test_speed"
+
+    class Config(BaseModel):
+        scale: float = 0.1
+
+    def __init__(self, config: object = None) -> None:
+        super().__init__(config)  # type: ignore[arg-type]
+        self.weight = torch.nn.Parameter(torch.tensor(0.0))
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        per_agent = torch.tanh(self.weight * self.config.scale * scenario.speed)  # type: ignore[attr-defined]
+        valid = scenario.valid.float()
+        return (per_agent * valid).sum(1) / valid.sum(1).clamp_min(1)
+
+    def forward(self, scenario: ScenarioTensor) -> torch.Tensor:
+        return self.step_rewards(scenario)[:, scenario.current_index + 1:].mean(1)
+
+
+def test_trainer_runs_a_plugin_architecture_through_the_generic_path(tiny_dataset) -> None:  # type: ignore[no-untyped-def]
+    class Plugin:
+        @hookimpl
+        def register_reward_model_architectures(self, register):  # type: ignore[no-untyped-def]
+            register("test_speed", SpeedReward)
+
+    pm = get_plugin_manager()
+    pm.register(Plugin(), name="test-speed-plugin")
+    try:
+        config = RewardConfig(architecture="test_speed", max_epochs=3, batch_size=4, learning_rate=0.1,
+                              progress=False, ema_decay=None)
+        result = RewardTrainer(config, train_dataset=tiny_dataset).train()
+    finally:
+        pm.unregister(name="test-speed-plugin")
+    assert isinstance(result.model, SpeedReward) and len(result.history) == 3
+    assert float(result.model.weight.detach()) != 0.0  # it was trained
+
+
 def test_bradley_terry_loss_matches_hand_computation() -> None:
     chosen, rejected = torch.tensor([0.5, -0.2]), torch.tensor([0.1, 0.3])
     by_hand = -(torch.log(torch.sigmoid(torch.tensor(0.4))) + torch.log(torch.sigmoid(torch.tensor(-0.5)))) / 2
