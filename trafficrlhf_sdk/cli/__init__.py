@@ -88,6 +88,22 @@ def format_error(exc: BaseException) -> str:
     return message or type(exc).__name__
 
 
+def parse_key_values(pairs: Sequence[str], option: str) -> dict[str, object]:
+    """``("k=v", ...)`` from a repeated ``option`` into a dict; values are parsed as JSON when they can be."""
+    import json
+
+    options: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"expected KEY=VALUE, got {pair!r}", param_hint=option)
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
+    return options
+
+
 def _fail(message: str, code: int) -> NoReturn:
     click.echo(f"Error: {message}", err=True)
     sys.exit(code)

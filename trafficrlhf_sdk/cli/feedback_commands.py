@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.cli import cli, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 __all__ = ["feedback"]
@@ -32,16 +32,7 @@ def _store(db_path: str, must_exist: bool = True) -> Any:
 
 
 def _parse_options(pairs: tuple[str, ...]) -> dict[str, Any]:
-    options: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise click.BadParameter(f"expected KEY=VALUE, got {pair!r}", param_hint="--model-option")
-        try:
-            options[key] = json.loads(value)
-        except json.JSONDecodeError:
-            options[key] = value
-    return options
+    return dict(parse_key_values(pairs, "--model-option"))
 
 
 @cli.group("feedback")

@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.cli import cli, parse_key_values
 
 __all__ = ["rm"]
 
@@ -23,16 +23,7 @@ def _echo_metrics(title: str, metrics: dict[str, Any]) -> None:
 
 
 def _parse_options(pairs: tuple[str, ...]) -> dict[str, Any]:
-    options: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise click.BadParameter(f"expected KEY=VALUE, got {pair!r}", param_hint="--architecture-option")
-        try:
-            options[key] = json.loads(value)
-        except json.JSONDecodeError:
-            options[key] = value
-    return options
+    return dict(parse_key_values(pairs, "--architecture-option"))
 
 
 @cli.group("rm")
