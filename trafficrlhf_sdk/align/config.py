@@ -37,6 +37,11 @@ class AlignConfig(BaseModel):
                                                             "to the sampling policy exceeds 1.5 x this (SB3 rule).")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "
                                                      "gradient when that would help.")
+    denoising_steps: int | None = Field(None, ge=1, description="For adapters with per-step log-probabilities "
+                                        "(B, S, A, K), use only the first N of the K steps in the surrogate and "
+                                        "the KL terms (the noisiest ones, where a sample's outcome is decided; the "
+                                        "last DDIM steps have a tiny sigma, so their ratios swing wildly). DDPO's "
+                                        "timestep_fraction. None: all steps.")
     advantage_clip: float = Field(5.0, gt=0, description="Normalized advantages are clipped to +- this (DDPO).")
     advantage_eps: float = Field(1e-6, gt=0, description="Added to the per-context reward std before dividing.")
 
@@ -65,6 +70,21 @@ class AlignConfig(BaseModel):
                                         "reaches itself. Their imitation loss still uses the logged scene.")
     closed_loop_max_s: float = Field(6.0, gt=0, description="Longest closed-loop lead-in (s); each epoch draws a "
                                                             "multiple of 0.5 s up to this.")
+    failure_fraction: float = Field(0.0, ge=0, le=1, description="Share of each epoch's contexts cut shortly "
+                                    "before a failure (collision or off-road) of the current model in a "
+                                    "closed-loop run on `failure_scenes` training scenes; the log fills in when "
+                                    "the run has fewer failures.")
+    failure_scenes: int = Field(16, ge=1, description="Training scenes driven in closed loop per epoch to find "
+                                                      "failures (`failure_fraction` > 0).")
+    failure_drive_s: float = Field(10.0, gt=0, description="Length (s) of the closed-loop runs that find failures "
+                                                           "(the evaluation protocol's 10 s).")
+    failure_lead_steps: tuple[int, int] = Field((5, 15), description="A failure-focused context starts d steps "
+                                                "before the agent's first failure, d uniform in this range.")
+    credit: Literal["scene", "agent"] = Field("scene", description="'scene': one reward per sample, shared by "
+                                              "its agents (the paper's scenario reward). 'agent': each sampled "
+                                              "agent gets its own reward and advantage (needs a reward model "
+                                              "with `agent_scores`); sharper credit for models that sample "
+                                              "agents independently given the context, such as CTG.")
     reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
                                        "longer value than the model's horizon extends the sample at constant "
                                        "speed and heading (denser failure signal); None: the horizon.")
@@ -97,6 +117,13 @@ class AlignConfig(BaseModel):
                              "'train'.")
         if self.resume and self.output_dir is None:
             raise ValueError("`resume=True` needs `output_dir` (the folder holding the checkpoints).")
+        lo, hi = self.failure_lead_steps
+        if not 1 <= lo <= hi:
+            raise ValueError(f"`failure_lead_steps` is {self.failure_lead_steps}; give (low, high) with "
+                             "1 <= low <= high, e.g. (5, 15).")
+        if self.failure_fraction + self.closed_loop_fraction > 1 + 1e-9:
+            raise ValueError(f"`failure_fraction` ({self.failure_fraction}) + `closed_loop_fraction` "
+                             f"({self.closed_loop_fraction}) exceed 1; lower one of them.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
         return self

@@ -26,8 +26,8 @@ class FailureReward:
         self.collision = collision
         self.offroad = offroad
 
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """``(B, T)`` rewards (0 where no agent is scored)."""
+    def _failures(self, scenario: ScenarioTensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(bad, mask)``, both bool ``(B, A, T)``: failing scored agent-steps, and the scored ones."""
         agents = scenario.controlled & scenario.valid.any(-1)
         agents = torch.where(agents.any(-1, keepdim=True), agents, scenario.valid.any(-1))
         mask = agents[:, :, None] & scenario.valid
@@ -36,4 +36,17 @@ class FailureReward:
             bad |= collisions_per_step(scenario)
         if self.offroad and scenario.map is not None:
             bad |= offroad_per_step(scenario)
-        return -((bad & mask).sum(1).float() / mask.sum(1).clamp_min(1))
+        return bad & mask, mask
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, T)`` rewards (0 where no agent is scored)."""
+        bad, mask = self._failures(scenario)
+        return -(bad.sum(1).float() / mask.sum(1).clamp_min(1))
+
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, A)``: minus the share of each scored agent's valid steps after ``current_index`` in failure
+        (0 for agents not scored). An agent that fails later scores higher than one that fails at once."""
+        bad, mask = self._failures(scenario)
+        future = slice(scenario.current_index + 1, None)
+        bad, mask = bad[:, :, future], mask[:, :, future]
+        return -(bad.sum(-1).float() / mask.sum(-1).clamp_min(1))

@@ -40,6 +40,7 @@ import torch
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
+from trafficrlhf_sdk.align.contexts import ContextSampler
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
@@ -47,7 +48,7 @@ from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, ext
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "scenario_scores"]
+__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -83,6 +84,19 @@ def scenario_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor
     return scores
 
 
+def agent_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor:
+    """Per-agent rewards ``(B, A)`` from the reward model's ``agent_scores`` (0 for agents it does not score)."""
+    with torch.no_grad():
+        scores = reward_model.agent_scores(scenario)
+    if scores.shape != (scenario.num_scenes, scenario.num_agents):
+        raise ValueError(f"agent_scores returned shape {tuple(scores.shape)}; expected (B, A) = "
+                         f"({scenario.num_scenes}, {scenario.num_agents}).")
+    scores = scores.detach().float().cpu()
+    if not torch.isfinite(scores).all():
+        raise ValueError("the reward model returned non-finite agent scores.")
+    return scores
+
+
 class AlignResult(NamedTuple):
     """What :func:`trafficrlhf_sdk.align` returns: the aligned adapter (the same object, updated in place) and
     one dict of statistics per epoch."""
@@ -96,8 +110,8 @@ class _Rollout:
     contexts: ScenarioTensor
     logged: ScenarioTensor  # the same windows of the log (imitation loss)
     trace: PolicyTrace
-    rewards: torch.Tensor  # (B, S)
-    advantages: torch.Tensor  # (B, S)
+    rewards: torch.Tensor  # (B, S) scene rewards; with credit="agent" the mean over the sampled agents
+    advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
 
 
@@ -129,8 +143,10 @@ def _entry_mask(log_prob: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
 
 
 def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
-    """Per-(context, sample) advantages ``(B, S)`` broadcast to ``log_prob``'s shape."""
-    adv = adv[:, :, None]
+    """Per-(context, sample) advantages ``(B, S)`` or per-(context, sample, agent) ``(B, S, A)`` broadcast to
+    ``log_prob``'s shape."""
+    if adv.dim() == 2:
+        adv = adv[:, :, None]
     if log_prob.dim() == 4:
         adv = adv[..., None]
     return adv.to(log_prob.dtype).expand(log_prob.shape)
@@ -179,6 +195,11 @@ class AlignTrainer:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)
         self.scenes = self._split_scenes(scenes) if scenes is not None else None
+        self.context_sampler = ContextSampler(model, self.config, self._load_scenes, self.guidance,
+                                              self.future_steps)
+        if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
+            raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
+                                   f"{type(reward_model).__name__} has none. Use credit='scene'.")
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -202,75 +223,9 @@ class AlignTrainer:
         return self.scenes
 
     def _contexts(self, epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
-        """``contexts_per_epoch`` windows ``[t - history_steps, t + horizon]`` with ``current_index =
-        history_steps``, and the same windows of the log (for the imitation loss). Scenes and start steps ``t``
-        are drawn from a generator seeded by ``(seed, epoch)``; a ``closed_loop_fraction`` of the contexts has
-        a history simulated by the current model."""
-        cfg, scenes, hist, h = self.config, self._load_scenes(), self.config.history_steps, self.future_steps
-        gen = _generator(cfg.seed, epoch, "contexts")
-        total = cfg.contexts_per_epoch
-        closed = min(total, round(cfg.closed_loop_fraction * total))
-        parts: list[ScenarioTensor] = []
-        for _ in range(100 * total):
-            if len(parts) == total - closed:
-                break
-            scene = scenes[int(torch.randint(len(scenes), (1,), generator=gen))]
-            last = scene.num_steps - 1 - h
-            if last < hist:
-                continue
-            t = int(torch.randint(hist, last + 1, (1,), generator=gen))
-            if not (scene.controlled & scene.valid[:, :, t]).any():
-                continue
-            parts.append(self._window(scene, t - hist))
-        if len(parts) < total - closed:
-            raise DataNotFoundError(f"could not find {total} contexts with controlled agents and {hist} history + "
-                                    f"{h} future steps in the training scenes.")
-        contexts = logged = ScenarioTensor.concat(parts) if parts else None
-        if closed:
-            sim, log = self._closed_loop_contexts(epoch, closed, gen)
-            contexts = sim if contexts is None else ScenarioTensor.concat([contexts, sim])
-            logged = log if logged is None else ScenarioTensor.concat([logged, log])
-        assert contexts is not None and logged is not None
-        return contexts, logged
-
-    def _window(self, scene: ScenarioTensor, start: int) -> ScenarioTensor:
-        hist = self.config.history_steps
-        window = scene.time_slice(start, start + hist + self.future_steps + 1)
-        return window.replace_unchecked(current_index=hist, controlled=window.controlled & window.valid.any(-1))
-
-    def _closed_loop_contexts(self, epoch: int, count: int,
-                              gen: torch.Generator) -> tuple[ScenarioTensor, ScenarioTensor]:
-        """``count`` contexts at ``t = history_steps + d``, where steps ``history_steps+1 .. t`` were simulated by
-        the current model (its ``plan``, with the trainer's guidance) and the rest is the log."""
-        from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
-
-        cfg, scenes, hist, h = self.config, self._load_scenes(), self.config.history_steps, self.future_steps
-        dt = scenes[0].dt
-        replan = max(1, round(0.5 / dt))
-        most = max(1, int(cfg.closed_loop_max_s / (replan * dt) + 1e-9))
-        lead = replan * int(torch.randint(1, most + 1, (1,), generator=gen))
-        fits = [s for s in scenes if s.num_steps >= hist + lead + h + 1]
-        if not fits:
-            raise DataNotFoundError(f"no training scene is long enough for a {lead * dt:.1f} s closed-loop lead-in.")
-        picks = [fits[int(torch.randint(len(fits), (1,), generator=gen))] for _ in range(count)]
-        batch = ScenarioTensor.concat([s.time_slice(0, hist + lead + h + 1) for s in picks])
-        batch = batch.replace_unchecked(current_index=hist)
-        saved = self.model.guidance
-        self.model.guidance = self.guidance if self.guidance is not None else saved
-        try:
-            with torch.no_grad():
-                rollout = simulate(self.model, batch, SimulationConfig(duration_s=lead * dt, start_index=hist))
-        finally:
-            self.model.guidance = saved
-        t = hist + lead
-        states = torch.cat([rollout.simulated.states[:, :, : t + 1], batch.states[:, :, t + 1:]], 2)
-        valid = torch.cat([rollout.simulated.valid[:, :, : t + 1], batch.valid[:, :, t + 1:]], 2)
-        hybrid = batch.replace_unchecked(states=states * valid[..., None], valid=valid,
-                                         controlled=rollout.controlled)
-        sim = self._window(hybrid, lead)
-        sim = sim.replace_unchecked(controlled=sim.controlled & sim.valid[:, :, hist])
-        log = self._window(batch.replace_unchecked(controlled=rollout.controlled), lead)
-        return sim, log
+        """The epoch's contexts and the same windows of the log (see :class:`ContextSampler`); every draw comes
+        from a generator seeded by ``(seed, epoch)``."""
+        return self.context_sampler.draw(_generator(self.config.seed, epoch, "contexts"))
 
     # ------------------------------------------------------------------ rollout
     def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
@@ -307,12 +262,23 @@ class AlignTrainer:
         out = self._sample(contexts, gen)
         trace = out.trace.detach()
         scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
-        rewards = scenario_scores(self.reward_model, scenario).reshape(contexts.num_scenes, -1)
-        mean = rewards.mean(1, keepdim=True)
-        std = rewards.std(1, unbiased=False, keepdim=True)
-        adv = ((rewards - mean) / (std + self.config.advantage_eps)).clamp(-self.config.advantage_clip,
-                                                                          self.config.advantage_clip)
+        b = contexts.num_scenes
+        if self.config.credit == "agent":
+            per_agent = agent_scores(self.reward_model, scenario).reshape(b, -1, contexts.num_agents)  # (B, S, A)
+            picked = trace.agents[:, None, :].to(per_agent.dtype)
+            rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+            adv = self._normalize(per_agent, dim=1) * picked
+        else:
+            rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
+            adv = self._normalize(rewards, dim=1)
         return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach())
+
+    def _normalize(self, rewards: torch.Tensor, dim: int) -> torch.Tensor:
+        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped."""
+        mean = rewards.mean(dim, keepdim=True)
+        std = rewards.std(dim, unbiased=False, keepdim=True)
+        clip = self.config.advantage_clip
+        return ((rewards - mean) / (std + self.config.advantage_eps)).clamp(-clip, clip)
 
     # ------------------------------------------------------------------ optimization
     def _minibatches(self, epoch: int, ppo_epoch: int, n: int) -> list[torch.Tensor]:
@@ -320,11 +286,16 @@ class AlignTrainer:
         size = self.config.minibatch_contexts
         return [perm[i:i + size] for i in range(0, n, size)]
 
+    def _steps(self, log_prob: torch.Tensor) -> torch.Tensor:
+        """``log_prob`` cut to the first ``denoising_steps`` per-step entries (unchanged for ``(B, S, A)``)."""
+        n = self.config.denoising_steps
+        return log_prob[..., :n] if n is not None and log_prob.dim() == 4 else log_prob
+
     @torch.no_grad()
     def _log_probs(self, model: TrafficModelAdapter, rollout: _Rollout, batches: list[torch.Tensor]) -> torch.Tensor:
         result: torch.Tensor | None = None
         for idx in batches:
-            lp = model.log_prob(rollout.contexts[idx], _select_trace(rollout.trace, idx)).detach()
+            lp = self._steps(model.log_prob(rollout.contexts[idx], _select_trace(rollout.trace, idx)).detach())
             if result is None:
                 result = torch.zeros(rollout.contexts.num_scenes, *lp.shape[1:], dtype=lp.dtype)
             result[idx] = lp
@@ -346,7 +317,7 @@ class AlignTrainer:
             batches = first if p == 0 else self._minibatches(epoch, p, n)
             for j, idx in enumerate(batches):
                 ctx, trace = rollout.contexts[idx], _select_trace(rollout.trace, idx)
-                new = self.model.log_prob(ctx, trace)
+                new = self._steps(self.model.log_prob(ctx, trace))
                 mask = _entry_mask(new, trace.agents)
                 logr = new - old[idx]
                 ratio = torch.exp(logr)
@@ -388,7 +359,8 @@ class AlignTrainer:
         result = {k: (sum(v) / len(v) if v else float("nan")) for k, v in stats.items()}
         result.update(first_ratio_max_dev=first_dev, early_stop=stopped, updates=float(updates))
         mask = _entry_mask(old, rollout.trace.agents)
-        gap = ((old - rollout.sample_log_prob).abs() * mask).max() if mask.any() else torch.zeros(())
+        sampled = self._steps(rollout.sample_log_prob)
+        gap = ((old - sampled).abs() * mask).max() if mask.any() else torch.zeros(())
         result["sample_log_prob_gap"] = float(gap)
         return result
 

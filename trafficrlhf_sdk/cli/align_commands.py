@@ -55,6 +55,14 @@ def load_reward(spec: str) -> object:
 @click.option("--guidance", default=None, help="Guidance used while sampling, e.g. no_collision.")
 @click.option("--closed-loop", "closed_loop", type=click.FloatRange(0, 1), default=None,
               help="Share of contexts whose history the current model simulates itself (default 0).")
+@click.option("--failure-contexts", "failure_fraction", type=click.FloatRange(0, 1), default=None,
+              help="Share of contexts cut just before the current model's own closed-loop failures (default 0).")
+@click.option("--failure-scenes", type=click.IntRange(min=1), default=None,
+              help="Training scenes driven per epoch to find those failures [default: 16].")
+@click.option("--credit", type=click.Choice(["scene", "agent"]), default=None,
+              help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
+@click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
+              help="Train the surrogate on the first N denoising steps only (diffusion models) [default: all].")
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon).")
 @click.option("--groups", default=None, help="Comma-separated parameter groups to train (default: all offered).")
@@ -71,7 +79,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   epochs: int | None, contexts: int | None, samples: int | None, ppo_epochs: int | None,
                   minibatch: int | None, lr: float | None, clip_range: float | None, kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
-                  closed_loop: float | None, reward_horizon: int | None, groups: str | None,
+                  closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
+                  credit: str | None, denoising_steps: int | None, reward_horizon: int | None, groups: str | None,
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
@@ -96,7 +105,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "epochs": epochs, "contexts_per_epoch": contexts, "samples_per_context": samples, "ppo_epochs": ppo_epochs,
         "minibatch_contexts": minibatch, "learning_rate": lr, "clip_range": clip_range, "kl_coef": kl_coef,
         "target_kl": target_kl, "imitation_coef": imitation_coef, "guidance": guidance, "num_scenes": num_scenes,
-        "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon,
+        "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
+        "failure_scenes": failure_scenes, "credit": credit, "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every,
         "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
     }

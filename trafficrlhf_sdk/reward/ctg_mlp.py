@@ -17,7 +17,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from trafficrlhf_sdk.reward.features import FeatureSpec, StepInputs, compute_step_inputs
+from trafficrlhf_sdk.reward.features import FeatureSpec, StepInputs, compute_step_inputs, scored_steps, selected_agents
 from trafficrlhf_sdk.reward.model import RewardModel
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
@@ -123,6 +123,20 @@ class CTGMLPRewardModel(RewardModel):
         agent do not count and an empty scene scores 0.
         """
         return self.score_prepared(self.prepare(scenario))
+
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Per-agent rewards ``(B, A)`` in [-1, 1]: each selected agent's item rewards averaged over the scored
+        steps where it is valid (0 for other agents). :meth:`forward` averages over agents first, then steps."""
+        inputs = self.prepare(scenario)
+        steps = scored_steps(scenario, self.spec.step_dt)
+        item_mask = scenario.valid[:, :, steps] & selected_agents(scenario, self.spec.agents)[:, :, None]
+        scene, agent, _ = item_mask.nonzero(as_tuple=True)  # the item order of compute_step_inputs
+        rewards = self.item_rewards(inputs)
+        b, a = scenario.num_scenes, scenario.num_agents
+        key = scene * a + agent
+        total = torch.zeros(b * a, dtype=rewards.dtype).index_add(0, key, rewards)
+        count = torch.zeros(b * a, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
+        return (total / count.clamp_min(1)).reshape(b, a)
 
     def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Per-step rewards ``(B, T)`` in [-1, 1] at every step of ``scenario``.

@@ -197,6 +197,10 @@ class RewardEnsemble(RewardModel):
         """Scenario rewards of every member ``(M, B)``."""
         return torch.stack([m(scenario) for m in self.members])
 
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """Mean over members of the per-agent rewards ``(B, A)`` (members must offer ``agent_scores``)."""
+        return torch.stack([m.agent_scores(scenario) for m in self.members]).mean(0)
+
     def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Mean over members of the per-step rewards ``(B, T)``."""
         return torch.stack([m.step_rewards(scenario) for m in self.members]).mean(0)

@@ -1,0 +1,116 @@
+"""Per-agent credit, failure-focused contexts and per-agent reward scores (alignment, stage III)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.align.contexts import ContextSampler
+from trafficrlhf_sdk.align.rewards import FailureReward
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import ConstantVelocityPolicy
+
+gru = pytest.importorskip("trafficrlhf_example_gru")
+
+FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=3, minibatch_contexts=2, ppo_epochs=1,
+            progress_bar=False, log_formats=("csv",))
+
+
+@pytest.fixture(scope="module")
+def train_scenes(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[no-untyped-def]
+    batch = nuscenes_source.load_batch("train", 8)
+    return [batch[i] for i in range(batch.num_scenes)]
+
+
+def _model():  # type: ignore[no-untyped-def]
+    torch.manual_seed(0)
+    return gru.ExampleGRUAdapter()
+
+
+def test_failure_reward_agent_scores_count_each_agents_failing_steps(train_scenes: list[ScenarioTensor]) -> None:
+    scene = train_scenes[0].replace_unchecked(current_index=10)
+    scores = FailureReward().agent_scores(scene)
+    assert scores.shape == (1, scene.num_agents)
+    bad = (collisions_per_step(scene) & scene.valid) | offroad_per_step(scene)
+    agents = scene.controlled & scene.valid.any(-1)
+    for a in range(scene.num_agents):
+        steps = scene.valid[0, a, 11:]
+        if not agents[0, a] or not steps.any():
+            assert scores[0, a] == 0
+            continue
+        expected = -(bad[0, a, 11:] & steps).sum() / steps.sum()
+        assert torch.isclose(scores[0, a], expected.float())
+
+
+def test_learned_reward_agent_scores_average_to_the_scene_score(train_scenes: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.reward import CTGMLPRewardModel, RewardEnsemble
+
+    torch.manual_seed(0)
+    model = RewardEnsemble(members=[CTGMLPRewardModel(), CTGMLPRewardModel()])
+    scene = train_scenes[1].replace_unchecked(current_index=10).time_slice(0, 31)
+    # keep the agents valid over the whole window: then "mean over steps of the mean over agents" (the scene
+    # score) equals "mean over agents of the mean over steps"
+    full = scene.valid.all(-1) & scene.controlled
+    scene = scene.replace_unchecked(controlled=full)
+    per_agent = model.agent_scores(scene)
+    assert per_agent.shape == (1, scene.num_agents)
+    assert torch.all(per_agent[~full] == 0)
+    assert torch.isclose(per_agent[full].mean(), model(scene)[0], atol=1e-6)
+
+
+def test_failure_contexts_start_shortly_before_a_failure_of_the_driving_model(
+        train_scenes: list[ScenarioTensor]) -> None:
+    config = AlignConfig(failure_fraction=1.0, failure_scenes=8, failure_drive_s=6.0, failure_lead_steps=(3, 8),
+                         history_steps=10, contexts_per_epoch=6)
+    sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scenes, None, future_steps=20)
+    contexts, logged = sampler.failure_contexts(6, torch.Generator().manual_seed(0))
+    assert sampler.last_failure_events > 0  # constant velocity leaves the road within 6 s in these scenes
+    assert contexts.num_scenes == logged.num_scenes <= 6
+    assert contexts.current_index == logged.current_index == 10
+    assert contexts.controlled.any(-1).all()
+    # the history up to "now" is the policy's: constant velocity keeps each controlled agent's speed
+    now = contexts.current_index
+    moved = (contexts.states[:, :, : now + 1] - logged.states[:, :, : now + 1]).abs().amax((-1, -2))
+    assert (moved[contexts.controlled] > 0).any()
+    # driving on from "now" with the same policy, every context fails within the 8-step lead (collision or
+    # off-road of a controlled agent): the context was cut 3..8 steps before that failure
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+    again = simulate(ConstantVelocityPolicy(), contexts, SimulationConfig(duration_s=0.8, start_index=now))
+    window = again.simulated.time_slice(now + 1, now + 9)
+    failed = ((collisions_per_step(window) & window.valid) | offroad_per_step(window)).any(-1)
+    assert (failed & again.controlled).any(-1).all()
+
+
+def test_agent_credit_gives_each_sampled_agent_its_own_advantage(train_scenes: list[ScenarioTensor]) -> None:
+    model = _model()
+    config = AlignConfig(alpha=1.0, credit="agent", failure_fraction=0.5, failure_scenes=4, failure_drive_s=4.0,
+                         **FAST)
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    rollout = trainer._rollout(0)
+    b, a = rollout.contexts.num_scenes, rollout.contexts.num_agents
+    assert rollout.advantages.shape == (b, 3, a)
+    assert torch.all(rollout.advantages[~rollout.trace.agents[:, None, :].expand(b, 3, a)] == 0)
+    # within each (context, agent) the advantages are normalized over the samples: mean 0
+    assert torch.allclose(rollout.advantages.mean(1), torch.zeros(b, a), atol=1e-5)
+    history = trainer.train()
+    assert history[0]["first_ratio_max_dev"] == 0.0
+
+
+def test_agent_credit_needs_agent_scores(train_scenes: list[ScenarioTensor]) -> None:
+    class SceneOnly:
+        def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+            return torch.zeros(scenario.num_scenes, scenario.num_steps)
+
+    with pytest.raises(TrafficRLHFError, match="agent_scores"):
+        AlignTrainer(_model(), SceneOnly(), AlignConfig(credit="agent", **FAST), scenes=train_scenes)
+
+
+def test_failure_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="failure_lead_steps"):
+        AlignConfig(failure_lead_steps=(5, 2))
+    with pytest.raises(ValueError, match="exceed 1"):
+        AlignConfig(failure_fraction=0.7, closed_loop_fraction=0.5)
