@@ -31,7 +31,8 @@ def main() -> None:
     ids = source.scene_ids("train")[args.first:]
     scenario = source.load_batch("train", scene_ids=ids)
     report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=args.seed))
-    keys = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body")
+    keys = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
+            "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed")
     print(json.dumps({"scenes": len(ids), "checkpoint": args.checkpoint, "wall_s": round(report.wall_time_s, 1),
                       **{k: round(report.values[k], 4) for k in keys}}))
 

@@ -114,3 +114,15 @@ def test_failure_settings_are_checked() -> None:
         AlignConfig(failure_lead_steps=(5, 2))
     with pytest.raises(ValueError, match="exceed 1"):
         AlignConfig(failure_fraction=0.7, closed_loop_fraction=0.5)
+
+
+def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scenes: list[ScenarioTensor]) -> None:
+    ctg = pytest.importorskip("trafficrlhf_ctg")
+    model = ctg.CTGAdapter()
+    config = AlignConfig(alpha=1.0, denoising_steps=2, kl_coef=0.1, **FAST)
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    rollout = trainer._rollout(0)
+    assert rollout.sample_log_prob.shape[-1] == 5  # the adapter's whole chain is traced ...
+    assert trainer._steps(rollout.sample_log_prob).shape[-1] == 2  # ... the PPO terms see its first 2 steps
+    history = trainer.train()
+    assert history[0]["first_ratio_max_dev"] == 0.0 and history[0]["sample_log_prob_gap"] < 1e-3

@@ -3,16 +3,17 @@ model, through the adapter contract only (``sample``, ``log_prob``, ``imitation_
 
 One epoch:
 
-1. **Rollout.** ``contexts_per_epoch`` logged contexts are cut from the training scenes at random start steps
-   (``history_steps`` before, at least ``horizon`` after); optionally a share of them starts from states the
-   current model reached in a short closed-loop lead-in (``closed_loop_fraction``). Per context the adapter draws
-   ``samples_per_context``
-   futures (with the configured guidance, no gradient). Each sample becomes a scenario: the context's history,
-   then the sample's future for the sampled (controlled) agents and the log for everyone else. Its reward is the
-   reward model's score of that scenario (mean over its scored steps).
-2. **Advantages.** ``A = (r - mean_context) / (std_context + eps)``, clipped to ``+- advantage_clip``. The reward
-   model scores whole scenes, so one advantage per (context, sample) is shared by every controlled agent of the
-   context (and, for per-step log-probabilities such as a diffusion chain, by every step: DDPO).
+1. **Rollout.** ``contexts_per_epoch`` contexts from a :class:`~trafficrlhf_sdk.align.contexts.ContextSampler`:
+   logged windows, optionally states the current model reached in a closed-loop lead-in
+   (``closed_loop_fraction``) and states shortly before the current model's own closed-loop failures
+   (``failure_fraction``). Per context the adapter draws ``samples_per_context`` futures (with the configured
+   guidance, no gradient). Each sample becomes a scenario: the context's history, then the sample's future for
+   the sampled (controlled) agents and the log for everyone else. Its reward is the reward model's score of that
+   scenario (``credit="scene"``), or one score per sampled agent (``credit="agent"``, ``agent_scores``).
+2. **Advantages.** ``A = (r - mean_context) / (std_context + eps)`` over the samples of a context (of each agent
+   of a context with ``credit="agent"``), clipped to ``+- advantage_clip``. With scene credit one advantage per
+   (context, sample) is shared by every sampled agent; for per-step log-probabilities such as a diffusion
+   chain, by every denoising step (DDPO), or the first ``denoising_steps`` of them.
 3. **Optimization.** ``ppo_epochs`` passes over minibatches of contexts: ``ratio = exp(log_prob - log_prob_old)``
    elementwise (per agent, per denoising step where the adapter returns ``(B, S, A, K)``), surrogate
    ``min(ratio * A, clip(ratio) * A)`` averaged over sampled agents (and steps), loss
