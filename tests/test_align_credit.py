@@ -126,3 +126,20 @@ def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scen
     assert trainer._steps(rollout.sample_log_prob).shape[-1] == 2  # ... the PPO terms see its first 2 steps
     history = trainer.train()
     assert history[0]["first_ratio_max_dev"] == 0.0 and history[0]["sample_log_prob_gap"] < 1e-3
+
+
+def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scenes: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.align.rewards import PessimisticReward
+    from trafficrlhf_sdk.reward import CTGMLPRewardModel, RewardEnsemble
+
+    torch.manual_seed(1)
+    ensemble = RewardEnsemble(members=[CTGMLPRewardModel(), CTGMLPRewardModel(), CTGMLPRewardModel()])
+    scene = train_scenes[2].replace_unchecked(current_index=10)
+    with torch.no_grad():
+        per_member = torch.stack([m.agent_scores(scene) for m in ensemble.members])
+        pessimistic = PessimisticReward(ensemble, beta=2.0)
+        assert torch.allclose(pessimistic.agent_scores(scene), per_member.mean(0) - 2.0 * per_member.std(0))
+        assert torch.allclose(PessimisticReward(ensemble, 0.0).score(scene), ensemble(scene))
+        assert (pessimistic.score(scene) <= ensemble(scene) + 1e-7).all()
+    with pytest.raises(TrafficRLHFError, match="two members"):
+        PessimisticReward(FailureReward(), 1.0)

@@ -63,6 +63,8 @@ def load_reward(spec: str) -> object:
               help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
               help="Train the surrogate on the first N denoising steps only (diffusion models) [default: all].")
+@click.option("--pessimism", type=click.FloatRange(min=0), default=None,
+              help="With an ensemble reward model: reward = mean - PESSIMISM x std over its members.")
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon).")
 @click.option("--groups", default=None, help="Comma-separated parameter groups to train (default: all offered).")
@@ -80,7 +82,7 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   minibatch: int | None, lr: float | None, clip_range: float | None, kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
-                  credit: str | None, denoising_steps: int | None, reward_horizon: int | None, groups: str | None,
+                  credit: str | None, denoising_steps: int | None, pessimism: float | None, reward_horizon: int | None, groups: str | None,
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
@@ -96,6 +98,10 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
     if threads is not None:
         torch.set_num_threads(threads)
     reward = load_reward(reward_spec)
+    if pessimism is not None:
+        from trafficrlhf_sdk.align.rewards import PessimisticReward
+
+        reward = PessimisticReward(reward, pessimism)
     adapter = build_policy(model, {"checkpoint": checkpoint, "seed": seed})
     if not hasattr(adapter, "parameter_groups"):
         from trafficrlhf_sdk.errors import TrafficRLHFError
