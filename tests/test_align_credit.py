@@ -143,3 +143,15 @@ def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scenes: list
         assert (pessimistic.score(scene) <= ensemble(scene) + 1e-7).all()
     with pytest.raises(TrafficRLHFError, match="two members"):
         PessimisticReward(FailureReward(), 1.0)
+
+
+def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_scenes: list[ScenarioTensor]) -> None:
+    model = _model()
+    trainer = AlignTrainer(model, FailureReward(), AlignConfig(alpha=1.0, kl_coef=1.0, **FAST), scenes=train_scenes)
+    assert trainer.reference is not None
+    with torch.no_grad():  # a reference whose densities differ from the model's by far more than exp() can hold
+        for p in trainer.reference.module.parameters():
+            p.mul_(50.0)
+    history = trainer.train()
+    assert all(torch.isfinite(p).all() for p in model.module.parameters())
+    assert history[0]["updates"] + history[0]["skipped_updates"] >= 1

@@ -53,6 +53,7 @@ __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenari
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
+MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
 
 
 class RewardLike(Protocol):
@@ -313,7 +314,7 @@ class AlignTrainer:
                                                          "clip_fraction", "kl_ref", "grad_norm")}
         first_dev = float("nan")
         stopped = 0.0
-        updates = 0
+        updates = skipped = 0
         for p in range(cfg.ppo_epochs):
             batches = first if p == 0 else self._minibatches(epoch, p, n)
             for j, idx in enumerate(batches):
@@ -332,12 +333,19 @@ class AlignTrainer:
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
                 if ref is not None:
-                    d = ref[idx] - new
+                    # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
+                    # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
+                    d = (ref[idx] - new).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
                     kl_ref = _masked_mean(torch.exp(d) - 1 - d, mask)
                     loss = loss + cfg.kl_coef * kl_ref
                     stats["kl_ref"].append(float(kl_ref.detach()))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
+                grads = [p.grad for p in self.trainable if p.grad is not None]
+                if not torch.isfinite(loss) or not all(torch.isfinite(g).all() for g in grads):
+                    skipped += 1  # one bad minibatch must not turn every weight into NaN
+                    self.optimizer.zero_grad(set_to_none=True)
+                    continue
                 if cfg.max_grad_norm is not None:
                     norm = torch.nn.utils.clip_grad_norm_(self.trainable, cfg.max_grad_norm)
                     stats["grad_norm"].append(float(norm))
@@ -358,7 +366,8 @@ class AlignTrainer:
             if stopped:
                 break
         result = {k: (sum(v) / len(v) if v else float("nan")) for k, v in stats.items()}
-        result.update(first_ratio_max_dev=first_dev, early_stop=stopped, updates=float(updates))
+        result.update(first_ratio_max_dev=first_dev, early_stop=stopped, updates=float(updates),
+                      skipped_updates=float(skipped))
         mask = _entry_mask(old, rollout.trace.agents)
         sampled = self._steps(rollout.sample_log_prob)
         gap = ((old - sampled).abs() * mask).max() if mask.any() else torch.zeros(())
