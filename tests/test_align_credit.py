@@ -155,3 +155,29 @@ def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_sce
     history = trainer.train()
     assert all(torch.isfinite(p).all() for p in model.module.parameters())
     assert history[0]["updates"] + history[0]["skipped_updates"] >= 1
+
+
+def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_scenes: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.align.rewards import RealismReward
+
+    log = train_scenes[3].replace_unchecked(current_index=10).time_slice(0, 31)
+    now = log.current_index
+    moving = log.controlled & log.valid[:, :, now:].all(-1) & (log.states[:, :, now + 1:, 2].amin(-1) > 3.0)
+    assert moving.any(), "the scene needs an agent driving faster than 3 m/s throughout"
+    agent = int(moving[0].nonzero()[0])
+    states = log.states.clone()
+    states[0, agent, now + 1:, :2] = states[0, agent, now, :2]  # it stops dead at "now"
+    states[0, agent, now + 1:, 2] = 0.0
+    stalled = log.replace_unchecked(states=states)
+    reward = RealismReward()
+    baseline = reward.agent_scores(log, logged=log)
+    scores = reward.agent_scores(stalled, logged=log)
+    # stall share 1 and a |dv/dt| above 3 m/s^2 on the 0.5 s differences that span the stop
+    assert scores[0, agent] <= baseline[0, agent] - 1.0
+    others = torch.ones(log.num_agents, dtype=torch.bool)
+    others[agent] = False
+    assert torch.allclose(scores[0, others], baseline[0, others])
+    with pytest.raises(TrafficRLHFError, match="logged"):
+        reward.agent_scores(stalled)
+    with pytest.raises(TrafficRLHFError, match="credit='agent'"):
+        AlignTrainer(_model(), reward, AlignConfig(**FAST), scenes=train_scenes)

@@ -12,7 +12,7 @@ from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["FailureReward", "PessimisticReward"]
+__all__ = ["FailureReward", "PessimisticReward", "RealismReward"]
 
 
 class FailureReward:
@@ -89,3 +89,51 @@ class PessimisticReward:
     def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Per-agent rewards ``(B, A)``."""
         return self._combine([m.agent_scores(scenario) for m in self.members])
+
+
+class RealismReward(FailureReward):
+    """Failures plus two realism terms a failure reward alone lets a policy trade away: stalling against the
+    log and implausible acceleration. Per agent, minus
+
+    ``failure share of steps + stall_weight * stalled share + accel_weight * mean relative acceleration excess``
+
+    * stalled: the agent drives slower than ``stall_ratio`` x its logged speed where the log drives faster than
+      ``stall_log_speed`` (the synthetic annotator's stall term; it needs the logged future, so the fine-tuner
+      passes ``logged``: the same scenarios with the log in place of the samples);
+    * acceleration excess: ``relu(|dv/dt| - max_accel) / max_accel`` on 0.5 s speed differences.
+
+    Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
+    39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
+    """
+
+    uses_log = True
+
+    def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.5,
+                 stall_log_speed: float = 2.0, max_accel: float = 3.0) -> None:
+        super().__init__()
+        self.stall_weight, self.accel_weight = stall_weight, accel_weight
+        self.stall_ratio, self.stall_log_speed, self.max_accel = stall_ratio, stall_log_speed, max_accel
+
+    def agent_scores(self, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
+        """``(B, A)`` rewards (0 for agents not scored); ``logged``: ``scenario`` with the logged future."""
+        if logged is None:
+            raise TrafficRLHFError("RealismReward compares with the logged future: pass `logged` (the same "
+                                   "scenarios with the log after current_index).")
+        bad, mask = self._failures(scenario)
+        future = slice(scenario.current_index + 1, None)
+        bad, mask = bad[:, :, future], mask[:, :, future]
+        steps = mask.sum(-1).float().clamp_min(1)
+        speed = scenario.states[:, :, future, 2].abs()
+        log_speed = logged.states[:, :, future, 2].abs()
+        driving = mask & logged.valid[:, :, future] & (log_speed > self.stall_log_speed)
+        stalled = driving & (speed < self.stall_ratio * log_speed)
+        lag = max(1, round(0.5 / scenario.dt))
+        v = scenario.states[:, :, :, 2]
+        accel = (v[:, :, lag:] - v[:, :, :-lag]).abs() / (lag * scenario.dt)
+        accel_ok = scenario.valid[:, :, lag:] & scenario.valid[:, :, :-lag]
+        accel_ok[:, :, : max(0, scenario.current_index + 1 - lag)] = False  # only differences ending in the future
+        excess = ((accel - self.max_accel).clamp_min(0) / self.max_accel).clamp_max(3.0)
+        excess = (excess * accel_ok).sum(-1) / accel_ok.sum(-1).clamp_min(1)
+        penalty = (bad.sum(-1) / steps + self.stall_weight * stalled.sum(-1) / driving.sum(-1).clamp_min(1)
+                   + self.accel_weight * excess)
+        return -(penalty * mask.any(-1))

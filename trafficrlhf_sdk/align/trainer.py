@@ -86,10 +86,14 @@ def scenario_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor
     return scores
 
 
-def agent_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor:
-    """Per-agent rewards ``(B, A)`` from the reward model's ``agent_scores`` (0 for agents it does not score)."""
+def agent_scores(reward_model: Any, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
+    """Per-agent rewards ``(B, A)`` from the reward model's ``agent_scores`` (0 for agents it does not score).
+    ``logged`` (the same scenarios with the logged future) is passed to rewards that set ``uses_log``."""
     with torch.no_grad():
-        scores = reward_model.agent_scores(scenario)
+        if getattr(reward_model, "uses_log", False):
+            scores = reward_model.agent_scores(scenario, logged=logged)
+        else:
+            scores = reward_model.agent_scores(scenario)
     if scores.shape != (scenario.num_scenes, scenario.num_agents):
         raise ValueError(f"agent_scores returned shape {tuple(scores.shape)}; expected (B, A) = "
                          f"({scenario.num_scenes}, {scenario.num_agents}).")
@@ -199,6 +203,9 @@ class AlignTrainer:
         self.scenes = self._split_scenes(scenes) if scenes is not None else None
         self.context_sampler = ContextSampler(model, self.config, self._load_scenes, self.guidance,
                                               self.future_steps)
+        if getattr(reward_model, "uses_log", False) and self.config.credit != "agent":
+            raise TrafficRLHFError(f"{type(reward_model).__name__} compares each agent with its logged future and "
+                                   "scores agents only; use credit='agent'.")
         if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
@@ -266,7 +273,12 @@ class AlignTrainer:
         scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
         b = contexts.num_scenes
         if self.config.credit == "agent":
-            per_agent = agent_scores(self.reward_model, scenario).reshape(b, -1, contexts.num_agents)  # (B, S, A)
+            reference = None
+            if getattr(self.reward_model, "uses_log", False):  # each context's own future is the log
+                repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
+                start = max(0, contexts.current_index - self.config.reward_history_steps)
+                reference = contexts[repeat].time_slice(start)
+            per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
             adv = self._normalize(per_agent, dim=1) * picked

@@ -16,7 +16,8 @@ BUILTIN_PREFIX = "builtin:"
 
 
 def load_reward(spec: str) -> object:
-    """A saved reward-model folder, or ``builtin:failure`` / ``builtin:collision`` (hand-written rewards)."""
+    """A saved reward-model folder, or ``builtin:failure`` / ``builtin:collision`` / ``builtin:realism``
+    (hand-written rewards)."""
     if spec.startswith(BUILTIN_PREFIX):
         from trafficrlhf_sdk.align.rewards import FailureReward
         from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -26,7 +27,12 @@ def load_reward(spec: str) -> object:
             return FailureReward()
         if name == "collision":
             return FailureReward(offroad=False)
-        raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use builtin:failure or builtin:collision.")
+        if name == "realism":
+            from trafficrlhf_sdk.align.rewards import RealismReward
+
+            return RealismReward()
+        raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use builtin:failure, builtin:collision or "
+                               "builtin:realism.")
     from trafficrlhf_sdk.reward import RewardModel
 
     return RewardModel.from_pretrained(spec).eval()
@@ -35,7 +41,8 @@ def load_reward(spec: str) -> object:
 @cli.command("align")
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
-              help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision.")
+              help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
+                   "builtin:realism.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
               help="Weight of the PPO surrogate [default: the paper's value: ctg 0.1, bits 0.5, trafficgen 0.3].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
