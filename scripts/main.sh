@@ -2,7 +2,7 @@
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
-# guidance. Outputs land in out/main/.
+# guidance, and the aligned CTG; a comparison table closes. Outputs land in out/main/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -17,4 +17,9 @@ for model in log_replay constant_velocity ctg; do
   $T evaluate --model "$model" --source nuscenes_pred --split val --scenes 100 --out "$OUT/$model"
 done
 $T evaluate --model ctg --guidance no_collision --source nuscenes_pred --split val --scenes 100 --out "$OUT/ctg_no_collision"
+# stage III: the committed aligned CTG (trafficrlhf align, see reference_models/aligned/ctg/README.md)
+$T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg --source nuscenes_pred \
+  --split val --scenes 100 --out "$OUT/ctg_aligned_no_collision"
+$T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
+  | tee "$OUT/comparison.md"
 echo "main job done: results in $OUT/"

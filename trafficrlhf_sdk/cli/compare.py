@@ -29,7 +29,10 @@ ROWS = (
 def _label(result: dict, folder: str) -> str:
     meta = result.get("metadata", {})
     model = meta.get("model") or os.path.basename(os.path.normpath(folder))
-    return f"{model} + {meta['guidance']}" if meta.get("guidance") else str(model)
+    label = f"{model} + {meta['guidance']}" if meta.get("guidance") else str(model)
+    if meta.get("checkpoint"):  # aligned or retrained weights: say which
+        label += f" ({os.path.basename(os.path.normpath(str(meta['checkpoint'])))})"
+    return label
 
 
 def comparison_table(folders: list[str]) -> str:
