@@ -98,9 +98,9 @@ class RealismReward(FailureReward):
     ``failure share of steps + stall_weight * stalled share + accel_weight * mean relative acceleration excess``
 
     * stalled: the agent drives slower than ``stall_ratio`` x its logged speed where the log drives faster than
-      ``stall_log_speed`` (the synthetic annotator's stall term, with a stricter ratio than its 0.25 so that a
-      gradual slow-down over several replans counts too; it needs the logged future, so the fine-tuner passes
-      ``logged``: the same scenarios with the log in place of the samples);
+      ``stall_log_speed`` (the synthetic annotator's stall term with a stricter ratio than its 0.25; 0.8 went
+      too far: the aligned CTG then sped, speed-limit violation 0.40 -> 1.50 m/s; it needs the logged future,
+      so the fine-tuner passes ``logged``: the same scenarios with the log in place of the samples);
     * acceleration excess: ``relu(|dv/dt| - max_accel) / max_accel`` on 0.5 s speed differences.
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
@@ -109,7 +109,7 @@ class RealismReward(FailureReward):
 
     uses_log = True
 
-    def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.8,
+    def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.5,
                  stall_log_speed: float = 2.0, max_accel: float = 3.0) -> None:
         super().__init__()
         self.stall_weight, self.accel_weight = stall_weight, accel_weight
