@@ -67,8 +67,9 @@ class PessimisticReward:
     def __init__(self, ensemble: object, beta: float) -> None:
         members = getattr(ensemble, "members", None)
         if members is None or len(members) < 2:
-            raise TrafficRLHFError("`ensemble` needs at least two members for a pessimistic reward (a reward-model ensemble folder); got "
-                             f"{type(ensemble).__name__} with {0 if members is None else len(members)}.")
+            raise TrafficRLHFError("`ensemble` needs at least two members for a pessimistic reward (a reward-model "
+                                   f"ensemble folder); got {type(ensemble).__name__} with "
+                                   f"{0 if members is None else len(members)}.")
         if beta < 0:
             raise TrafficRLHFError(f"`beta` is {beta}; use beta >= 0.")
         self.members = list(members)

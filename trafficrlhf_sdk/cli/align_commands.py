@@ -89,7 +89,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   minibatch: int | None, lr: float | None, clip_range: float | None, kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
-                  credit: str | None, denoising_steps: int | None, pessimism: float | None, reward_horizon: int | None, groups: str | None,
+                  credit: str | None, denoising_steps: int | None, pessimism: float | None,
+                  reward_horizon: int | None, groups: str | None,
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
