@@ -214,11 +214,26 @@ class TrafficModelAdapter(abc.ABC):
             config = read_adapter_config(directory, self.name, train_hint)
         return config, directory
 
+    def load_architecture(self, config: dict[str, Any] | None, default_directory: str, train_hint: str,
+                          config_type: Any, module_type: Any) -> tuple[Any, torch.nn.Module]:
+        """For :meth:`build`: ``(cfg, module)`` with ``cfg = config_type.from_dict(...)`` and
+        ``module = module_type(cfg)``, the config and weights chosen as in :meth:`resolve_checkpoint` (weights
+        loaded when a checkpoint applies)."""
+        raw, directory = self.resolve_checkpoint(config, default_directory, train_hint)
+        cfg = config_type.from_dict(raw)
+        module = module_type(cfg)
+        if directory is not None:
+            self._load_state(module, directory)
+        return cfg, module
+
     def load_weights(self, directory: str) -> None:
         """Load ``model.safetensors`` from ``directory`` into :attr:`module` (shapes must match)."""
+        self._load_state(self.module, directory)
+
+    def _load_state(self, module: torch.nn.Module, directory: str) -> None:
         tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"), device=self.options.device)
         try:
-            self.module.load_state_dict(tensors, strict=True)
+            module.load_state_dict(tensors, strict=True)
         except RuntimeError as exc:
             raise DataFormatError(
                 f"weights in {directory!r} do not match the {self.name!r} config: {str(exc).splitlines()[0]}"

@@ -83,14 +83,12 @@ class BITSAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        config, directory = self.resolve_checkpoint(
-            config, str(default_checkpoint()), "python -m bits_reference.train --out reference_models/bits/checkpoints/bits_small"
+        self.cfg, self.model = self.load_architecture(
+            config, str(default_checkpoint()),
+            "python -m bits_reference.train --out reference_models/bits/checkpoints/bits_small",
+            BITSConfig, BITSModel,
         )
-        self.cfg = BITSConfig.from_dict(config)
         self.horizon = self.cfg.horizon
-        self.model = BITSModel(self.cfg)
-        if directory is not None:
-            self.load_weights(directory)
         self.model.policy.requires_grad_(False)  # frozen in TrafficRLHF: never offered, never differentiated
         self.model.eval()
 

@@ -56,14 +56,12 @@ class CTGAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        config, directory = self.resolve_checkpoint(
-            config, str(default_checkpoint()), "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small"
+        self.cfg, self.model = self.load_architecture(
+            config, str(default_checkpoint()),
+            "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small",
+            CTGConfig, CTGModel,
         )
-        self.cfg = CTGConfig.from_dict(config)
         self.horizon = self.cfg.horizon
-        self.model = CTGModel(self.cfg)
-        if directory is not None:
-            self.load_weights(directory)
         self.model.eval()
 
     def get_config(self) -> dict[str, Any]:

@@ -71,14 +71,12 @@ class TrafficGenAdapter(TrafficModelAdapter):
     def build(self, config: dict[str, Any] | None) -> None:
         """``config`` None: architecture and weights from ``options.checkpoint`` or the bundled checkpoint.
         Otherwise build ``config`` and load weights only if ``options.checkpoint`` is set."""
-        config, directory = self.resolve_checkpoint(
-            config, str(default_checkpoint()), "python -m trafficgen_reference.train --out reference_models/trafficgen/checkpoints/trafficgen_small"
+        self.cfg, self.model = self.load_architecture(
+            config, str(default_checkpoint()),
+            "python -m trafficgen_reference.train --out reference_models/trafficgen/checkpoints/trafficgen_small",
+            TrafficGenConfig, TrafficGenModel,
         )
-        self.cfg = TrafficGenConfig.from_dict(config)
         self.horizon = self.cfg.horizon
-        self.model = TrafficGenModel(self.cfg)
-        if directory is not None:
-            self.load_weights(directory)
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
 
