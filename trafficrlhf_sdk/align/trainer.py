@@ -80,10 +80,7 @@ def scenario_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor
                 raise ValueError(f"step_rewards returned shape {tuple(per_step.shape)}; expected (B, T) = "
                                  f"({scenario.num_scenes}, {scenario.num_steps}).")
             scores = per_step[:, scenario.current_index + 1:].float().mean(1)
-    scores = scores.detach().float().cpu()
-    if not torch.isfinite(scores).all():
-        raise ValueError("the reward model returned non-finite scores.")
-    return scores
+    return _checked(scores, (scenario.num_scenes,), "score", "(B,)")
 
 
 def agent_scores(reward_model: Any, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
@@ -94,12 +91,17 @@ def agent_scores(reward_model: Any, scenario: ScenarioTensor, logged: ScenarioTe
             scores = reward_model.agent_scores(scenario, logged=logged)
         else:
             scores = reward_model.agent_scores(scenario)
-    if scores.shape != (scenario.num_scenes, scenario.num_agents):
-        raise ValueError(f"agent_scores returned shape {tuple(scores.shape)}; expected (B, A) = "
-                         f"({scenario.num_scenes}, {scenario.num_agents}).")
+    return _checked(scores, (scenario.num_scenes, scenario.num_agents), "agent_scores", "(B, A)")
+
+
+def _checked(scores: torch.Tensor, shape: tuple[int, ...], method: str, names: str) -> torch.Tensor:
+    """``scores`` as float32 on the CPU, after checking its shape and that it is finite."""
+    if tuple(scores.shape) != shape:
+        raise ValueError(f"the reward model's {method} returned shape {tuple(scores.shape)}; expected {names} = "
+                         f"{shape}.")
     scores = scores.detach().float().cpu()
     if not torch.isfinite(scores).all():
-        raise ValueError("the reward model returned non-finite agent scores.")
+        raise ValueError(f"the reward model's {method} returned non-finite values.")
     return scores
 
 

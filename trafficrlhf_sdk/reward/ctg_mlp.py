@@ -97,13 +97,18 @@ class CTGMLPRewardModel(RewardModel):
         return self.mlp(torch.cat([inputs.features, code], -1)).squeeze(-1)
 
     @staticmethod
-    def _per_step(inputs: StepInputs, rewards: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _group_mean(key: torch.Tensor, rewards: torch.Tensor, groups: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean item reward per group ``(groups,)`` (0 where empty) and the number of items there."""
+        total = torch.zeros(groups, dtype=rewards.dtype).index_add(0, key, rewards)
+        count = torch.zeros(groups, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
+        return total / count.clamp_min(1), count
+
+    @classmethod
+    def _per_step(cls, inputs: StepInputs, rewards: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean item reward per (scene, step) ``(B, T)`` and the number of items there ``(B, T)``."""
         b, t = inputs.num_scenes, inputs.num_steps
-        key = inputs.scene * t + inputs.step
-        total = torch.zeros(b * t, dtype=rewards.dtype).index_add(0, key, rewards)
-        count = torch.zeros(b * t, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
-        return (total / count.clamp_min(1)).reshape(b, t), count.reshape(b, t)
+        mean, count = cls._group_mean(inputs.scene * t + inputs.step, rewards, b * t)
+        return mean.reshape(b, t), count.reshape(b, t)
 
     # ----------------------------------------------------------------- contract
     def prepare(self, scenario: ScenarioTensor) -> StepInputs:
@@ -131,12 +136,9 @@ class CTGMLPRewardModel(RewardModel):
         steps = scored_steps(scenario, self.spec.step_dt)
         item_mask = scenario.valid[:, :, steps] & selected_agents(scenario, self.spec.agents)[:, :, None]
         scene, agent, _ = item_mask.nonzero(as_tuple=True)  # the item order of compute_step_inputs
-        rewards = self.item_rewards(inputs)
         b, a = scenario.num_scenes, scenario.num_agents
-        key = scene * a + agent
-        total = torch.zeros(b * a, dtype=rewards.dtype).index_add(0, key, rewards)
-        count = torch.zeros(b * a, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
-        return (total / count.clamp_min(1)).reshape(b, a)
+        mean, _ = self._group_mean(scene * a + agent, self.item_rewards(inputs), b * a)
+        return mean.reshape(b, a)
 
     def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Per-step rewards ``(B, T)`` in [-1, 1] at every step of ``scenario``.
