@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -112,3 +113,31 @@ def test_animation_gif(labeled: FeedbackStore, tmp_path) -> None:  # type: ignor
         assert png.width > 3 * png.height  # six panels side by side
     with pytest.raises(ValueError, match=".gif or .mp4"):
         save_candidate_animation(record, tmp_path / "set.avi")
+
+
+def test_concat_pools_campaigns(labeled: FeedbackStore) -> None:
+    """Two rounds' campaigns pooled: every pair still points at the same futures, annotators merged by name."""
+    second = make_tiny_campaign(labeled, num_contexts=3, name="round2")
+    who, _ = labeled.add_annotator("carol")
+    while (item := labeled.next_item(who, second)) is not None:
+        labeled.submit_label(who, second, item.context_id, 4)
+    first, other = export_preferences(labeled, "tiny", 0.34), export_preferences(labeled, "round2", 0.34)
+    # shorter candidates in the second round: the pooled futures are padded with invalid steps
+    other = dataclasses.replace(other, futures=other.futures[..., :-2, :], future_valid=other.future_valid[..., :-2])
+    pooled = PreferenceDataset.concat([first, other])
+    assert pooled.num_contexts == 9 and len(pooled) == len(first) + len(other)
+    assert pooled.annotators == ("alice", "bob", "carol") and pooled.num_choices == first.num_choices + 3
+    assert pooled.context_split == first.context_split + other.context_split
+    for part, start, offset in ((first, 0, 0), (other, len(first), first.num_contexts)):
+        for k in (0, len(part) - 1):
+            w_pool, l_pool = pooled.pair_scenarios([start + k])
+            w_part, l_part = part.pair_scenarios([k])
+            a, t = w_part.num_agents, w_part.num_steps
+            assert torch.equal(w_pool.states[:, :a, :t], w_part.states)
+            assert torch.equal(l_pool.valid[:, :a, :t], l_part.valid) and not l_pool.valid[:, :, t:].any()
+            assert int(pooled.pairs[start + k, 0]) == int(part.pairs[k, 0]) + offset
+            name = part.annotators[int(part.pair_annotator[k])]
+            assert pooled.annotators[int(pooled.pair_annotator[start + k])] == name
+    assert PreferenceDataset.concat([first]) is first
+    with pytest.raises(ValueError, match="empty"):
+        PreferenceDataset.concat([])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 from pathlib import Path
@@ -119,3 +120,20 @@ def test_evaluate_with_reward_model(data_root: str) -> None:
     assert code == 0, output
     report = json.loads(output[output.index("{"):])
     assert 0 <= report["metrics"]["reward_cost"] <= 20 and 0 <= report["logged"]["reward_cost"] <= 20
+
+
+def test_rm_train_pools_repeated_campaigns(tiny_db: str, tmp_path: Path) -> None:
+    """`--campaign` repeated (one campaign per RLHF round) trains on the pairs of all of them."""
+    store = FeedbackStore(tiny_db)
+    make_tiny_campaign(store, name="round2", num_contexts=4, seed=7)
+    SyntheticAnnotator(store, "noisy", SyntheticAnnotatorConfig(epsilon=0.1)).label("round2")
+    store.close()
+    out = tmp_path / "pooled"
+    code, output = invoke("rm", "train", "--db", tiny_db, "--campaign", "tiny", "--campaign", "round2",
+                          "--annotator", "noisy", "--out", str(out), "--epochs", "1", "--batch-size", "4",
+                          "--val-fraction", "0.2", "--quiet", *SMALL)
+    assert code == 0, output
+    counts = [int(n) for n in re.findall(r"(\d+) (?:pairs|contexts)", output.splitlines()[0])]
+    assert counts[0] + counts[2] == 40 + 16 and counts[1] + counts[3] == 10 + 4  # (train, val) pairs and contexts
+    config = json.loads((out / "config.json").read_text())
+    assert config["data"]["campaign"] == ["tiny", "round2"]

@@ -33,7 +33,9 @@ def rm() -> None:
 
 @rm.command("train")
 @click.option("--db", "db_path", default=None, help="Feedback database (SQLite) holding the campaign.")
-@click.option("--campaign", default=None, help="Campaign whose labels train the model (with --db).")
+@click.option("--campaign", "campaigns", multiple=True,
+              help="Campaign whose labels train the model (with --db); repeat to pool several, e.g. the "
+                   "campaigns of successive RLHF rounds.")
 @click.option("--data", "data_dir", default=None, help="Instead of --db: a folder from `feedback export`.")
 @click.option("--annotator", "annotators", multiple=True, help="Use only this annotator's labels (repeatable).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
@@ -64,7 +66,7 @@ def rm() -> None:
 @click.option("--title", default=None, help="Title of the model card.")
 @click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
-def train_command(db_path: str | None, campaign: str | None, data_dir: str | None, annotators: tuple[str, ...],
+def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str | None, annotators: tuple[str, ...],
                   out_dir: str, val_fraction: float, split_seed: int, epochs: int | None, lr: float | None,
                   batch_size: int | None, margin: float | None, center_coef: float | None, patience: int | None,
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
@@ -77,7 +79,7 @@ def train_command(db_path: str | None, campaign: str | None, data_dir: str | Non
     from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer
     from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
 
-    dataset, store = load_preferences(db_path, campaign, data_dir, annotators, val_fraction, split_seed)
+    dataset, store = load_preferences(db_path, campaigns, data_dir, annotators, val_fraction, split_seed)
     overrides = {"max_epochs": epochs, "learning_rate": lr, "batch_size": batch_size, "margin": margin,
                  "center_rewards_coefficient": center_coef, "early_stopping_patience": patience}
     config = RewardConfig(architecture=architecture, architecture_config=_parse_options(arch_options),
@@ -111,7 +113,8 @@ def train_command(db_path: str | None, campaign: str | None, data_dir: str | Non
                         "test_annotators": list(test_annotators) or "all"}
     if db_path is not None:
         card.setdefault("data", dict(model.card_info.get("data", {})))
-        card["data"].update({"campaign": campaign, "annotators": list(annotators) or "all",
+        card["data"].update({"campaign": campaigns[0] if len(campaigns) == 1 else list(campaigns),
+                             "annotators": list(annotators) or "all",
                              "scenes": sorted({f"{k['source']}/{k['split']}" for k in dataset.context_keys})})
     if title:
         card["title"] = title

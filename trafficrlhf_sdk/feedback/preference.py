@@ -17,6 +17,7 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -125,6 +126,42 @@ class PreferenceDataset:
         return PreferenceDataset(self.contexts[keep], self.futures[keep], self.future_valid[keep], pairs,
                                  self.pair_annotator[mask], self.pair_label[mask], tuple(split for _ in keep),
                                  tuple(self.context_keys[i] for i in keep), self.annotators, dict(self.metadata))
+
+    @staticmethod
+    def concat(datasets: Sequence[PreferenceDataset]) -> PreferenceDataset:
+        """One dataset from several (e.g. the campaigns of successive RLHF rounds), contexts stacked in order.
+
+        Agents and future steps are padded with invalid entries; every dataset must have the same N. Pair
+        context indices are shifted, annotators merged by name; label ids are kept (unique within one database).
+        Each context keeps the train/val split it was exported with.
+        """
+        if not datasets:
+            raise ValueError("`datasets` is empty; pass at least one PreferenceDataset.")
+        sizes = {d.num_candidates for d in datasets}
+        if len(sizes) > 1:
+            raise DataFormatError(f"cannot concatenate datasets with different candidate counts N {sorted(sizes)}; "
+                                  "train on campaigns with the same --candidates.")
+        if len(datasets) == 1:
+            return datasets[0]
+        contexts = ScenarioTensor.concat([d.contexts for d in datasets])
+        a, h = contexts.num_agents, max(int(d.futures.shape[3]) for d in datasets)
+        annotators = tuple(sorted({name for d in datasets for name in d.annotators}))
+        futures, valid, pairs, who = [], [], [], []
+        offset = 0
+        for d in datasets:
+            pad = (0, 0, 0, h - d.futures.shape[3], 0, a - d.futures.shape[2])
+            futures.append(torch.nn.functional.pad(d.futures, pad))
+            valid.append(torch.nn.functional.pad(d.future_valid, pad[2:]))
+            pairs.append(d.pairs + torch.tensor([offset, 0, 0]))
+            remap = torch.tensor([annotators.index(name) for name in d.annotators], dtype=torch.long)
+            who.append(remap[d.pair_annotator] if len(d.annotators) else d.pair_annotator)
+            offset += d.num_contexts
+        metadata = {"concatenated": [d.metadata for d in datasets],
+                    "campaign": "+".join(str(d.metadata.get("campaign", "?")) for d in datasets)}
+        return PreferenceDataset(contexts, torch.cat(futures), torch.cat(valid), torch.cat(pairs), torch.cat(who),
+                                 torch.cat([d.pair_label for d in datasets]),
+                                 tuple(s for d in datasets for s in d.context_split),
+                                 tuple(k for d in datasets for k in d.context_keys), annotators, metadata)
 
     # ----------------------------------------------------------------------------------------------- io
     def save(self, directory: str | os.PathLike[str]) -> str:

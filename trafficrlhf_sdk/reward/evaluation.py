@@ -20,12 +20,13 @@ __all__ = ["GAP_BINS", "evaluate_model", "load_preferences", "score_futures"]
 GAP_BINS = (0.0, 0.05, 0.2)  # hidden-realism gaps reported separately by evaluate_model
 
 
-def load_preferences(db: str | None = None, campaign: str | None = None, data: str | None = None,
+def load_preferences(db: str | None = None, campaign: str | Sequence[str] | None = None, data: str | None = None,
                      annotators: Sequence[str] = (), val_fraction: float = 0.0,
                      seed: int = 0) -> tuple[PreferenceDataset, FeedbackStore | None]:
     """A preference dataset from a campaign in database ``db`` or from an exported folder ``data``.
 
-    Only the pairs of ``annotators`` are kept when given. A campaign is exported with ``val_fraction`` of its
+    ``campaign`` may name several campaigns of ``db`` (e.g. one per RLHF round): their datasets are
+    concatenated. Only the pairs of ``annotators`` are kept when given. A campaign is exported with ``val_fraction`` of its
     contexts marked "val" (seeded hash by context). Returns the dataset and the store (None for ``data``).
     """
     if (db is None) == (data is None):
@@ -35,13 +36,15 @@ def load_preferences(db: str | None = None, campaign: str | None = None, data: s
     if data is not None:
         dataset = PreferenceDataset.load(data)
     else:
-        if campaign is None:
+        if not campaign:
             raise TrafficRLHFError("`--campaign` is required with `--db`.")
         if not os.path.isfile(db):  # type: ignore[arg-type]
             raise DataNotFoundError(f"feedback database {db!r} does not exist; create it with `trafficrlhf feedback "
                                     "create --db ...`.")
         store = FeedbackStore(db)  # type: ignore[arg-type]
-        dataset = export_preferences(store, campaign, val_fraction=val_fraction, seed=seed)
+        names = [campaign] if isinstance(campaign, str) else list(campaign)
+        dataset = PreferenceDataset.concat([export_preferences(store, name, val_fraction=val_fraction, seed=seed)
+                                            for name in names])
     return filter_pairs(dataset, list(annotators)), store
 
 
