@@ -1,7 +1,8 @@
 """Hand-written per-step rewards with the reward-model protocol (``step_rewards(scenario) -> (B, T)``).
 
-They need no training and serve as stand-ins for a learned r_HF (tests, the Gymnasium environment's default,
-quick experiments); the alignment results in the docs use a learned reward model.
+They need no training and serve as stand-ins for a learned r_HF: tests, the Gymnasium environment's default,
+and the committed aligned models (docs/explanation/alignment-results.md says which reward each used and what a
+learned reward model did under the same optimization).
 """
 
 from __future__ import annotations
