@@ -1,0 +1,68 @@
+"""The feedback database's SQLite schema (used by :class:`~trafficrlhf_sdk.feedback.store.FeedbackStore`).
+
+Schema (``PRAGMA user_version`` = :data:`SCHEMA_VERSION`):
+
+- ``campaigns``: name, the generating model, guidance, seed, SDK version and the full config as JSON.
+- ``contexts``: one row per item: source, split, scene id, seed, start step, and the logged scene (history and
+  logged future over the candidate window, with a cropped map) as safetensors bytes.
+- ``candidates``: per context the N model futures (``idx`` 0..N-1, ``kind='model'``) and the logged future
+  (``idx`` -1, ``kind='logged'``, never shown as such), each as safetensors bytes of ``states (A, H, 4)`` and
+  ``valid (A, H)``.
+- ``annotators``: name and the SHA-256 of the token (the token itself is printed once and never stored).
+- ``assignments``: which annotator was shown which item, in which position of their queue, and the shuffled
+  candidate order (``permutation[k]`` = candidate index shown in slot ``k + 1``).
+- ``labels``: ``UNIQUE(context, annotator)``: the slot pressed (0 = none realistic), the candidate index it
+  means (NULL for none), the permutation, time on the item, source (``human`` or ``synthetic``).
+- ``label_history``: previous values of revised labels. ``skips``: ``UNIQUE(context, annotator)`` with a reason.
+"""
+
+__all__ = ["SCHEMA_SQL", "SCHEMA_VERSION"]
+
+SCHEMA_VERSION = 1
+
+SCHEMA_SQL = """
+CREATE TABLE IF NOT EXISTS campaigns (
+    id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, created_at TEXT NOT NULL,
+    model TEXT NOT NULL, guidance TEXT, seed INTEGER NOT NULL,
+    num_candidates INTEGER NOT NULL CHECK (num_candidates >= 2),
+    sdk_version TEXT NOT NULL, config_json TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS contexts (
+    id INTEGER PRIMARY KEY, campaign_id INTEGER NOT NULL REFERENCES campaigns(id), ordinal INTEGER NOT NULL,
+    source TEXT NOT NULL, split TEXT NOT NULL, scene_id TEXT NOT NULL, seed INTEGER NOT NULL,
+    start_index INTEGER NOT NULL, created_at TEXT NOT NULL, sdk_version TEXT NOT NULL, scenario BLOB NOT NULL,
+    UNIQUE (campaign_id, source, split, scene_id), UNIQUE (campaign_id, ordinal)
+);
+CREATE TABLE IF NOT EXISTS candidates (
+    id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id), idx INTEGER NOT NULL,
+    kind TEXT NOT NULL CHECK (kind IN ('model', 'logged')), tensors BLOB NOT NULL, UNIQUE (context_id, idx)
+);
+CREATE TABLE IF NOT EXISTS annotators (
+    id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, token_sha256 TEXT NOT NULL UNIQUE,
+    created_at TEXT NOT NULL, active INTEGER NOT NULL DEFAULT 1
+);
+CREATE TABLE IF NOT EXISTS assignments (
+    id INTEGER PRIMARY KEY, annotator_id INTEGER NOT NULL REFERENCES annotators(id),
+    context_id INTEGER NOT NULL REFERENCES contexts(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+    position INTEGER NOT NULL, permutation TEXT NOT NULL, assigned_at TEXT NOT NULL,
+    UNIQUE (annotator_id, context_id), UNIQUE (annotator_id, campaign_id, position)
+);
+CREATE TABLE IF NOT EXISTS labels (
+    id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id),
+    annotator_id INTEGER NOT NULL REFERENCES annotators(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+    slot INTEGER NOT NULL CHECK (slot >= 0), candidate INTEGER, permutation TEXT NOT NULL,
+    time_on_item_ms INTEGER, source TEXT NOT NULL, created_at TEXT NOT NULL, revision INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (context_id, annotator_id)
+);
+CREATE TABLE IF NOT EXISTS label_history (
+    id INTEGER PRIMARY KEY, label_id INTEGER NOT NULL REFERENCES labels(id), slot INTEGER NOT NULL,
+    candidate INTEGER, time_on_item_ms INTEGER, created_at TEXT NOT NULL, replaced_at TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS skips (
+    id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id),
+    annotator_id INTEGER NOT NULL REFERENCES annotators(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+    reason TEXT NOT NULL, created_at TEXT NOT NULL, UNIQUE (context_id, annotator_id)
+);
+CREATE INDEX IF NOT EXISTS labels_by_campaign ON labels (campaign_id, context_id);
+CREATE INDEX IF NOT EXISTS contexts_by_campaign ON contexts (campaign_id, ordinal);
+"""
