@@ -75,6 +75,9 @@ def load_reward(spec: str) -> object:
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon).")
 @click.option("--groups", default=None, help="Comma-separated parameter groups to train (default: all offered).")
+@click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
+              help="Traffic-model option while training (JSON value), repeatable, e.g. train_on_selection=true "
+                   "for BITS.")
 @click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=None,
               help="Use the first N long-enough train scenes (default: all).")
 @click.option("--source", default=None, help="Scenario source [default: nuscenes_pred].")
@@ -90,7 +93,7 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   credit: str | None, denoising_steps: int | None, pessimism: float | None,
-                  reward_horizon: int | None, groups: str | None,
+                  reward_horizon: int | None, groups: str | None, model_options: tuple[str, ...],
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
@@ -110,7 +113,10 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         from trafficrlhf_sdk.align.rewards import PessimisticReward
 
         reward = PessimisticReward(reward, pessimism)
-    adapter = build_policy(model, {"checkpoint": checkpoint, "seed": seed})
+    from trafficrlhf_sdk.cli import parse_key_values
+
+    adapter = build_policy(model, {**parse_key_values(model_options, "--model-option"), "checkpoint": checkpoint,
+                                   "seed": seed})
     if not hasattr(adapter, "parameter_groups"):
         from trafficrlhf_sdk.errors import TrafficRLHFError
 

@@ -12,6 +12,11 @@
   ``0.01 progress - 15 collision - 1 drivable`` (collision against the other agents' most-likely-goal
   predictions, drivable = share of box centre and corners off the drivable layer), minus the guidance loss when
   a guidance is set; the best sample per agent (per scene for scene-level guidances) is executed.
+* With ``train_on_selection``, ``sample`` runs that selection too: each of its samples is the executed choice
+  among ``plan_samples`` goals, traced as the whole set (``cell (B, S, A, K)``), and ``log_prob`` sums the set's
+  goal log-probabilities. The selection is a fixed function of the set (and of the other agents' sets for
+  scene-level guidance), so this is the policy gradient of what ``plan`` executes; without it PPO trains single
+  goals while the planner keeps picking the most progressive one.
 * Only the goal network is offered for training (``goal_encoder``, ``goal_decoder``); the policy's parameters
   have ``requires_grad=False`` and are never offered.
 * Stationary agents (|v| <= ``stationary_speed`` now) are held still, as the ``ctg`` adapter and upstream do;
@@ -59,6 +64,10 @@ class BITSOptions(AdapterOptions):
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
     selection_weights: tuple[float, float, float] = Field(
         (0.01, 15.0, 1.0), description="BITS selection weights: progress, collision, drivable area (tbsim).")
+    train_on_selection: bool = Field(
+        False, description="sample() returns what plan() executes: each sample is BITS's choice among "
+                           "`plan_samples` goals; the action is the whole goal set (log-probability: the sum over "
+                           "its goals), so PPO optimizes the executed plan rather than single goals.")
 
 
 class _Draw(NamedTuple):
@@ -165,9 +174,26 @@ class BITSAdapter(TrafficModelAdapter):
         All randomness comes from ``generator``.
         """
         self._check_dt(context)
+        if self.options.train_on_selection:
+            return self._sample_selected(context, num_samples, guidance, generator)
         agents = context.controlled & context.valid[:, :, context.current_index]
         draw = self._draw(context, agents, num_samples, generator)
         return self._output(context, agents, draw, num_samples, guidance)
+
+    def _sample_selected(self, context: ScenarioTensor, groups: int, guidance: GuidanceSet | None,
+                         generator: torch.Generator | None) -> SampleOutput:
+        """``groups`` executed plans per agent, each chosen among ``plan_samples`` goals as :meth:`plan` does."""
+        k = self.options.plan_samples
+        out, choice = self._selection(context, groups, guidance, generator)  # choice (B, G, A) in 0..k-1
+        b, _, a, h, _ = out.futures.shape
+        futures = out.futures.reshape(b, groups, k, a, h, 4)
+        futures = futures.gather(2, choice[:, :, None, :, None, None].expand(b, groups, 1, a, h, 4))[:, :, 0]
+        cells = out.trace.tensors["cell"].reshape(b, groups, k, a).permute(0, 1, 3, 2)  # (B, G, A, K)
+        drivable = out.trace.tensors["drivable"].reshape(b, groups, k, a, -1)[:, :, 0]
+        trace = PolicyTrace(tensors={"cell": cells, "drivable": drivable}, agents=out.trace.agents,
+                            now=out.trace.now, info={**out.trace.info, "selection": True})
+        return SampleOutput(futures=futures, trace=trace,
+                            log_prob=out.log_prob.reshape(b, groups, k, a).sum(2))
 
     def _output(self, context: ScenarioTensor, agents: torch.Tensor, draw: _Draw, s: int,
                 guidance: GuidanceSet | None) -> SampleOutput:
@@ -202,12 +228,14 @@ class BITSAdapter(TrafficModelAdapter):
             raise ValueError(f"trace.now={trace.now} but context.current_index={context.current_index}; pass the "
                              "context the sample was drawn from.")
         agents = trace.agents.to(context.device)
-        b, s, a = trace.tensors["cell"].shape
-        cell = trace.tensors["cell"].transpose(1, 2)[agents]  # (N, S)
+        cell = trace.tensors["cell"]
+        b, s, a = cell.shape[:3]
+        k = cell.shape[3] if cell.dim() == 4 else 1  # goal sets (train_on_selection): K goals per sample
+        rows = cell.reshape(b, s, a, k).transpose(1, 2)[agents].reshape(-1, s * k)  # (N, S*K)
         mask = trace.tensors["drivable"][:, 0][agents]  # (N, cells): the same for every sample
         feats = select_rows(agent_features(context, self.cfg), agents)
         out = self.model.goal_net(feats)
-        log_p = self.model.masked_log_probs(out.logits, mask).gather(1, cell)
+        log_p = self.model.masked_log_probs(out.logits, mask).gather(1, rows).reshape(-1, s, k).sum(-1)
         return self._scatter(log_p, agents, torch.zeros(b, a, s, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
@@ -265,35 +293,45 @@ class BITSAdapter(TrafficModelAdapter):
         return {"progress": progress, "collision": collision, "drivable": drivable}
 
     @torch.no_grad()
+    def _selection(self, context: ScenarioTensor, groups: int, guidance: GuidanceSet | None,
+                   generator: torch.Generator | None) -> tuple[SampleOutput, torch.Tensor]:
+        """BITS's selection, ``groups`` times over: ``groups * plan_samples`` goals per controlled agent (group g
+        holds samples ``g*K .. g*K+K-1``) and the index ``(B, G, A)`` in ``0..K-1`` of the chosen one per group.
+
+        Scores ``0.01 progress - 15 collision - 1 drivable`` against the other agents' most-likely goals, minus the
+        guidance loss when one is set (scene-level guidances choose one index per scene and group)."""
+        now, k = context.current_index, self.options.plan_samples
+        b, a, h = context.num_scenes, context.num_agents, self.horizon
+        valid_now = context.valid[:, :, now]
+        agents = context.controlled & valid_now
+        # one goal-network pass over every agent present now: samples for the controlled ones, and the most
+        # likely goal of each as the prediction the others are checked against (BITS's predictor role)
+        draw = self._draw(context, valid_now, groups * k, generator, modes=True)
+        modes = torch.zeros(b, a, h, 4, device=context.device)
+        modes[valid_now] = draw.futures[:, -1]
+        sub = agents[valid_now]  # which present agents are controlled
+        draw_c = _Draw(*(t[sub] for t in draw))
+        out = self._output(context, agents, draw_c, groups * k, guidance)
+        terms = self.selection_terms(context, draw_c, agents, valid_now, modes)
+        score = selection_score(terms["progress"], terms["collision"], terms["drivable"],
+                                tuple(self.options.selection_weights))  # (N, G*K)
+        cost = self._scatter(-score, agents, torch.zeros(b, a, groups * k, device=context.device))
+        scene_level = False
+        if guidance is not None:
+            cost = cost + guidance.loss(out.futures, now, context)
+            scene_level = guidance.scene_level
+        cost = cost.reshape(b, groups, k, a)
+        choice = torch.stack([select_samples(cost[:, g], agents, scene_level) for g in range(groups)], 1)
+        return out, choice
+
+    @torch.no_grad()
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
         """BITS: sample ``plan_samples`` goals per agent, score each trajectory by
         ``0.01 progress - 15 collision - 1 drivable`` (minus the guidance loss when a guidance is set) and execute
         the best; extended at constant velocity beyond 2 s."""
         context = context.to(self.options.device)
         self._check_dt(context)
-        now = context.current_index
-        s = self.options.plan_samples
-        b, a, h = context.num_scenes, context.num_agents, self.horizon
-        valid_now = context.valid[:, :, now]
-        agents = context.controlled & valid_now
-        # one goal-network pass over every agent present now: samples for the controlled ones, and the most
-        # likely goal of each as the prediction the others are checked against (BITS's predictor role)
-        draw = self._draw(context, valid_now, s, self._generator, modes=True)
-        modes = torch.zeros(b, a, h, 4, device=context.device)
-        modes[valid_now] = draw.futures[:, -1]
-        sub = agents[valid_now]  # which present agents are controlled
-        draw_c = _Draw(*(t[sub] for t in draw))
-        out = self._output(context, agents, draw_c, s, self.guidance)
-        futures = out.futures  # (B, S, A, H, 4)
-        terms = self.selection_terms(context, draw_c, agents, valid_now, modes)
-        score = selection_score(terms["progress"], terms["collision"], terms["drivable"],
-                                tuple(self.options.selection_weights))  # (N, S)
-        cost = self._scatter(-score, agents, torch.zeros(b, a, s, device=context.device))
-        scene_level = False
-        if self.guidance is not None:
-            cost = cost + self.guidance.loss(futures, now, context)
-            scene_level = self.guidance.scene_level
-        choice = select_samples(cost, agents, scene_level)  # (B, A)
-        index = choice[:, None, :, None, None].expand(-1, 1, -1, h, 4)
-        chosen = futures.gather(1, index)[:, 0]
+        out, choice = self._selection(context, 1, self.guidance, self._generator)
+        h = self.horizon
+        chosen = out.futures.gather(1, choice[:, :, :, None, None].expand(-1, -1, -1, h, 4))[:, 0]
         return Plan(extend_constant_velocity(chosen, horizon, context.dt).cpu())
