@@ -26,8 +26,9 @@ def load_preferences(db: str | None = None, campaign: str | Sequence[str] | None
     """A preference dataset from a campaign in database ``db`` or from an exported folder ``data``.
 
     ``campaign`` may name several campaigns of ``db`` (e.g. one per RLHF round): their datasets are
-    concatenated. Only the pairs of ``annotators`` are kept when given. A campaign is exported with ``val_fraction`` of its
-    contexts marked "val" (seeded hash by context). Returns the dataset and the store (None for ``data``).
+    concatenated. Only the pairs of ``annotators`` are kept when given. A campaign is exported with
+    ``val_fraction`` of its contexts marked "val" (seeded hash by scene). Returns the dataset and the store (None
+    for ``data``).
     """
     if (db is None) == (data is None):
         raise TrafficRLHFError("pass either a feedback database and campaign (`--db`, `--campaign`) or an exported "
