@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from _common import header, load_val, peak_rss_mb, timed  # noqa: I001
+from _common import header, load_val, peak_rss_mb, timed
 
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.simulation import ConstantVelocityPolicy

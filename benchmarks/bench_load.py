@@ -13,7 +13,7 @@ from __future__ import annotations
 import gc
 import time
 
-from _common import header, peak_rss_mb  # noqa: I001
+from _common import header, peak_rss_mb
 
 from trafficrlhf_sdk import get_scenario_source
 

@@ -10,7 +10,7 @@ Run: .venv/bin/python benchmarks/bench_metrics.py  [--threads N]
 
 from __future__ import annotations
 
-from _common import header, load_val, timed  # noqa: I001
+from _common import header, load_val, timed
 
 from trafficrlhf_sdk.metrics import FailureMetric, RealismMetric
 from trafficrlhf_sdk.simulation import ConstantVelocityPolicy, log_rollout, simulate

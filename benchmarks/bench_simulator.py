@@ -10,7 +10,7 @@ Run: .venv/bin/python benchmarks/bench_simulator.py  [--threads N]
 from __future__ import annotations
 
 
-from _common import header, load_val, peak_rss_mb, timed  # noqa: I001
+from _common import header, load_val, peak_rss_mb, timed
 
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.simulation import Plan, SimulationConfig, simulate
@@ -23,10 +23,12 @@ class ZeroCostPolicy:
         self._plan: Plan | None = None
 
     def reset(self, scenario: ScenarioTensor) -> None:
+        """Hold every agent at its current state."""
         now = scenario.states[:, :, scenario.current_index]
         self._plan = Plan(now[:, :, None].expand(-1, -1, 5, -1).contiguous())
 
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
+        """The same precomputed plan every time (the benchmark times the simulator, not a policy)."""
         assert self._plan is not None
         return self._plan
 

@@ -5,4 +5,6 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 # Debian's chromium for the annotation app's real-browser test (skipped, with its reason, if this fails)
 bash scripts/install_browser.sh || echo "[browser] chromium could not be installed: the browser test will skip"
+# lint first (ruff pinned in the test extra, rules in pyproject.toml): a few seconds
+.venv/bin/ruff check .
 exec .venv/bin/python -m pytest -q -p no:cacheprovider -n 2 "$@"

@@ -8,7 +8,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import click
 import pytest
@@ -261,7 +261,8 @@ def test_compare_builds_a_table_from_evaluate_runs(tmp_path) -> None:
     for name, rate in (("a", 0.25), ("b", 0.5)):
         (tmp_path / name).mkdir()
         (tmp_path / name / "results.json").write_text(json.dumps({
-            "metrics": {"failure_rate": rate}, "metadata": {"model": name, "guidance": "no_collision" if name == "b" else None},
+            "metrics": {"failure_rate": rate},
+            "metadata": {"model": name, "guidance": "no_collision" if name == "b" else None},
             "simulation_time_s": 1.0, "num_scenes": 2, "num_controlled_agents": 3}))
     runner = CliRunner()
     result = runner.invoke(get_cli(), ["compare", str(tmp_path / "a"), str(tmp_path / "b")])

@@ -56,7 +56,8 @@ def test_schema_wal_and_round_trip(store: FeedbackStore) -> None:
 def test_tokens_are_hashed_and_checked(store: FeedbackStore) -> None:
     annotator, token = store.add_annotator("alice")
     assert len(token) >= 32
-    raw = open(store.path, "rb").read() + (open(store.path + "-wal", "rb").read() if os.path.exists(store.path + "-wal") else b"")
+    wal = store.path + "-wal"
+    raw = open(store.path, "rb").read() + (open(wal, "rb").read() if os.path.exists(wal) else b"")
     assert token.encode() not in raw
     assert store.authenticate(token) == annotator
     for bad in (None, "", "x" * 32, token + "x"):
@@ -99,7 +100,7 @@ def test_bad_writes_raise_and_write_nothing(store: FeedbackStore) -> None:
     alice, _ = store.add_annotator("alice")
     item = store.next_item(alice, campaign)
     assert item is not None
-    other = [k["id"] for k in store.context_keys(campaign) if k["id"] != item.context_id][0]
+    other = next(k["id"] for k in store.context_keys(campaign) if k["id"] != item.context_id)
     for choice in (-1, 6, True, "1", 1.0):
         with pytest.raises(InvalidChoiceError, match="from 0"):
             store.submit_label(alice, campaign, item.context_id, choice)  # type: ignore[arg-type]
@@ -123,7 +124,8 @@ def test_transaction_rolls_back_everything(store: FeedbackStore) -> None:
     assert _count(store, "annotators") == 0
     scenario, cands, valid, logged, logged_valid = tiny_context(["faithful"] * 5, 7)
     with pytest.raises(InvalidChoiceError, match="shapes do not fit"):
-        store.add_context(campaign, "tiny", "test", "bad", 0, scenario, cands, valid[:, :, :5], logged, logged_valid, "t")
+        store.add_context(campaign, "tiny", "test", "bad", 0, scenario, cands, valid[:, :, :5], logged, logged_valid,
+                          "t")
     # a failure after the context row is inserted (while writing the logged future) must undo that row too
     from trafficrlhf_sdk.feedback import store as store_module
 

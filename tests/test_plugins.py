@@ -162,7 +162,7 @@ def test_registry_direct_use():
     reg: Registry[int] = Registry("widget")
     reg.add("a", 1, plugin="p1")
     assert reg.get("a") == 1 and reg.owner("a") == "p1" and len(reg) == 1 and "a" in reg
-    with pytest.raises(DuplicateRegistrationError, match="'p1'.*'p2'"):
+    with pytest.raises(DuplicateRegistrationError, match=r"'p1'.*'p2'"):
         reg.add("a", 2, plugin="p2")
     with pytest.raises(ValueError, match="p3"):
         reg.add("", 3, plugin="p3")

@@ -111,7 +111,7 @@ def test_animation_gif(labeled: FeedbackStore, tmp_path) -> None:  # type: ignor
     strip = save_candidate_strip(record, tmp_path / "set.png", include_logged=True)
     with Image.open(strip) as png:
         assert png.width > 3 * png.height  # six panels side by side
-    with pytest.raises(ValueError, match=".gif or .mp4"):
+    with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
         save_candidate_animation(record, tmp_path / "set.avi")
 
 

@@ -48,7 +48,7 @@ def _transform(kind: str) -> np.ndarray:
 def _raster(m: np.ndarray) -> torch.Tensor:
     """(1, 3, H, W) layers painted by testing each pixel centre's world position against the boxes."""
     corners = np.array([[x, y, 1.0] for x in WORLD[:2] for y in WORLD[2:]]) @ m.T
-    h, w = (int(math.ceil(v)) + 2 for v in corners[:, :2].max(0))
+    h, w = (math.ceil(v) + 2 for v in corners[:, :2].max(0))
     ii, jj = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
     world = np.stack([ii, jj, np.ones_like(ii)], -1) @ np.linalg.inv(m).T
     x, y = world[..., 0], world[..., 1]
@@ -93,7 +93,7 @@ def pixel_colour(fig: Figure, x: float, y: float) -> np.ndarray:
     fig.canvas.draw()
     buffer = np.asarray(fig.canvas.buffer_rgba())
     col, row = fig.axes[0].transData.transform((x, y))
-    return buffer[int(round(buffer.shape[0] - row)), int(round(col)), :3].astype(int)
+    return buffer[round(buffer.shape[0] - row), round(col), :3].astype(int)
 
 
 def close_to(colour: np.ndarray, rgb: tuple[int, int, int] | str, tol: int = 12) -> bool:

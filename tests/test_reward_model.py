@@ -229,6 +229,8 @@ class SpeedReward(RewardModel):
     architecture = "test_speed"
 
     class Config(BaseModel):
+        """Its one option."""
+
         scale: float = 0.1
 
     def __init__(self, config: object = None) -> None:

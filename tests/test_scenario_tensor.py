@@ -115,11 +115,11 @@ def test_extent_nan_for_valid_agent():
 
 
 def test_map_layer_count_mismatch_names_layers():
-    with pytest.raises(ScenarioValidationError, match="`map.layers`"):
+    with pytest.raises(ScenarioValidationError, match=r"`map\.layers`"):
         MapRaster(raster=torch.zeros(2, 2, 4, 4, dtype=torch.uint8), world_to_pixel=torch.eye(3).expand(2, 3, 3))
-    with pytest.raises(ScenarioValidationError, match="`map.raster`"):
+    with pytest.raises(ScenarioValidationError, match=r"`map\.raster`"):
         MapRaster(raster=torch.zeros(2, 3, 4, 4), world_to_pixel=torch.eye(3).expand(2, 3, 3))
-    with pytest.raises(ScenarioValidationError, match="`map.world_to_pixel`"):
+    with pytest.raises(ScenarioValidationError, match=r"`map\.world_to_pixel`"):
         MapRaster(raster=torch.zeros(2, 3, 4, 4, dtype=torch.uint8), world_to_pixel=torch.eye(3).expand(1, 3, 3))
 
 
@@ -361,7 +361,7 @@ def test_truncated_file_is_data_format_error(saved):
 def test_corrupt_file_is_data_format_error(tmp_path):
     path = tmp_path / "garbage.safetensors"
     path.write_bytes(b"\xff" * 8 + b"not a header at all" * 10)
-    with pytest.raises(DataFormatError, match="garbage.safetensors"):
+    with pytest.raises(DataFormatError, match=r"garbage\.safetensors"):
         ScenarioTensor.load(str(path))
     path.write_bytes(b"")
     with pytest.raises(DataFormatError):
@@ -403,5 +403,5 @@ def test_malformed_metadata_and_invalid_content(tmp_path, saved):
 
 
 def test_missing_file_is_data_not_found(tmp_path):
-    with pytest.raises(DataNotFoundError, match="nope.safetensors"):
+    with pytest.raises(DataNotFoundError, match=r"nope\.safetensors"):
         ScenarioTensor.load(str(tmp_path / "nope.safetensors"))

@@ -10,7 +10,8 @@ sample filtering (:func:`select_samples`). ``objective(rollout)`` is the matchin
 from __future__ import annotations
 
 import abc
-from typing import ClassVar, Sequence
+from typing import ClassVar
+from collections.abc import Sequence
 
 import torch
 
@@ -185,7 +186,9 @@ class NoCollisionGuidance(Guidance):
 
 
 class NoOffroadGuidance(Guidance):
-    """Penalize box points off the drivable layer: each of ``grid x grid`` points in the box costs its distance
+    """Penalize box points off the drivable layer.
+
+    Each of ``grid x grid`` points in the box costs its distance
     (m) to the nearest drivable pixel, read bilinearly from a distance map computed at ``fit``; steps weighted by
     ``decay**t``. (CTG uses 1 - distance/diagonal on points of partly off-road boxes; a metric distance gives a
     gradient everywhere off the road.)"""

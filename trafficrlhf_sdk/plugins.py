@@ -59,7 +59,8 @@ def get_plugin_manager() -> pluggy.PluginManager:
         pm.check_pending()
         if os.environ.get("TRAFFICRLHF_TRACE_PLUGINS"):
             pm.add_hookcall_monitoring(
-                lambda name, impls, kwargs: print(f"[trace] {name} -> {[i.plugin_name for i in impls]}", file=sys.stderr),
+                lambda name, impls, kwargs: print(f"[trace] {name} -> {[i.plugin_name for i in impls]}",
+                                                  file=sys.stderr),
                 lambda outcome, name, impls, kwargs: None,
             )
     return pm

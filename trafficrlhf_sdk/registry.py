@@ -15,7 +15,8 @@ T = TypeVar("T")
 class Register(Protocol):
     """The callback a ``register_*`` hook receives."""
 
-    def __call__(self, name: str, value: object) -> None: ...
+    def __call__(self, name: str, value: object) -> None:
+        """Register ``value`` under ``name``."""
 
 
 class Registry(Generic[T]):

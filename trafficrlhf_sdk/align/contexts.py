@@ -16,7 +16,7 @@ paired with the same window of the *log* (the imitation loss always learns from 
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

@@ -94,8 +94,9 @@ class PessimisticReward:
 
 
 class RealismReward(FailureReward):
-    """Failures plus two realism terms a failure reward alone lets a policy trade away: stalling against the
-    log and implausible acceleration. Per agent, minus
+    """Failures plus two realism terms a failure reward alone lets a policy trade away.
+
+    The two: stalling against the log and implausible acceleration. Per agent, minus
 
     ``failure share of steps + stall_weight * stalled share + accel_weight * mean relative acceleration excess``
 

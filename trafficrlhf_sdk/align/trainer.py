@@ -35,7 +35,8 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple, Protocol, Sequence
+from typing import Any, NamedTuple, Protocol
+from collections.abc import Callable, Sequence
 
 import torch
 from safetensors.torch import save_file

@@ -41,7 +41,8 @@ def comparison_table(folders: list[str]) -> str:
     for folder in folders:
         path = os.path.join(folder, "results.json")
         if not os.path.isfile(path):
-            raise DataNotFoundError(f"no results.json in {folder!r}; pass folders written by `trafficrlhf evaluate --out`.")
+            raise DataNotFoundError(f"no results.json in {folder!r}; pass folders written by "
+                                    "`trafficrlhf evaluate --out`.")
         try:
             with open(path, encoding="utf-8") as handle:
                 runs.append((_label(result := json.load(handle), folder), result))

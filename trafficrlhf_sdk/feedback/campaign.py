@@ -22,7 +22,8 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -119,8 +120,8 @@ def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRast
     corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
     ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()
     h, w = scene_map.raster.shape[-2:]
-    i0, i1 = max(int(math.floor(ij[:, 0].min())), 0), min(int(math.ceil(ij[:, 0].max())) + 1, h)
-    j0, j1 = max(int(math.floor(ij[:, 1].min())), 0), min(int(math.ceil(ij[:, 1].max())) + 1, w)
+    i0, i1 = max(math.floor(ij[:, 0].min()), 0), min(math.ceil(ij[:, 0].max()) + 1, h)
+    j0, j1 = max(math.floor(ij[:, 1].min()), 0), min(math.ceil(ij[:, 1].max()) + 1, w)
     if i0 >= i1 or j0 >= j1:  # agents entirely off the raster: keep one empty pixel
         i0, i1, j0, j1 = 0, 1, 0, 1
     m = scene_map.world_to_pixel.clone()

@@ -23,7 +23,8 @@ import sqlite3
 import threading
 from dataclasses import replace
 from datetime import datetime, timezone
-from typing import Any, Iterator, Literal
+from typing import Any, Literal
+from collections.abc import Iterator
 
 import torch
 
@@ -489,7 +490,10 @@ class FeedbackStore:
     def counts(self, campaign: Campaign) -> dict[str, int]:
         """Items, labels, skips and distinct annotators of ``campaign``."""
         conn = self._conn()
-        one = lambda sql: conn.execute(sql, (campaign.id,)).fetchone()[0]
+
+        def one(sql: str) -> int:
+            return conn.execute(sql, (campaign.id,)).fetchone()[0]
+
         return {
             "items": one("SELECT COUNT(*) FROM contexts WHERE campaign_id = ?"),
             "labels": one("SELECT COUNT(*) FROM labels WHERE campaign_id = ?"),

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -116,7 +116,10 @@ def judge_realism(record: ContextRecord, config: SyntheticAnnotatorConfig | None
     else:
         offroad = torch.zeros_like(collided)
     kin = _sampled_kinematics(batch.states, batch.valid, batch.dt)
-    excess = lambda x, bound: ((x.abs() - bound).clamp_min(0) / bound).clamp_max(3.0)
+
+    def excess(x: torch.Tensor, bound: float) -> torch.Tensor:
+        return ((x.abs() - bound).clamp_min(0) / bound).clamp_max(3.0)
+
     acc_excess = _masked_mean(excess(kin["lon"], cfg.max_lon_accel) + excess(kin["lat"], cfg.max_lat_accel),
                               kin["acc_ok"])
     jerk_excess = _masked_mean(excess(kin["jerk"], cfg.max_jerk), kin["jerk_ok"])
@@ -126,7 +129,10 @@ def judge_realism(record: ContextRecord, config: SyntheticAnnotatorConfig | None
     driving = (log_kin["speed"] > cfg.stall_log_speed) & log_kin["speed_ok"]
     stalled = (kin["speed"] < cfg.stall_ratio * log_kin["speed"]) & driving & kin["speed_ok"]
     stall = stalled.sum(-1) / driving.sum(-1).clamp_min(1)
-    per_agent = lambda x: (x * controlled).sum(-1) / n_agents
+
+    def per_agent(x: torch.Tensor) -> torch.Tensor:
+        return (x * controlled).sum(-1) / n_agents
+
     components = {"collision": collided.double(), "offroad": offroad.double(), "accel": per_agent(acc_excess),
                   "jerk": per_agent(jerk_excess), "stall": per_agent(stall.double())}
     penalty = (cfg.weight_collision * components["collision"] + cfg.weight_offroad * components["offroad"]

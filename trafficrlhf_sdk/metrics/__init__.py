@@ -4,7 +4,13 @@ from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.metrics.guidance_objectives import GuidanceObjectivesMetric
 from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, pairwise_collisions
-from trafficrlhf_sdk.metrics.realism import HistogramSpec, RealismMetric, histogram_distance, kinematics, scene_histogram
+from trafficrlhf_sdk.metrics.realism import (
+    HistogramSpec,
+    RealismMetric,
+    histogram_distance,
+    kinematics,
+    scene_histogram,
+)
 from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric, RewardFn
 
 __all__ = [

@@ -25,7 +25,8 @@ def boxes_overlap(corners_a: torch.Tensor, corners_b: torch.Tensor) -> torch.Ten
 
     Separating-axis test on the two edge normals of each box; returns bool ``(...)``.
     """
-    edges = torch.cat([corners_a[..., 1:3, :] - corners_a[..., 0:2, :], corners_b[..., 1:3, :] - corners_b[..., 0:2, :]], -2)
+    edges = torch.cat([corners_a[..., 1:3, :] - corners_a[..., 0:2, :],
+                       corners_b[..., 1:3, :] - corners_b[..., 0:2, :]], -2)
     axes = torch.stack([-edges[..., 1], edges[..., 0]], -1)  # (..., 4, 2) normals
     proj_a = torch.einsum("...kc,...pc->...kp", axes, corners_a)  # (..., 4 axes, 4 corners)
     proj_b = torch.einsum("...kc,...pc->...kp", axes, corners_b)

@@ -67,7 +67,8 @@ def _diff_extrapolated(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([d[:, :1], d], 1)
 
 
-def kinematics(scenario: ScenarioTensor, preset: Preset = "ctg") -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+def kinematics(scenario: ScenarioTensor,
+               preset: Preset = "ctg") -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
     """Kinematic quantities of every agent at the statistics step (0.5 s).
 
     Args:

@@ -62,7 +62,8 @@ def history_features(context: ScenarioTensor, num_steps: int) -> tuple[torch.Ten
     return features * valid[..., None], valid
 
 
-def neighbour_features(context: ScenarioTensor, num_neighbours: int, radius_m: float = 50.0) -> tuple[torch.Tensor, torch.Tensor]:
+def neighbour_features(context: ScenarioTensor, num_neighbours: int,
+                       radius_m: float = 50.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The nearest ``num_neighbours`` other agents valid now, in each agent's frame.
 
     Returns:

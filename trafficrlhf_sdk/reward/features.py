@@ -26,7 +26,7 @@ which :meth:`StepInputs.select` slices by scene without copying the whole set.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 

@@ -78,7 +78,8 @@ def scenario_tensors(scenario: ScenarioTensor) -> tuple[dict[str, torch.Tensor],
     return tensors, metadata
 
 
-def safe_load_file(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+def safe_load_file(path: str | os.PathLike[str],
+                   device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Read tensors and header metadata from a safetensors file, turning every failure into one clear error."""
     from safetensors import safe_open
 

@@ -33,9 +33,11 @@ class ClosedLoopPolicy(Protocol):
     ``horizon`` steps for every agent (only controlled agents' plans are executed).
     """
 
-    def reset(self, scenario: ScenarioTensor) -> None: ...
+    def reset(self, scenario: ScenarioTensor) -> None:
+        """Start a new rollout of ``scenario`` (the whole logged scene, ``(B, A, T)``)."""
 
-    def plan(self, context: ScenarioTensor, horizon: int) -> Plan: ...
+    def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
+        """States ``(B, A, horizon, 4)`` after ``context.current_index``, from the simulated past only."""
 
 
 class LogReplayPolicy:

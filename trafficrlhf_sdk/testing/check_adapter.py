@@ -96,7 +96,8 @@ def check_adapter(
     # --- log-probability from the trace
     log_prob = adapter.log_prob(context, out.trace.detach())
     facts["log_prob_shape"] = tuple(log_prob.shape)
-    if tuple(log_prob.shape[:3]) != (context.num_scenes, num_samples, context.num_agents) or log_prob.dim() not in (3, 4):
+    expected = (context.num_scenes, num_samples, context.num_agents)
+    if tuple(log_prob.shape[:3]) != expected or log_prob.dim() not in (3, 4):
         _fail(adapter, f"log_prob() has shape {tuple(log_prob.shape)}",
               "return (B, S, A) or per-step (B, S, A, K) log-probabilities")
     if not torch.isfinite(log_prob).all():

@@ -114,7 +114,9 @@ class TrafficGenAdapter(TrafficModelAdapter):
 
     @staticmethod
     def _scatter(rows: torch.Tensor, agents: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
-        """Place per-row values ``(N, S, ...)`` into ``base (B, A, S, ...)`` at ``agents``; returns ``(B, S, A, ...)``."""
+        """Place per-row values ``(N, S, ...)`` into ``base (B, A, S, ...)`` at ``agents``.
+
+        Returns ``(B, S, A, ...)``."""
         full = base.clone()
         full[agents] = rows.to(full.dtype)
         return full.transpose(1, 2)

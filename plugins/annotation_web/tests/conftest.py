@@ -3,7 +3,7 @@ uvicorn server in a subprocess on 127.0.0.1 (loopback only, random free port).""
 
 from __future__ import annotations
 
-from typing import Iterator
+from collections.abc import Iterator
 
 import pytest
 

@@ -123,7 +123,7 @@ def test_imitation_loss_trains() -> None:
     assert math.isfinite(losses[0]) and losses[-1] < losses[0] - 0.5
 
 
-def test_bundled_checkpoint_is_loaded_by_default_and_checkpoint_overrides(tmp_path) -> None:  # noqa: ANN001
+def test_bundled_checkpoint_is_loaded_by_default_and_checkpoint_overrides(tmp_path) -> None:
     for name in ("config.json", "model.safetensors", "training_log.json", "training_curve.png"):
         assert os.path.isfile(os.path.join(BUNDLED_CHECKPOINT, name)), name
     bundled = load_file(os.path.join(BUNDLED_CHECKPOINT, "model.safetensors"))
@@ -138,7 +138,7 @@ def test_bundled_checkpoint_is_loaded_by_default_and_checkpoint_overrides(tmp_pa
 
 
 @needs_data
-def test_training_script_writes_a_loadable_checkpoint(tmp_path) -> None:  # noqa: ANN001
+def test_training_script_writes_a_loadable_checkpoint(tmp_path) -> None:
     from trafficrlhf_example_gru.train import main
 
     log = main(["--out", str(tmp_path), "--minutes", "1", "--max-steps", "3", "--scenes", "4", "--group-size", "2",
@@ -183,7 +183,7 @@ class FreshNoiseLogProb(ExampleGRUAdapter):
 class TruncatedSample(ExampleGRUAdapter):
     """Broken: sample returns only the first 10 of the 20 steps."""
 
-    def sample(self, context, num_samples, guidance=None, generator=None) -> SampleOutput:  # noqa: ANN001
+    def sample(self, context, num_samples, guidance=None, generator=None) -> SampleOutput:
         out = super().sample(context, num_samples, guidance, generator)
         return SampleOutput(out.futures[..., :10, :], out.trace, out.log_prob)
 
@@ -191,7 +191,7 @@ class TruncatedSample(ExampleGRUAdapter):
 class IgnoresGenerator(ExampleGRUAdapter):
     """Broken: draws its noise from torch's global generator."""
 
-    def sample(self, context, num_samples, guidance=None, generator=None) -> SampleOutput:  # noqa: ANN001
+    def sample(self, context, num_samples, guidance=None, generator=None) -> SampleOutput:
         return super().sample(context, num_samples, guidance, None)
 
 

@@ -156,5 +156,6 @@ class GRUPolicyNet(nn.Module):
         return DecodeResult(torch.stack(out_actions, 1), torch.stack(out_logp, 1), torch.stack(out_states, 1))
 
     def extra_repr(self) -> str:
+        """The config in ``print(model)``."""
         return f"config={self.config.model_dump()!r}"
 

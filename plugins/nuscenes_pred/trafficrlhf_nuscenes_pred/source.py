@@ -46,7 +46,8 @@ def parse_label_file(path: str) -> LabelTable:
                 continue
             if len(parts) != NUM_COLUMNS:
                 raise DataFormatError(
-                    f"{path}:{lineno}: expected {NUM_COLUMNS} space-separated columns, found {len(parts)}: {line.strip()!r}"
+                    f"{path}:{lineno}: expected {NUM_COLUMNS} space-separated columns, found {len(parts)}: "
+                    f"{line.strip()!r}"
                 )
             try:
                 values = [float(parts[i]) for i in (0, 1, 10, 12, 13, 15, 16)]

@@ -196,7 +196,7 @@ def test_unpickler_refuses_os_system(tmp_path):
     with pytest.raises(UnsafePickleError) as info:
         restricted_load(str(evil))
     assert "os.system" in str(info.value) and str(evil) in str(info.value)
-    with pytest.raises(UnsafePickleError, match="os.system"):
+    with pytest.raises(UnsafePickleError, match=r"os\.system"):
         ScenarioNetSource(root=str(tmp_path)).load_scene("all", "sd_evil")
     assert not marker.exists()
 
@@ -215,10 +215,10 @@ def test_unpickler_truncated_file(tmp_path, cut):
     data = pickle.dumps(synthetic_scenario(), protocol=4)
     path = tmp_path / "sd_cut.pkl"
     path.write_bytes(data[:cut] if cut >= 0 else data[: len(data) // 2])
-    with pytest.raises(DataFormatError, match="sd_cut.pkl") as info:
+    with pytest.raises(DataFormatError, match=r"sd_cut\.pkl") as info:
         restricted_load(str(path))
     assert not isinstance(info.value, UnsafePickleError)
-    with pytest.raises(DataFormatError, match="sd_cut.pkl"):
+    with pytest.raises(DataFormatError, match=r"sd_cut\.pkl"):
         ScenarioNetSource(root=str(tmp_path), min_future_s=0.0).scene_ids("all")
 
 

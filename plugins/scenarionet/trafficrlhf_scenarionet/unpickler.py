@@ -12,7 +12,8 @@ import collections
 import io
 import pickle
 import struct
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 

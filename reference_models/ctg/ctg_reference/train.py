@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> None:
             group["lr"] = lr
         idx = torch.randint(0, n_train, (args.batch_size,), generator=gen)
         b = batch_of(train, idx)
-        loss, parts = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen)
+        loss, _ = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

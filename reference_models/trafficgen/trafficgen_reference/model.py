@@ -26,8 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = [
-    "Forecaster",
     "ForecastOutput",
+    "Forecaster",
     "Initializer",
     "TrafficGenConfig",
     "TrafficGenModel",
@@ -223,7 +223,8 @@ class Initializer(nn.Module):
         comp = (-0.5 * z * z - log_std - HALF_LOG_2PI).sum(-1)
         return torch.logsumexp(mix + comp, -1)
 
-    def cell_targets(self, agents: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def cell_targets(self, agents: torch.Tensor,
+                     valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Cell index ``(N, P)`` (row * G + col), inside-grid mask, and mixture targets ``(N, P, 6)`` for
         agents ``(N, P, 6)`` = (x, y, heading, speed, length, width) in the context frame."""
         g, cell = self.cfg.init_cells, self.cfg.init_cell_m
@@ -297,8 +298,8 @@ class Initializer(nn.Module):
                 length, width = best[2].clamp(2.5, 18.0), best[3].clamp(1.4, 3.2)
                 state = torch.stack([x, y, wrap(best[4]), best[5].clamp_min(0.0), length, width])
                 weight[c] = 0.0  # one vehicle per cell, and a rejected cell is not tried again
-                i = int(math.floor(float(x) / cfg.init_crop_res_m + s / 2))
-                j = int(math.floor(float(y) / cfg.init_crop_res_m + s / 2))
+                i = math.floor(float(x) / cfg.init_crop_res_m + s / 2)
+                j = math.floor(float(y) / cfg.init_crop_res_m + s / 2)
                 on_road = 0 <= i < s and 0 <= j < s and bool(drivable[i, j])
                 box = torch.stack([x, y, state[2], length, width])
                 if on_road and not boxes_overlap(box, torch.stack(boxes)).any():
@@ -416,7 +417,8 @@ class Forecaster(nn.Module):
         best = ade.detach().argmin(-1)
         ce = F.nll_loss(out.log_pi, best)
         h = actions.shape[1]
-        nll = -(self.log_density(out, best[:, None], actions[:, None])[:, 0] - out.log_pi.gather(1, best[:, None])[:, 0])
+        log_density = self.log_density(out, best[:, None], actions[:, None])[:, 0]
+        nll = -(log_density - out.log_pi.gather(1, best[:, None])[:, 0])
         nll = nll.mean() / h
         pos = F.huber_loss(xy[torch.arange(n), best], future_xy, delta=1.0)
         loss = ce + nll + self.cfg.position_loss_weight * pos

@@ -1,6 +1,7 @@
 """Train the compact TrafficGen on the nuScenes train split: initializer, then forecaster (one seeded command).
 
-    .venv/bin/python -m trafficgen_reference.train --out reference_models/trafficgen/checkpoints/trafficgen_small --minutes 10
+    .venv/bin/python -m trafficgen_reference.train \
+        --out reference_models/trafficgen/checkpoints/trafficgen_small --minutes 10
 
 Data (one pass over the train scenes):
 
