@@ -39,7 +39,11 @@ $T rm train --db "$DB2" --campaign ctg-nc-train --campaign ctg-rmhack-train --ca
   --test-campaign ctg-nc-val --test-annotator oracle --out "$OUT" --quiet \
   --title "TrafficRLHF reward model, round 2: CTG, reward-hacking CTG and aligned CTG candidates on nuScenes" \
   --note "Built by \`bash scripts/train_reward_model_round2.sh\` on top of round 1 (scripts/train_reward_model.sh)."
-for c in ctg-nc-val ctg-rmhack-train ctg-aligned-train; do
-  echo "== $c (oracle labels; the train campaigns include the pairs it was trained on)"
-  $T rm eval --model "$OUT" --db "$DB2" --campaign "$c" --annotator oracle
+echo "== ctg-nc-val (100 val scenes, never trained on)"
+$T rm eval --model "$OUT" --db "$DB2" --campaign ctg-nc-val --annotator oracle
+for c in ctg-rmhack-train ctg-aligned-train; do
+  for m in reference_models/reward/ctg_no_collision "$OUT"; do
+    echo "== $c, held-out contexts (the split rm train used), $m"
+    $T rm eval --model "$m" --db "$DB2" --campaign "$c" --annotator oracle --val-fraction 0.1472 --subset val
+  done
 done

@@ -137,3 +137,12 @@ def test_rm_train_pools_repeated_campaigns(tiny_db: str, tmp_path: Path) -> None
     assert counts[0] + counts[2] == 40 + 16 and counts[1] + counts[3] == 10 + 4  # (train, val) pairs and contexts
     config = json.loads((out / "config.json").read_text())
     assert config["data"]["campaign"] == ["tiny", "round2"]
+
+
+def test_rm_eval_on_the_held_out_side_of_a_campaign(trained: Path, tiny_db: str) -> None:
+    """`--val-fraction F --subset val` scores only the contexts `rm train --val-fraction F` held out."""
+    code, output = invoke("rm", "eval", "--model", str(trained), "--db", tiny_db, "--campaign", "tiny",
+                          "--annotator", "oracle", "--val-fraction", "0.2", "--subset", "val", "--json")
+    assert code == 0, output
+    metrics = json.loads(output)
+    assert metrics["contexts"] == 2 and 2 * 4 <= metrics["pairs"] <= 2 * 5  # N-1 pairs per choice, N for 'none'

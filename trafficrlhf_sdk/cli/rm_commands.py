@@ -138,18 +138,23 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
 @click.option("--data", "data_dir", default=None, help="Instead of --db: a folder from `feedback export`.")
 @click.option("--annotator", "annotators", multiple=True, help="Use only this annotator's labels (repeatable).")
 @click.option("--subset", type=click.Choice(["all", "train", "val"]), default="all", show_default=True,
-              help="Contexts of an exported dataset to use.")
+              help="Contexts to use: of an exported dataset, or (with --db) of the split --val-fraction makes; "
+                   "`rm train` with the same --val-fraction/--split-seed never trained on the 'val' ones.")
+@click.option("--val-fraction", type=click.FloatRange(0, 1, max_open=True), default=0.0, show_default=True,
+              help="With --db: share of contexts marked 'val' (split by scene, as `rm train` does).")
+@click.option("--split-seed", type=int, default=0, show_default=True, help="With --db: seed of that split.")
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="With --db: pairs whose hidden realism differs by at most this are ties (strict accuracy).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
-                 annotators: tuple[str, ...], subset: str, tie_tolerance: float, as_json: bool) -> None:
+                 annotators: tuple[str, ...], subset: str, val_fraction: float, split_seed: int,
+                 tie_tolerance: float, as_json: bool) -> None:
     """Accuracy (share of pairs with r(S_w) > r(S_l)), margin and rewards on a campaign's preference pairs."""
     from trafficrlhf_sdk.reward import RewardModel
     from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
 
     model = RewardModel.from_pretrained(model_dir)
-    dataset, store = load_preferences(db_path, campaign, data_dir, annotators)
+    dataset, store = load_preferences(db_path, campaign, data_dir, annotators, val_fraction, split_seed)
     if subset != "all":
         dataset = dataset.subset(subset)
     metrics = evaluate_model(model, dataset, store, tie_tolerance)
