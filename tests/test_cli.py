@@ -271,3 +271,13 @@ def test_compare_builds_a_table_from_evaluate_runs(tmp_path) -> None:
     assert "| failure rate | 0.2500 | 0.5000 |" in result.output
     missing = runner.invoke(get_cli(), ["compare", str(tmp_path / "nope")])
     assert missing.exit_code != 0
+    # the same policy at three seeds shares one column: the mean, then each seed's value
+    for seed, rate in ((0, 0.1), (1, 0.2), (2, 0.6)):
+        (tmp_path / f"c{seed}").mkdir()
+        (tmp_path / f"c{seed}" / "results.json").write_text(json.dumps({
+            "metrics": {"failure_rate": rate}, "metadata": {"model": "c", "seed": seed, "scene_ids": ["s1"]},
+            "simulation_time_s": 1.0, "num_scenes": 1, "num_controlled_agents": 3}))
+    pooled = runner.invoke(get_cli(), ["compare", str(tmp_path / "a"), *(str(tmp_path / f"c{s}") for s in range(3))])
+    assert pooled.exit_code == 0, pooled.output
+    assert "| metric | a | c, seeds 0 / 1 / 2 |" in pooled.output
+    assert "| failure rate | 0.2500 | 0.3000 (0.1000 / 0.2000 / 0.6000) |" in pooled.output

@@ -35,28 +35,63 @@ def _label(result: dict, folder: str) -> str:
     return label
 
 
+def _read(folder: str) -> dict:
+    path = os.path.join(folder, "results.json")
+    if not os.path.isfile(path):
+        raise DataNotFoundError(f"no results.json in {folder!r}; pass folders written by "
+                                "`trafficrlhf evaluate --out`.")
+    try:
+        with open(path, encoding="utf-8") as handle:
+            return json.load(handle)
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
+
+
+def _pool_seeds(runs: list[tuple[str, dict]]) -> list[tuple[str, list[dict]]]:
+    """Group runs of one policy (same label and scenes) that differ only in their seed, keeping order."""
+    groups: list[tuple[str, list[dict]]] = []
+    for label, result in runs:
+        meta = result.get("metadata", {})
+        for name, members in groups:
+            first = members[0].get("metadata", {})
+            seeds = {m.get("metadata", {}).get("seed") for m in members}
+            if (name == label and first.get("scene_ids") == meta.get("scene_ids")
+                    and meta.get("seed") is not None and meta.get("seed") not in seeds):
+                members.append(result)
+                break
+        else:
+            groups.append((label, [result]))
+    return groups
+
+
 def comparison_table(folders: list[str]) -> str:
-    """Markdown table (metrics as rows, runs as columns) of the ``results.json`` in each folder."""
-    runs = []
-    for folder in folders:
-        path = os.path.join(folder, "results.json")
-        if not os.path.isfile(path):
-            raise DataNotFoundError(f"no results.json in {folder!r}; pass folders written by "
-                                    "`trafficrlhf evaluate --out`.")
-        try:
-            with open(path, encoding="utf-8") as handle:
-                runs.append((_label(result := json.load(handle), folder), result))
-        except json.JSONDecodeError as exc:
-            raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
-    lines = ["| metric | " + " | ".join(label for label, _ in runs) + " |", "|---" * (len(runs) + 1) + "|"]
+    """Markdown table (metrics as rows, runs as columns) of the ``results.json`` in each folder.
+
+    Runs of the same policy on the same scenes with different seeds share a column: the mean, then the value
+    of each seed (evaluation noise is often as large as the effects compared).
+    """
+    groups = _pool_seeds([(_label(result := _read(folder), folder), result) for folder in folders])
+    header = []
+    for label, members in groups:
+        seeds = [str(m.get("metadata", {}).get("seed")) for m in members]
+        header.append(label if len(members) == 1 else f"{label}, seeds {' / '.join(seeds)}")
+    lines = ["| metric | " + " | ".join(header) + " |", "|---" * (len(groups) + 1) + "|"]
+
+    def cell(values: list[float | None]) -> str:
+        if any(v is None for v in values):
+            return "n/a"
+        mean = sum(values) / len(values)  # type: ignore[arg-type]
+        return f"{mean:.4f}" if len(values) == 1 else f"{mean:.4f} ({' / '.join(f'{v:.4f}' for v in values)})"
+
     for key, name in ROWS:
-        values = [result["metrics"].get(key) for _, result in runs]
-        if all(v is None for v in values):
+        values = [[m["metrics"].get(key) for m in members] for _, members in groups]
+        if all(v is None for vs in values for v in vs):
             continue
-        lines.append(f"| {name} | " + " | ".join("n/a" if v is None else f"{v:.4f}" for v in values) + " |")
-    lines.append("| closed-loop time (s) | " + " | ".join(f"{r['simulation_time_s']:.1f}" for _, r in runs) + " |")
+        lines.append(f"| {name} | " + " | ".join(cell(vs) for vs in values) + " |")
+    lines.append("| closed-loop time (s) | " + " | ".join(
+        " / ".join(f"{m['simulation_time_s']:.1f}" for m in members) for _, members in groups) + " |")
     lines.append("| scenes / controlled agents | " + " | ".join(
-        f"{r['num_scenes']} / {r['num_controlled_agents']}" for _, r in runs) + " |")
+        f"{members[0]['num_scenes']} / {members[0]['num_controlled_agents']}" for _, members in groups) + " |")
     return "\n".join(lines)
 
 
