@@ -10,6 +10,8 @@ import os
 
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -184,3 +186,23 @@ def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> N
     early = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes, target_kl=1e-9, **config).history[0]
     assert full["early_stop"] == 0.0 and full["updates"] == 8.0  # 4 passes x 2 minibatches
     assert early["early_stop"] == 1.0 and early["updates"] < full["updates"]
+
+
+@given(st.lists(st.text(min_size=1, max_size=4), unique=True, max_size=60), st.integers(2, 12))
+def test_holdout_splits_the_scene_list(ids: list[str], every: int) -> None:
+    """Training and held-out scenes partition the split; every k-th scene is held out, in order."""
+    from trafficrlhf_sdk.align.trainer import held_out_scene_ids, training_scene_ids
+
+    train, held = training_scene_ids(ids, every), held_out_scene_ids(ids, every)
+    assert not set(train) & set(held) and sorted(train + held) == sorted(ids)
+    assert len(held) == len(ids) // every and held == [ids[i] for i in range(every - 1, len(ids), every)]
+    assert training_scene_ids(ids, None) == ids
+
+
+def test_alignment_never_loads_held_out_scenes(data_root: str) -> None:
+    trainer = AlignTrainer(_model(), NoCollisionReward(), AlignConfig(num_scenes=4, holdout_every=3))
+    loaded = [s.scene_ids[0] for s in trainer._load_scenes()]
+    from trafficrlhf_sdk import get_scenario_source
+
+    ids = get_scenario_source("nuscenes_pred").scene_ids("train")
+    assert loaded == [ids[0], ids[1], ids[3], ids[4]]

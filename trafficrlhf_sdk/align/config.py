@@ -96,6 +96,10 @@ class AlignConfig(BaseModel):
     split: str = Field("train", description="Split the contexts come from (never the evaluation split).")
     root: str | None = Field(None, description="Data directory of the source (None: the source's default).")
     num_scenes: int | None = Field(None, ge=1, description="First N long-enough scenes of the split; None: all.")
+    holdout_every: int | None = Field(None, ge=2, description="Hold out every k-th long-enough scene of the split "
+                                      "(positions k-1, 2k-1, ...; before `num_scenes` is applied): never trained "
+                                      "on, spread over the whole split, for choosing settings "
+                                      "(`scripts/align_dev_eval.py --holdout-every k`). None: none held out.")
 
     # ---------------------------------------------------------------- bookkeeping
     seed: int = Field(0, description="Seed of every generator (contexts, sampling, minibatch order, imitation "

@@ -50,7 +50,8 @@ from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, ext
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
+__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "held_out_scene_ids", "scenario_scores",
+           "training_scene_ids"]
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -161,6 +162,18 @@ def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
     return adv.to(log_prob.dtype).expand(log_prob.shape)
 
 
+def training_scene_ids(scene_ids: Sequence[str], holdout_every: int | None) -> list[str]:
+    """``scene_ids`` without every ``holdout_every``-th one (positions k-1, 2k-1, ...); all when None."""
+    if holdout_every is None:
+        return list(scene_ids)
+    return [s for i, s in enumerate(scene_ids) if (i + 1) % holdout_every]
+
+
+def held_out_scene_ids(scene_ids: Sequence[str], holdout_every: int) -> list[str]:
+    """The scenes :func:`training_scene_ids` leaves out: positions k-1, 2k-1, ... of ``scene_ids``."""
+    return list(scene_ids[holdout_every - 1 :: holdout_every])
+
+
 class AlignTrainer:
     """PPO fine-tuner of a traffic-model adapter against a reward model (see the module docstring).
 
@@ -228,7 +241,7 @@ class AlignTrainer:
 
             cfg = self.config
             source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
-            ids = source.scene_ids(cfg.split)[: cfg.num_scenes]
+            ids = training_scene_ids(source.scene_ids(cfg.split), cfg.holdout_every)[: cfg.num_scenes]
             if not ids:
                 raise DataNotFoundError(f"split {cfg.split!r} of {cfg.source!r} has no scene long enough.")
             self.scenes = [source.load_scene(cfg.split, i) for i in ids]

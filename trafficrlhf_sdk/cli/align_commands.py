@@ -74,6 +74,9 @@ def load_reward(spec: str) -> object:
               help="With an ensemble reward model: reward = mean - PESSIMISM x std over its members.")
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon).")
+@click.option("--holdout-every", type=click.IntRange(min=2), default=None,
+              help="Never train on every k-th scene of the split (a held-out set spread over it; "
+                   "scripts/align_dev_eval.py --holdout-every k evaluates them).")
 @click.option("--groups", default=None, help="Comma-separated parameter groups to train (default: all offered).")
 @click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
               help="Traffic-model option while training (JSON value), repeatable, e.g. train_on_selection=true "
@@ -93,7 +96,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   credit: str | None, denoising_steps: int | None, pessimism: float | None,
-                  reward_horizon: int | None, groups: str | None, model_options: tuple[str, ...],
+                  reward_horizon: int | None, holdout_every: int | None, groups: str | None,
+                  model_options: tuple[str, ...],
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
@@ -127,7 +131,7 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "target_kl": target_kl, "imitation_coef": imitation_coef, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_scenes": failure_scenes, "credit": credit, "denoising_steps": denoising_steps,
-        "source": source, "root": root, "save_every": save_every,
+        "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
     }
     config = AlignConfig(
