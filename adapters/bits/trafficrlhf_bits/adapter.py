@@ -320,9 +320,9 @@ class BITSAdapter(TrafficModelAdapter):
         if guidance is not None:
             cost = cost + guidance.loss(out.futures, now, context)
             scene_level = guidance.scene_level
-        cost = cost.reshape(b, groups, k, a)
-        choice = torch.stack([select_samples(cost[:, g], agents, scene_level) for g in range(groups)], 1)
-        return out, choice
+        # every (scene, group) pair is one selection among K: fold the groups into the batch
+        choice = select_samples(cost.reshape(b * groups, k, a), agents.repeat_interleave(groups, 0), scene_level)
+        return out, choice.reshape(b, groups, a)
 
     @torch.no_grad()
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
