@@ -7,8 +7,8 @@ import os
 import platform
 import time
 from dataclasses import dataclass, field
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field

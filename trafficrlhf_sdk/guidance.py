@@ -10,8 +10,8 @@ sample filtering (:func:`select_samples`). ``objective(rollout)`` is the matchin
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
 from collections.abc import Sequence
+from typing import ClassVar
 
 import torch
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch

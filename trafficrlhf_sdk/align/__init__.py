@@ -8,8 +8,8 @@
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Callable
+from typing import Any
 
 from trafficrlhf_sdk.align.config import PAPER_ALPHA, AlignConfig, paper_alpha
 from trafficrlhf_sdk.align.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores

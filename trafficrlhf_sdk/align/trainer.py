@@ -35,8 +35,8 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
 from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from safetensors.torch import save_file

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import NoReturn
 from collections.abc import Sequence
+from typing import NoReturn
 
 import click
 import pydantic

@@ -7,8 +7,8 @@ import json
 import os
 import sys
 from collections import Counter
-from typing import Any
 from collections.abc import Iterable
+from typing import Any
 
 import click
 from rich.console import Console

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from collections import Counter, defaultdict
 from itertools import combinations
-from typing import Any
 from collections.abc import Iterable
+from typing import Any
 
 __all__ = ["agreement_report", "campaign_agreement", "fleiss_kappa"]
 

@@ -23,8 +23,8 @@ import sqlite3
 import threading
 from dataclasses import replace
 from datetime import datetime, timezone
-from typing import Any, Literal
 from collections.abc import Iterator
+from typing import Any, Literal
 
 import torch
 

@@ -9,8 +9,8 @@ train/val split and bootstrap draws are by context, never by pair.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 

@@ -19,8 +19,8 @@ Architectures are registered by plugins (``register_reward_model_architectures``
 from __future__ import annotations
 
 import os
-from typing import Any, ClassVar
 from collections.abc import Sequence
+from typing import Any, ClassVar
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field

@@ -20,8 +20,8 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
 from collections.abc import Callable
+from typing import Any
 
 import torch
 

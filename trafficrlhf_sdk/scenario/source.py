@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import abc
 import os
-from typing import ClassVar
 from collections.abc import Iterator, Sequence
+from typing import ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field, replace
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 

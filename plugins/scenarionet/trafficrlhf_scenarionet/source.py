@@ -6,8 +6,8 @@ import functools
 import math
 import os
 from dataclasses import dataclass
-from typing import Any
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import torch

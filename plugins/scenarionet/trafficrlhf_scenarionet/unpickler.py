@@ -12,8 +12,8 @@ import collections
 import io
 import pickle
 import struct
-from typing import Any
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
