@@ -164,13 +164,15 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     result = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:collision",
                                        "--out", out, "--epochs", "2", "--contexts", "2", "--samples", "2",
                                        "--scenes", "3", "--threads", "1", "--quiet", "--credit", "agent",
-                                       "--failure-contexts", "0.5", "--failure-scenes", "2"], catch_exceptions=False)
+                                       "--failure-contexts", "0.5", "--failure-scenes", "2",
+                                       "--failure-lead", "4,9"], catch_exceptions=False)
     assert result.exit_code == 0, result.output
     assert "aligned example_gru for 2 epochs" in result.output
     summary = json.load(open(os.path.join(out, "align_summary.json"), encoding="utf-8"))
     assert summary["alpha"] == 0.3 and summary["epochs"] == 2
     history = json.load(open(os.path.join(out, "align_history.json"), encoding="utf-8"))
     assert history["config"]["credit"] == "agent" and history["config"]["failure_fraction"] == 0.5
+    assert history["config"]["failure_lead_steps"] == [4, 9]
     result = runner.invoke(get_cli(), ["evaluate", "--model", "example_gru", "--checkpoint", out, "--scenes", "2",
                                        "--json"], catch_exceptions=False)
     assert result.exit_code == 0, result.output
@@ -178,6 +180,9 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     assert report["metadata"]["checkpoint"] == out and 0 <= report["metrics"]["failure_rate"] <= 1
     bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:nope", "--out", out])
     assert bad.exit_code != 0
+    bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:collision",
+                                    "--out", out, "--failure-lead", "ten"])
+    assert bad.exit_code == 2 and "--failure-lead" in bad.output and "'ten'" in bad.output
 
 
 def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> None:

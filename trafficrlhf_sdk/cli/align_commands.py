@@ -38,6 +38,20 @@ def load_reward(spec: str) -> object:
     return RewardModel.from_pretrained(spec).eval()
 
 
+def _parse_lead(text: str | None) -> tuple[int, int] | None:
+    """``"LO,HI"`` -> ``(LO, HI)`` steps (None passes through)."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return int(parts[0]), int(parts[1])
+    except ValueError:
+        raise click.BadParameter(f"got {text!r}; give two step counts LO,HI such as 10,20.",
+                                 param_hint="--failure-lead") from None
+
+
 @cli.command("align")
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
@@ -66,6 +80,8 @@ def load_reward(spec: str) -> object:
               help="Share of contexts cut just before the current model's own closed-loop failures (default 0).")
 @click.option("--failure-scenes", type=click.IntRange(min=1), default=None,
               help="Training scenes driven per epoch to find those failures [default: 16].")
+@click.option("--failure-lead", default=None, metavar="LO,HI",
+              help="A failure-focused context starts LO..HI steps before the failure [default: 5,15].")
 @click.option("--credit", type=click.Choice(["scene", "agent"]), default=None,
               help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
@@ -95,7 +111,7 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   minibatch: int | None, lr: float | None, clip_range: float | None, kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
-                  credit: str | None, denoising_steps: int | None, pessimism: float | None,
+                  failure_lead: str | None, credit: str | None, denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, holdout_every: int | None, groups: str | None,
                   model_options: tuple[str, ...],
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
@@ -130,7 +146,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "minibatch_contexts": minibatch, "learning_rate": lr, "clip_range": clip_range, "kl_coef": kl_coef,
         "target_kl": target_kl, "imitation_coef": imitation_coef, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
-        "failure_scenes": failure_scenes, "credit": credit, "denoising_steps": denoising_steps,
+        "failure_scenes": failure_scenes, "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
+        "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
     }
