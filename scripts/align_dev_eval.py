@@ -16,7 +16,7 @@ import json
 import torch
 
 from trafficrlhf_sdk import get_scenario_source
-from trafficrlhf_sdk.align.trainer import held_out_scene_ids
+from trafficrlhf_sdk.align.contexts import held_out_scene_ids
 from trafficrlhf_sdk.cli.evaluate import build_policy
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 

@@ -196,7 +196,7 @@ def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> N
 @given(st.lists(st.text(min_size=1, max_size=4), unique=True, max_size=60), st.integers(2, 12))
 def test_holdout_splits_the_scene_list(ids: list[str], every: int) -> None:
     """Training and held-out scenes partition the split; every k-th scene is held out, in order."""
-    from trafficrlhf_sdk.align.trainer import held_out_scene_ids, training_scene_ids
+    from trafficrlhf_sdk.align.contexts import held_out_scene_ids, training_scene_ids
 
     train, held = training_scene_ids(ids, every), held_out_scene_ids(ids, every)
     assert not set(train) & set(held) and sorted(train + held) == sorted(ids)

@@ -16,7 +16,7 @@ paired with the same window of the *log* (the imitation loss always learns from 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -27,7 +27,19 @@ from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_ste
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["ContextSampler"]
+__all__ = ["ContextSampler", "held_out_scene_ids", "training_scene_ids"]
+
+
+def training_scene_ids(scene_ids: Sequence[str], holdout_every: int | None) -> list[str]:
+    """``scene_ids`` without every ``holdout_every``-th one (positions k-1, 2k-1, ...); all when None."""
+    if holdout_every is None:
+        return list(scene_ids)
+    return [s for i, s in enumerate(scene_ids) if (i + 1) % holdout_every]
+
+
+def held_out_scene_ids(scene_ids: Sequence[str], holdout_every: int) -> list[str]:
+    """The scenes :func:`training_scene_ids` leaves out: positions k-1, 2k-1, ... of ``scene_ids``."""
+    return list(scene_ids[holdout_every - 1 :: holdout_every])
 
 
 class ContextSampler:

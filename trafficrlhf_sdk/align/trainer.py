@@ -42,7 +42,7 @@ import torch
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
-from trafficrlhf_sdk.align.contexts import ContextSampler
+from trafficrlhf_sdk.align.contexts import ContextSampler, training_scene_ids
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
@@ -50,8 +50,7 @@ from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, ext
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "held_out_scene_ids", "scenario_scores",
-           "training_scene_ids"]
+__all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
@@ -160,18 +159,6 @@ def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
     if log_prob.dim() == 4:
         adv = adv[..., None]
     return adv.to(log_prob.dtype).expand(log_prob.shape)
-
-
-def training_scene_ids(scene_ids: Sequence[str], holdout_every: int | None) -> list[str]:
-    """``scene_ids`` without every ``holdout_every``-th one (positions k-1, 2k-1, ...); all when None."""
-    if holdout_every is None:
-        return list(scene_ids)
-    return [s for i, s in enumerate(scene_ids) if (i + 1) % holdout_every]
-
-
-def held_out_scene_ids(scene_ids: Sequence[str], holdout_every: int) -> list[str]:
-    """The scenes :func:`training_scene_ids` leaves out: positions k-1, 2k-1, ... of ``scene_ids``."""
-    return list(scene_ids[holdout_every - 1 :: holdout_every])
 
 
 class AlignTrainer:
