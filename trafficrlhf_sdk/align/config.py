@@ -101,6 +101,16 @@ class AlignConfig(BaseModel):
                                       "on, spread over the whole split, for choosing settings "
                                       "(`scripts/align_dev_eval.py --holdout-every k`). None: none held out.")
 
+    # ---------------------------------------------------------------- held-out evaluation
+    eval_every: int | None = Field(None, ge=1, description="Every N epochs (and after the last), drive the "
+                                   "held-out scenes in closed loop (10 s, `guidance`) and record eval_failure_rate "
+                                   "and realism in the history (stable-baselines3's EvalCallback). Needs "
+                                   "`holdout_every` or held-out scenes passed to the trainer. None: never.")
+    eval_seeds: int = Field(2, ge=1, description="Sampling seeds per held-out evaluation (their mean is "
+                                                 "recorded; one seed moves the failure rate by up to 0.04).")
+    keep_best: bool = Field(False, description="End with the evaluated weights of the lowest held-out failure "
+                            "rate instead of the last epoch's (needs `eval_every`).")
+
     # ---------------------------------------------------------------- bookkeeping
     seed: int = Field(0, description="Seed of every generator (contexts, sampling, minibatch order, imitation "
                                      "noise); each epoch's randomness is a function of (seed, epoch).")
@@ -128,6 +138,9 @@ class AlignConfig(BaseModel):
         if self.failure_fraction + self.closed_loop_fraction > 1 + 1e-9:
             raise ValueError(f"`failure_fraction` ({self.failure_fraction}) + `closed_loop_fraction` "
                              f"({self.closed_loop_fraction}) exceed 1; lower one of them.")
+        if self.keep_best and self.eval_every is None:
+            raise ValueError("`keep_best=True` needs `eval_every` (how often the held-out scenes are driven), "
+                             "e.g. eval_every=10.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
         return self

@@ -42,7 +42,8 @@ import torch
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
-from trafficrlhf_sdk.align.contexts import ContextSampler, training_scene_ids
+from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
+from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
@@ -54,6 +55,7 @@ __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenari
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
+BEST_FILE = "best_model.safetensors"  # weights of the best held-out evaluation so far (keep_best)
 MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
 
 
@@ -170,10 +172,13 @@ class AlignTrainer:
         config: an :class:`AlignConfig`.
         scenes: training scenes (each ``B = 1`` or a batch, split into single scenes); None loads
             ``config.split`` of ``config.source``.
+        eval_scenes: held-out scenes ``(B, A, T)`` for ``config.eval_every``; None: the scenes
+            ``config.holdout_every`` keeps out of the source's split.
     """
 
     def __init__(self, model: TrafficModelAdapter, reward_model: Any, config: AlignConfig | None = None,
-                 scenes: ScenarioTensor | Sequence[ScenarioTensor] | None = None) -> None:
+                 scenes: ScenarioTensor | Sequence[ScenarioTensor] | None = None,
+                 eval_scenes: ScenarioTensor | None = None) -> None:
         self.model = model
         self.reward_model = reward_model
         self.config = config or AlignConfig()
@@ -212,6 +217,13 @@ class AlignTrainer:
         if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
+        self.held_out = None
+        if self.config.eval_every is not None:
+            if eval_scenes is None and (scenes is not None or self.config.holdout_every is None):
+                raise TrafficRLHFError("`eval_every` needs held-out scenes: set `holdout_every` (scenes of the "
+                                       "source's split never trained on) or pass `eval_scenes`.")
+            held = (lambda: eval_scenes) if eval_scenes is not None else self._load_held_out
+            self.held_out = HeldOutEvaluator(model, self.config, held, self.guidance)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -233,6 +245,15 @@ class AlignTrainer:
                 raise DataNotFoundError(f"split {cfg.split!r} of {cfg.source!r} has no scene long enough.")
             self.scenes = [source.load_scene(cfg.split, i) for i in ids]
         return self.scenes
+
+    def _load_held_out(self) -> ScenarioTensor:
+        from trafficrlhf_sdk import get_scenario_source
+
+        cfg = self.config
+        assert cfg.holdout_every is not None
+        source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+        return source.load_batch(cfg.split, scene_ids=held_out_scene_ids(source.scene_ids(cfg.split),
+                                                                          cfg.holdout_every))
 
     def _contexts(self, epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
         """The epoch's contexts and the same windows of the log (see :class:`ContextSampler`); every draw comes
@@ -413,6 +434,9 @@ class AlignTrainer:
                 else:
                     scalars[f"{index}.{key}"] = value
         save_file(tensors, os.path.join(tmp, OPTIMIZER_FILE), metadata={"format": "pt"})
+        if self.held_out is not None and self.held_out.best_state is not None:
+            save_file({k: v.contiguous() for k, v in self.held_out.best_state.items()},
+                      os.path.join(tmp, BEST_FILE), metadata={"format": "pt"})
         payload = {
             "epochs_done": epochs_done,
             "groups": list(self.group_names),
@@ -421,6 +445,7 @@ class AlignTrainer:
             "optimizer_param_groups": state["param_groups"],
             "optimizer_scalars": scalars,
             "torch_rng_state": torch.get_rng_state().tolist(),
+            "held_out": None if self.held_out is None else self.held_out.state(),
         }
         with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
             json.dump(payload, handle, indent=1)
@@ -465,6 +490,11 @@ class AlignTrainer:
         torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
         self.history = list(payload["history"])
         self.start_epoch = int(payload["epochs_done"])
+        best = payload.get("held_out")
+        if self.held_out is not None and best and best.get("best_epoch") is not None:
+            self.held_out.best_epoch = int(best["best_epoch"])
+            self.held_out.best_failure_rate = float(best["best_failure_rate"])
+            self.held_out.best_state, _ = safe_load_file(os.path.join(directory, BEST_FILE))
 
     # ------------------------------------------------------------------ logging
     def _configure_logger(self) -> Any:
@@ -511,6 +541,9 @@ class AlignTrainer:
                          "reward_max": float(rollout.rewards.max())}
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
+                if self.held_out is not None and self.held_out.due(epoch + 1):
+                    stats.update(self.held_out.evaluate())
+                    self.held_out.update_best(epoch + 1, stats["eval_failure_rate"])
                 self.history.append(stats)
                 self._log(stats)
                 if bar is not None:
@@ -530,11 +563,15 @@ class AlignTrainer:
                 p.requires_grad_(flags[id(p)])
             if self.logger is not None:
                 self.logger.close()
-        if cfg.output_dir is not None and len(self.history) == cfg.epochs:
+        finished = len(self.history) == cfg.epochs
+        best_epoch = None
+        if finished and cfg.keep_best and self.held_out is not None:
+            best_epoch = self.held_out.restore_best()
+        if cfg.output_dir is not None and finished:
             self.model.save_pretrained(cfg.output_dir)
             with open(os.path.join(cfg.output_dir, "align_history.json"), "w", encoding="utf-8") as handle:
                 json.dump({"config": cfg.model_dump(mode="json"), "groups": list(self.group_names),
-                           "history": self.history}, handle, indent=1)
+                           "best_epoch": best_epoch, "history": self.history}, handle, indent=1)
         return self.history
 
     def _log(self, stats: dict[str, float]) -> None:
@@ -543,5 +580,7 @@ class AlignTrainer:
             if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
                 continue
             prefix = "rollout" if key in rollout_keys else ("time" if key == "time_s" else "train")
+            if key.startswith("eval_"):
+                prefix, key = "eval", key[5:]
             self.logger.record(f"{prefix}/{key}", value)
         self.logger.dump(step=int(stats["epoch"]))

@@ -93,6 +93,12 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--holdout-every", type=click.IntRange(min=2), default=None,
               help="Never train on every k-th scene of the split (a held-out set spread over it; "
                    "scripts/align_dev_eval.py --holdout-every k evaluates them).")
+@click.option("--eval-every", type=click.IntRange(min=1), default=None,
+              help="Drive the --holdout-every scenes in closed loop every N epochs and log the failure rate.")
+@click.option("--eval-seeds", type=click.IntRange(min=1), default=None,
+              help="Sampling seeds per held-out evaluation [default: 2].")
+@click.option("--keep-best", is_flag=True,
+              help="End with the weights of the lowest held-out failure rate (needs --eval-every).")
 @click.option("--groups", default=None, help="Comma-separated parameter groups to train (default: all offered).")
 @click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
               help="Traffic-model option while training (JSON value), repeatable, e.g. train_on_selection=true "
@@ -112,7 +118,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_lead: str | None, credit: str | None, denoising_steps: int | None, pessimism: float | None,
-                  reward_horizon: int | None, holdout_every: int | None, groups: str | None,
+                  reward_horizon: int | None, holdout_every: int | None, eval_every: int | None,
+                  eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
@@ -149,6 +156,7 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "failure_scenes": failure_scenes, "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
+        "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
         "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
     }
     config = AlignConfig(
@@ -164,8 +172,12 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
     summary = {"model": model, "reward_model": reward_spec, "alpha": config.alpha, "epochs": len(history),
                "groups": list(trainer.group_names), "wall_time_s": wall, "threads": torch.get_num_threads(),
                "reward_first": history[0]["reward_mean"] if history else None,
-               "reward_last": history[-1]["reward_mean"] if history else None}
+               "reward_last": history[-1]["reward_mean"] if history else None,
+               "best_epoch": trainer.held_out.best_epoch if config.keep_best and trainer.held_out else None}
     with open(os.path.join(out_dir, "align_summary.json"), "w", encoding="utf-8") as handle:
         json.dump(summary, handle, indent=2)
     click.echo(f"aligned {model} for {len(history)} epochs in {wall:.1f} s on {torch.get_num_threads()} threads; "
                f"mean reward {summary['reward_first']:.4f} -> {summary['reward_last']:.4f}; saved to {out_dir}")
+    if summary["best_epoch"] is not None:
+        best = trainer.held_out.best_failure_rate  # type: ignore[union-attr]
+        click.echo(f"kept the weights of epoch {summary['best_epoch']} (held-out failure rate {best:.4f})")
