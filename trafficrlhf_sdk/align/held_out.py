@@ -44,7 +44,8 @@ class HeldOutEvaluator:
                  guidance: GuidanceSet | None) -> None:
         self.model = model
         self.config = config
-        self.scenes = scenes
+        self._load_scenes = scenes
+        self._scenes: ScenarioTensor | None = None
         self.guidance = guidance
         self.best_failure_rate = float("inf")
         self.best_epoch: int | None = None
@@ -59,7 +60,9 @@ class HeldOutEvaluator:
         """``{"eval_<key>": value}`` for :data:`EVAL_KEYS`, each the mean over seeds ``0 .. eval_seeds - 1``."""
         from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
-        scenario = self.scenes()
+        if self._scenes is None:
+            self._scenes = self._load_scenes()
+        scenario = self._scenes
         rng = torch.get_rng_state()
         options = getattr(self.model, "options", None)
         saved_guidance = getattr(self.model, "guidance", None)

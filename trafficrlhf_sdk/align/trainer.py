@@ -234,12 +234,16 @@ class AlignTrainer:
         items = [scenes] if isinstance(scenes, ScenarioTensor) else list(scenes)
         return [s[i] for s in items for i in range(s.num_scenes)]
 
+    def _source(self) -> Any:
+        from trafficrlhf_sdk import get_scenario_source
+
+        cfg = self.config
+        return get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+
     def _load_scenes(self) -> list[ScenarioTensor]:
         if self.scenes is None:
-            from trafficrlhf_sdk import get_scenario_source
-
             cfg = self.config
-            source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+            source = self._source()
             ids = training_scene_ids(source.scene_ids(cfg.split), cfg.holdout_every)[: cfg.num_scenes]
             if not ids:
                 raise DataNotFoundError(f"split {cfg.split!r} of {cfg.source!r} has no scene long enough.")
@@ -247,11 +251,9 @@ class AlignTrainer:
         return self.scenes
 
     def _load_held_out(self) -> ScenarioTensor:
-        from trafficrlhf_sdk import get_scenario_source
-
         cfg = self.config
         assert cfg.holdout_every is not None
-        source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+        source = self._source()
         return source.load_batch(cfg.split, scene_ids=held_out_scene_ids(source.scene_ids(cfg.split),
                                                                           cfg.holdout_every))
 
