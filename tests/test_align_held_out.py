@@ -1,4 +1,5 @@
-"""Held-out evaluation during alignment (``eval_every``) and keeping the best evaluated weights (``keep_best``)."""
+"""Held-out evaluation during alignment (``eval_every``), keeping the best evaluated weights (``keep_best``) and
+the learning-rate schedule."""
 
 from __future__ import annotations
 
@@ -110,3 +111,15 @@ def test_cli_keep_best_needs_eval_every(tmp_path, capsys) -> None:  # type: igno
               "--keep-best"])
     err = capsys.readouterr().err
     assert exit_info.value.code != 0 and "needs `eval_every`" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("schedule", "expected"), [("linear", [1e-3, 1e-3 * 2 / 3, 1e-3 / 3]),
+                                                    ("constant", [1e-3] * 3)])
+def test_learning_rate_schedule(scenes, schedule: str, expected: list[float]) -> None:  # type: ignore[no-untyped-def]
+    """``lr_schedule='linear'``: epoch e trains at lr x (1 - e / epochs); 'constant' keeps lr."""
+    train, _ = scenes
+    config = AlignConfig(alpha=1.0, learning_rate=1e-3, lr_schedule=schedule, **FAST)
+    trainer = AlignTrainer(_model(), SlowDownReward(), config, scenes=train)
+    seen: list[float] = []
+    trainer.train(lambda epoch, stats: seen.append(trainer.optimizer.param_groups[0]["lr"]))
+    assert seen == pytest.approx(expected)

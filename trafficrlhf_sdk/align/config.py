@@ -52,7 +52,11 @@ class AlignConfig(BaseModel):
                                                           "normalized among them.")
     ppo_epochs: int = Field(2, ge=1, description="Passes over an epoch's samples.")
     minibatch_contexts: int = Field(8, ge=1, description="Contexts per optimizer step (with all their samples).")
-    learning_rate: float = Field(1e-4, ge=0, description="AdamW learning rate.")
+    learning_rate: float = Field(1e-4, ge=0, description="AdamW learning rate (of the first epoch).")
+    lr_schedule: Literal["constant", "linear"] = Field("constant", description="'linear': epoch e (from 0) "
+                                                       "trains at learning_rate x (1 - e / epochs), down towards "
+                                                       "0 as stable-baselines3's linear schedules do; damps the "
+                                                       "epoch-to-epoch drift of the last epochs.")
     weight_decay: float = Field(0.0, ge=0, description="AdamW weight decay (trained parameters only).")
     max_grad_norm: float | None = Field(1.0, gt=0, description="Gradient-norm clip; None disables it.")
     groups: tuple[str, ...] | None = Field(None, description="Parameter groups to train, from the adapter's "

@@ -321,6 +321,13 @@ class AlignTrainer:
         return ((rewards - mean) / (std + self.config.advantage_eps)).clamp(-clip, clip)
 
     # ------------------------------------------------------------------ optimization
+    def learning_rate(self, epoch: int) -> float:
+        """The learning rate of epoch ``epoch`` (0-based) under ``config.lr_schedule``."""
+        cfg = self.config
+        if cfg.lr_schedule == "linear":
+            return cfg.learning_rate * (1.0 - epoch / cfg.epochs)
+        return cfg.learning_rate
+
     def _minibatches(self, epoch: int, ppo_epoch: int, n: int) -> list[torch.Tensor]:
         perm = torch.randperm(n, generator=_generator(self.config.seed, epoch, "order", ppo_epoch))
         size = self.config.minibatch_contexts
@@ -535,6 +542,8 @@ class AlignTrainer:
         try:
             for epoch in range(self.start_epoch, cfg.epochs):
                 start = time.perf_counter()
+                for group in self.optimizer.param_groups:
+                    group["lr"] = self.learning_rate(epoch)
                 rollout = self._rollout(epoch)
                 stats = {"epoch": float(epoch + 1),
                          "reward_mean": float(rollout.rewards.mean()),

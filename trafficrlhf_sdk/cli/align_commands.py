@@ -68,6 +68,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--ppo-epochs", type=click.IntRange(min=1), default=None, help="PPO passes per epoch.")
 @click.option("--minibatch", type=click.IntRange(min=1), default=None, help="Contexts per optimizer step.")
 @click.option("--lr", type=click.FloatRange(min=0), default=None, help="Learning rate.")
+@click.option("--lr-schedule", type=click.Choice(["constant", "linear"]), default=None,
+              help="Learning rate over the epochs: constant, or linear decay towards 0 [default: constant].")
 @click.option("--clip-range", type=click.FloatRange(min=0, min_open=True), default=None, help="PPO clip range.")
 @click.option("--kl-coef", type=click.FloatRange(min=0), default=None, help="KL weight to the starting model.")
 @click.option("--target-kl", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -114,7 +116,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch tables.")
 def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: str, checkpoint: str | None,
                   epochs: int | None, contexts: int | None, samples: int | None, ppo_epochs: int | None,
-                  minibatch: int | None, lr: float | None, clip_range: float | None, kl_coef: float | None,
+                  minibatch: int | None, lr: float | None, lr_schedule: str | None, clip_range: float | None,
+                  kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_lead: str | None, credit: str | None, denoising_steps: int | None, pessimism: float | None,
@@ -150,7 +153,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         raise TrafficRLHFError(f"{model!r} is not a trainable traffic model (no parameter groups).")
     options = {
         "epochs": epochs, "contexts_per_epoch": contexts, "samples_per_context": samples, "ppo_epochs": ppo_epochs,
-        "minibatch_contexts": minibatch, "learning_rate": lr, "clip_range": clip_range, "kl_coef": kl_coef,
+        "minibatch_contexts": minibatch, "learning_rate": lr, "lr_schedule": lr_schedule, "clip_range": clip_range,
+        "kl_coef": kl_coef,
         "target_kl": target_kl, "imitation_coef": imitation_coef, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_scenes": failure_scenes, "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
