@@ -16,23 +16,25 @@ BUILTIN_PREFIX = "builtin:"
 
 
 def load_reward(spec: str) -> object:
-    """A saved reward-model folder, or ``builtin:failure`` / ``builtin:collision`` / ``builtin:realism``
-    (hand-written rewards)."""
+    """A saved reward-model folder, or a hand-written reward: ``builtin:failure``, ``builtin:collision``,
+    ``builtin:realism``, or ``builtin:failure-margins`` / ``builtin:realism-margins`` (the same with the
+    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`)."""
     if spec.startswith(BUILTIN_PREFIX):
-        from trafficrlhf_sdk.align.rewards import FailureReward
+        from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward
         from trafficrlhf_sdk.errors import TrafficRLHFError
 
+        builders = {
+            "failure": FailureReward,
+            "collision": lambda: FailureReward(offroad=False),
+            "realism": RealismReward,
+            "failure-margins": lambda: FailureReward(margins=True),
+            "realism-margins": lambda: RealismReward(margins=True),
+        }
         name = spec[len(BUILTIN_PREFIX):]
-        if name == "failure":
-            return FailureReward()
-        if name == "collision":
-            return FailureReward(offroad=False)
-        if name == "realism":
-            from trafficrlhf_sdk.align.rewards import RealismReward
-
-            return RealismReward()
-        raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use builtin:failure, builtin:collision or "
-                               "builtin:realism.")
+        if name not in builders:
+            raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use one of "
+                                   f"{', '.join(BUILTIN_PREFIX + n for n in builders)}.")
+        return builders[name]()
     from trafficrlhf_sdk.reward import RewardModel
 
     return RewardModel.from_pretrained(spec).eval()
@@ -56,7 +58,7 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
               help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
-                   "builtin:realism.")
+                   "builtin:realism / builtin:failure-margins / builtin:realism-margins.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
               help="Weight of the PPO surrogate [default: the paper's value: ctg 0.1, bits 0.5, trafficgen 0.3].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),

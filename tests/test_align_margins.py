@@ -1,0 +1,101 @@
+"""The near-failure costs of ``FailureReward(margins=True)`` against shapely and a per-point pixel lookup."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward
+from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.scenario import ScenarioTensor
+
+pytest.importorskip("shapely.geometry")
+from trafficrlhf_sdk.testing.reference_metrics import reference_collisions, reference_offroad  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def jittered(nuscenes_source) -> ScenarioTensor:  # type: ignore[no-untyped-def]
+    """Six real train scenes, 3 s, every position moved by up to ~1.5 m: plenty of grazed road edges, near
+    misses and a few outright failures."""
+    batch = nuscenes_source.load_batch("train", 6).time_slice(0, 31).replace_unchecked(current_index=10)
+    gen = torch.Generator().manual_seed(3)
+    states = batch.states.clone()
+    states[..., :2] += 1.5 * torch.randn(states[..., :2].shape, generator=gen)
+    return batch.replace_unchecked(states=states * batch.valid[..., None])
+
+
+def _reference_costs(scene: ScenarioTensor, corner_weight: float, near_weight: float,
+                     buffer_m: tuple[float, float]) -> np.ndarray:
+    """Per agent-step cost with shapely boxes and one pixel lookup per corner (numpy, written out)."""
+    xy, yaw = scene.xy.double().numpy(), scene.yaw.double().numpy()
+    extent, valid = scene.extent.double().numpy(), scene.valid.numpy()
+    failed = reference_collisions(xy, yaw, extent, valid) | reference_offroad(scene.map, xy, valid)
+    grown = extent + 2 * np.asarray(buffer_m)
+    near = reference_collisions(xy, yaw, grown, valid)
+    corners_off = np.zeros(valid.shape)
+    for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+        dx, dy = sx * extent[:, :, None, 0] / 2, sy * extent[:, :, None, 1] / 2
+        corner = np.stack([xy[..., 0] + dx * np.cos(yaw) - dy * np.sin(yaw),
+                           xy[..., 1] + dx * np.sin(yaw) + dy * np.cos(yaw)], -1)
+        corners_off += reference_offroad(scene.map, corner, valid) / 4
+    soft = np.minimum(1.0, near_weight * near + corner_weight * corners_off)
+    return np.where(failed, 1.0, soft) * valid
+
+
+def test_margin_costs_match_shapely_and_pixel_lookup(jittered: ScenarioTensor) -> None:
+    reward = FailureReward(margins=True, corner_weight=0.4, near_weight=0.3, near_buffer_m=(0.6, 0.3))
+    cost, mask = reward._failures(jittered)
+    expected = _reference_costs(jittered, 0.4, 0.3, (0.6, 0.3)) * mask.numpy()
+    assert ((expected > 0) & (expected < 1)).sum() > 20, "the fixture should contain near failures"
+    np.testing.assert_allclose(cost.numpy(), expected, atol=1e-6)
+
+
+def test_margins_only_lower_rewards_and_keep_failures_at_minus_one(jittered: ScenarioTensor) -> None:
+    plain, soft = FailureReward(), FailureReward(margins=True)
+    plain_scores, soft_scores = plain.agent_scores(jittered), soft.agent_scores(jittered)
+    assert (soft_scores <= plain_scores + 1e-7).all()
+    assert (soft_scores < plain_scores - 1e-3).any()
+    assert (soft.step_rewards(jittered) <= plain.step_rewards(jittered) + 1e-7).all()
+    # an agent failing at every future step scores exactly -1 with or without margins
+    plain_cost, mask = plain._failures(jittered)
+    soft_cost, _ = soft._failures(jittered)
+    assert torch.equal(soft_cost[plain_cost == 1], torch.ones(int((plain_cost == 1).sum())))
+    assert set(plain_cost[mask].unique().tolist()) <= {0.0, 1.0}
+
+
+def test_the_log_rarely_pays_a_margin_cost(nuscenes_source) -> None:  # type: ignore[no-untyped-def]
+    log = nuscenes_source.load_batch("train", 6)
+    cost, mask = FailureReward(margins=True)._failures(log)
+    mean_cost = float(cost[mask].mean())
+    assert 0 < mean_cost < 0.05, f"logged driving costs {mean_cost:.4f} per agent-step"
+
+
+def test_realism_reward_with_margins_adds_the_same_costs(jittered: ScenarioTensor) -> None:
+    plain, soft = RealismReward(), RealismReward(margins=True)
+    extra = plain.agent_scores(jittered, logged=jittered) - soft.agent_scores(jittered, logged=jittered)
+    expected = FailureReward().agent_scores(jittered) - FailureReward(margins=True).agent_scores(jittered)
+    torch.testing.assert_close(extra, expected)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"corner_weight": 1.5}, "corner_weight"),
+    ({"near_weight": -0.1}, "near_weight"),
+    ({"near_buffer_m": (0.5, -1.0)}, "near_buffer_m"),
+])
+def test_bad_margin_settings_name_the_argument(kwargs: dict, match: str) -> None:
+    with pytest.raises(TrafficRLHFError, match=match):
+        FailureReward(margins=True, **kwargs)
+
+
+def test_builtin_reward_names() -> None:
+    assert load_reward("builtin:failure-margins").margins
+    realism = load_reward("builtin:realism-margins")
+    assert isinstance(realism, RealismReward) and realism.margins
+    assert not load_reward("builtin:failure").margins
+    with pytest.raises(TrafficRLHFError, match="builtin:realism-margins"):
+        load_reward("builtin:nope")
+    assert math.isclose(load_reward("builtin:failure-margins").corner_weight, 0.5)
