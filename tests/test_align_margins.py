@@ -14,7 +14,7 @@ from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 
 pytest.importorskip("shapely.geometry")
-from trafficrlhf_sdk.testing.reference_metrics import reference_collisions, reference_offroad  # noqa: E402
+from trafficrlhf_sdk.testing.reference_metrics import reference_collisions, reference_offroad
 
 
 @pytest.fixture(scope="module")
