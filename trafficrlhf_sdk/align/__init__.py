@@ -2,6 +2,7 @@
 
 - :func:`align`: one call, ``align(model, reward_model, alpha=0.3, **config) -> AlignResult(model, history)``.
 - :class:`AlignConfig` + :class:`AlignTrainer`: the same with full control (checkpoints, resume, logging).
+- :func:`average_checkpoints`: the weight average of several aligned runs (a model soup), e.g. training seeds.
 - :class:`TrafficRLHFEnv`: the closed-loop simulator as a Gymnasium environment with the reward model as reward,
   for stable-baselines3 agents (imported lazily: it needs ``gymnasium``).
 """
@@ -11,11 +12,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from trafficrlhf_sdk.align.averaging import average_checkpoints
 from trafficrlhf_sdk.align.config import PAPER_ALPHA, AlignConfig, paper_alpha
 from trafficrlhf_sdk.align.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
 
 __all__ = ["PAPER_ALPHA", "AlignConfig", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
-           "paper_alpha", "scenario_scores"]
+           "average_checkpoints", "paper_alpha", "scenario_scores"]
 
 
 def align(model: Any, reward_model: Any, alpha: float = 0.3, *, scenes: Any = None, eval_scenes: Any = None,

@@ -187,3 +187,30 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
     if summary["best_epoch"] is not None:
         best = trainer.held_out.best_failure_rate  # type: ignore[union-attr]
         click.echo(f"kept the weights of epoch {summary['best_epoch']} (held-out failure rate {best:.4f})")
+
+
+def _parse_weights(text: str | None) -> list[float] | None:
+    """``"1,2,1"`` -> ``[1.0, 2.0, 1.0]`` (None passes through)."""
+    if text is None:
+        return None
+    try:
+        return [float(part) for part in text.split(",")]
+    except ValueError:
+        raise click.BadParameter(f"got {text!r}; give comma-separated numbers such as 1,1,2.",
+                                 param_hint="--weights") from None
+
+
+@cli.command("average")
+@click.argument("checkpoints", nargs=-1, required=True, type=click.Path(file_okay=False))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for the averaged config.json + model.safetensors (+ averaged_from.json).")
+@click.option("--weights", default=None, help="One weight per checkpoint, comma-separated (default: equal).")
+def average_command(checkpoints: tuple[str, ...], out_dir: str, weights: str | None) -> None:
+    """Average the weights of aligned CHECKPOINTS (same model and architecture), e.g. several training seeds.
+
+    The result loads like any checkpoint: `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
+    """
+    from trafficrlhf_sdk.align.averaging import average_checkpoints
+
+    average_checkpoints(checkpoints, out_dir, _parse_weights(weights))
+    click.echo(f"averaged {len(checkpoints)} checkpoints into {out_dir}")
