@@ -69,7 +69,7 @@ def test_mismatched_or_broken_inputs_get_one_clear_error(three: list[str], tmp_p
         average_checkpoints(three, str(tmp_path / "x"), weights=[1, -1, 1])
     with pytest.raises(TrafficRLHFError, match="weights"):
         average_checkpoints(three, str(tmp_path / "x"), weights=[1, 1])
-    with pytest.raises(DataNotFoundError, match="config.json"):
+    with pytest.raises(DataNotFoundError, match=r"config\.json"):
         average_checkpoints([three[0], str(tmp_path / "missing")], str(tmp_path / "x"))
     other = tmp_path / "other"
     other.mkdir()
@@ -77,7 +77,7 @@ def test_mismatched_or_broken_inputs_get_one_clear_error(three: list[str], tmp_p
     config["config"]["hidden"] = 2 * config["config"].get("hidden", 32)
     (other / "config.json").write_text(json.dumps(config))
     save_file(_weights(three[1]), str(other / "model.safetensors"))
-    with pytest.raises(DataFormatError, match="another config.json"):
+    with pytest.raises(DataFormatError, match=r"another config\.json"):
         average_checkpoints([three[0], str(other)], str(tmp_path / "x"))
     broken = {k: v.clone() for k, v in _weights(three[1]).items()}
     first = next(k for k, v in broken.items() if v.is_floating_point())
