@@ -78,8 +78,9 @@ class FailureReward:
         return -(cost.sum(1) / mask.sum(1).clamp_min(1))
 
     def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """``(B, A)``: minus the share of each scored agent's valid steps after ``current_index`` in failure
-        (0 for agents not scored). An agent that fails later scores higher than one that fails at once."""
+        """``(B, A)``: minus the mean cost of each scored agent's valid steps after ``current_index`` (the share
+        of them in failure without margins; 0 for agents not scored). An agent that fails later scores higher
+        than one that fails at once."""
         cost, mask = self._failures(scenario)
         future = slice(scenario.current_index + 1, None)
         cost, mask = cost[:, :, future], mask[:, :, future]
