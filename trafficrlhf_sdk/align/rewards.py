@@ -10,8 +10,8 @@ from __future__ import annotations
 import torch
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
-from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
-from trafficrlhf_sdk.metrics.geometry import box_corners, pairwise_collisions
+from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
+from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["FailureReward", "PessimisticReward", "RealismReward"]
@@ -68,7 +68,7 @@ class FailureReward:
                 grown = scenario.extent + 2 * scenario.extent.new_tensor(self.near_buffer_m)
                 near += self.near_weight * pairwise_collisions(scenario.xy, scenario.yaw, grown, scenario.valid)
             if has_map and self.corner_weight:
-                near += self.corner_weight * _corner_share_offroad(scenario)
+                near += self.corner_weight * offroad_corner_share(scenario)
             cost = torch.maximum(cost, near.clamp_max(1))
         return cost * mask, mask
 
@@ -85,17 +85,6 @@ class FailureReward:
         future = slice(scenario.current_index + 1, None)
         cost, mask = cost[:, :, future], mask[:, :, future]
         return -(cost.sum(-1) / mask.sum(-1).clamp_min(1))
-
-
-def _corner_share_offroad(scenario: ScenarioTensor) -> torch.Tensor:
-    """float ``(B, A, T)``: share of the agent's four box corners off the drivable layer (0 at invalid steps)."""
-    scene, agent, step = scenario.valid.nonzero(as_tuple=True)
-    corners = box_corners(scenario.xy[scene, agent, step].double(), scenario.yaw[scene, agent, step].double(),
-                          scenario.extent[scene, agent].double())
-    on_road = scenario.map.lookup_points(scene.repeat_interleave(4), corners.reshape(-1, 2)).reshape(-1, 4)
-    share = torch.zeros(scenario.valid.shape)
-    share[scene, agent, step] = (~on_road).float().mean(-1)
-    return share
 
 
 class PessimisticReward:

@@ -1,7 +1,7 @@
 """Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), reward cost."""
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
-from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_corner_share, offroad_per_step
 from trafficrlhf_sdk.metrics.guidance_objectives import GuidanceObjectivesMetric
 from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, pairwise_collisions
 from trafficrlhf_sdk.metrics.realism import (
@@ -27,6 +27,7 @@ __all__ = [
     "collisions_per_step",
     "histogram_distance",
     "kinematics",
+    "offroad_corner_share",
     "offroad_per_step",
     "pairwise_collisions",
     "scene_histogram",

@@ -12,7 +12,7 @@ from trafficrlhf_sdk.metrics.geometry import box_corners, pairwise_collisions
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["FailureMetric", "collisions_per_step", "offroad_per_step", "scene_mean"]
+__all__ = ["FailureMetric", "collisions_per_step", "offroad_corner_share", "offroad_per_step", "scene_mean"]
 
 OffroadMode = Literal["center", "corners"]
 
@@ -29,18 +29,29 @@ def offroad_per_step(scenario: ScenarioTensor, mode: OffroadMode = "center") -> 
         raise ValueError("off-road needs a map: the scenario has `map=None`; load it from a source with rasters.")
     if mode not in ("center", "corners"):
         raise ValueError(f"`mode` must be 'center' or 'corners'; got {mode!r}.")
+    if mode == "corners":
+        return offroad_corner_share(scenario) > 0
     # only valid steps are looked up (most agent slots are padding); float64 pixel coordinates give the pixel of
     # the stored position, not of a float32-rounded transform of it
     scene, agent, step = scenario.valid.nonzero(as_tuple=True)
-    xy = scenario.xy[scene, agent, step].double()
-    if mode == "center":
-        on_road = scenario.map.lookup_points(scene, xy)
-    else:
-        corners = box_corners(xy, scenario.yaw[scene, agent, step].double(), scenario.extent[scene, agent].double())
-        on_road = scenario.map.lookup_points(scene.repeat_interleave(4), corners.reshape(-1, 2)).reshape(-1, 4).all(-1)
+    on_road = scenario.map.lookup_points(scene, scenario.xy[scene, agent, step].double())
     offroad = torch.zeros_like(scenario.valid)
     offroad[scene, agent, step] = ~on_road
     return offroad
+
+
+def offroad_corner_share(scenario: ScenarioTensor) -> torch.Tensor:
+    """float ``(B, A, T)``: share (0, 0.25, ..., 1) of the agent's four box corners off the drivable layer at a
+    valid step (0 at invalid steps). Needs a map."""
+    if scenario.map is None:
+        raise ValueError("off-road needs a map: the scenario has `map=None`; load it from a source with rasters.")
+    scene, agent, step = scenario.valid.nonzero(as_tuple=True)
+    corners = box_corners(scenario.xy[scene, agent, step].double(), scenario.yaw[scene, agent, step].double(),
+                          scenario.extent[scene, agent].double())
+    on_road = scenario.map.lookup_points(scene.repeat_interleave(4), corners.reshape(-1, 2)).reshape(-1, 4)
+    share = torch.zeros(scenario.valid.shape, dtype=torch.float32, device=scenario.valid.device)
+    share[scene, agent, step] = (~on_road).float().mean(-1)
+    return share
 
 
 def scene_mean(per_agent: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
