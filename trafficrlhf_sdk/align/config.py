@@ -22,7 +22,8 @@ class AlignConfig(BaseModel):
 
     One *epoch* = a rollout phase (``contexts_per_epoch`` logged contexts, ``samples_per_context`` futures each,
     scored by the reward model) followed by ``ppo_epochs`` passes of minibatch updates over those samples.
-    The loss of a minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL``.
+    The loss of a minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL``
+    (``+ winner_coef * imitation_loss(best samples)`` when ``winner_coef > 0``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -31,6 +32,14 @@ class AlignConfig(BaseModel):
     alpha: float = Field(0.3, ge=0, description="Weight of the PPO surrogate (paper: CTG 0.1, BITS 0.5, "
                                                 "TrafficGen 0.3).")
     imitation_coef: float = Field(1.0, ge=0, description="Weight of the model's own imitation loss (0 disables it).")
+    winner_coef: float = Field(0.0, ge=0, description="Weight of the model's own imitation loss with each "
+                               "context's best sample as the target (per agent with credit='agent'; the "
+                               "highest-reward sample of the context with credit='scene'), for agents whose "
+                               "samples' rewards spread by more than `winner_min_gap`: reward-ranked fine-tuning "
+                               "(RAFT, expert iteration) beside the PPO surrogate, a low-variance pull towards "
+                               "the futures the reward prefers. 0 disables it.")
+    winner_min_gap: float = Field(0.0, ge=0, description="A context's (agent's) best sample is imitated only when "
+                                  "its reward exceeds the worst sample's by more than this (ties teach nothing).")
     kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
                                                   "(0: no reference model is kept).")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "

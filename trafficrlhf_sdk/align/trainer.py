@@ -124,6 +124,7 @@ class _Rollout:
     rewards: torch.Tensor  # (B, S) scene rewards; with credit="agent" the mean over the sampled agents
     advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
+    winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
 
 
 def _seed(*parts: Any) -> int:
@@ -308,10 +309,42 @@ class AlignTrainer:
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
             adv = self._normalize(per_agent, dim=1) * picked
+            ranked = per_agent
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
-        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach())
+            ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
+        winners = None
+        if self.config.winner_coef > 0:
+            winners = self.winner_scenarios(contexts, out.futures, trace.agents, ranked)
+        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners)
+
+    def winner_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
+                         rewards: torch.Tensor) -> ScenarioTensor:
+        """Each context with, per sampled agent, the future of its highest-reward sample, as a scene of the
+        model's history length + 1 + horizon steps (``current_index`` = its history length).
+
+        Args:
+            contexts: ``(B, A, T)`` contexts; futures: ``(B, S, A, H, 4)`` samples; agents: bool ``(B, A)``
+                sampled agents; rewards: ``(B, S, A)`` per-agent rewards (a scene reward repeated over agents).
+
+        Only agents whose best reward beats their worst by more than ``winner_min_gap`` keep a valid future;
+        every other agent is valid in the history only, so the imitation loss learns from the winners alone.
+        """
+        now, h = contexts.current_index, futures.shape[-2]
+        gap = rewards.amax(1) - rewards.amin(1)  # (B, A)
+        keep = agents & (gap > self.config.winner_min_gap)
+        choice = rewards.argmax(1)  # (B, A)
+        index = choice[:, None, :, None, None].expand(-1, 1, -1, h, futures.shape[-1])
+        best = futures.detach().gather(1, index)[:, 0].to(contexts.states.dtype)  # (B, A, H, 4)
+        best = torch.cat([best[..., :3], wrap_angle(best[..., 3:])], -1) * keep[..., None, None]
+        history = int(getattr(self.model, "history_steps", self.config.reward_history_steps))
+        start = max(0, now - history)
+        history_part = contexts.time_slice(start, now + 1)
+        valid = torch.cat([history_part.valid, keep[:, :, None].expand(-1, -1, h)], 2)
+        # an agent may be valid neither in this short history nor as a winner: it is no longer "controlled"
+        return history_part.replace_unchecked(states=torch.cat([history_part.states, best], 2), valid=valid,
+                                              controlled=history_part.controlled & valid.any(-1))
 
     def _normalize(self, rewards: torch.Tensor, dim: int) -> torch.Tensor:
         """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped."""
@@ -356,7 +389,8 @@ class AlignTrainer:
         old = self._log_probs(self.model, rollout, first)
         ref = self._log_probs(self.reference, rollout, first) if self.reference is not None else None
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
-                                                         "clip_fraction", "kl_ref", "grad_norm")}
+                                                         "clip_fraction", "kl_ref", "grad_norm",
+                                                         "winner_loss")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -377,6 +411,11 @@ class AlignTrainer:
                     imitation = self.model.imitation_loss(rollout.logged[idx])
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
+                if rollout.winners is not None and cfg.winner_coef > 0:
+                    torch.manual_seed(_seed(cfg.seed, epoch, "winners", p, j))
+                    winner_loss = self.model.imitation_loss(rollout.winners[idx])
+                    loss = loss + cfg.winner_coef * winner_loss
+                    stats["winner_loss"].append(float(winner_loss.detach()))
                 if ref is not None:
                     # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
                     # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow

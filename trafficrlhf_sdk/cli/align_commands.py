@@ -77,6 +77,11 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--target-kl", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Early-stop an epoch's PPO passes above 1.5 x this approximate KL.")
 @click.option("--imitation-coef", type=click.FloatRange(min=0), default=None, help="Weight of the imitation loss.")
+@click.option("--winner-coef", type=click.FloatRange(min=0), default=None,
+              help="Weight of the imitation loss on each context's best sample (per agent with --credit agent): "
+                   "reward-ranked fine-tuning beside PPO [default: 0, off].")
+@click.option("--winner-min-gap", type=click.FloatRange(min=0), default=None,
+              help="Imitate a best sample only when its reward beats the worst by more than this [default: 0].")
 @click.option("--guidance", default=None, help="Guidance used while sampling, e.g. no_collision.")
 @click.option("--closed-loop", "closed_loop", type=click.FloatRange(0, 1), default=None,
               help="Share of contexts whose history the current model simulates itself (default 0).")
@@ -120,7 +125,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   epochs: int | None, contexts: int | None, samples: int | None, ppo_epochs: int | None,
                   minibatch: int | None, lr: float | None, lr_schedule: str | None, clip_range: float | None,
                   kl_coef: float | None,
-                  target_kl: float | None, imitation_coef: float | None, guidance: str | None,
+                  target_kl: float | None, imitation_coef: float | None, winner_coef: float | None,
+                  winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_lead: str | None, credit: str | None, denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, holdout_every: int | None, eval_every: int | None,
@@ -157,7 +163,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "epochs": epochs, "contexts_per_epoch": contexts, "samples_per_context": samples, "ppo_epochs": ppo_epochs,
         "minibatch_contexts": minibatch, "learning_rate": lr, "lr_schedule": lr_schedule, "clip_range": clip_range,
         "kl_coef": kl_coef,
-        "target_kl": target_kl, "imitation_coef": imitation_coef, "guidance": guidance, "num_scenes": num_scenes,
+        "target_kl": target_kl, "imitation_coef": imitation_coef, "winner_coef": winner_coef,
+        "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_scenes": failure_scenes, "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
         "denoising_steps": denoising_steps,

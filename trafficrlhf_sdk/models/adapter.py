@@ -111,8 +111,9 @@ def extend_constant_velocity(futures: torch.Tensor, horizon: int, dt: float) -> 
 class TrafficModelAdapter(abc.ABC):
     """Base class of every traffic-model adapter; it is also a closed-loop policy (``reset`` + ``plan``).
 
-    Subclasses set ``name``, ``Options`` and ``horizon``, and implement :meth:`build`, :meth:`get_config`,
-    :attr:`module`, :meth:`sample`, :meth:`log_prob`, :meth:`imitation_loss` and :meth:`parameter_groups`.
+    Subclasses set ``name``, ``Options``, ``horizon`` and ``history_steps``, and implement :meth:`build`,
+    :meth:`get_config`, :attr:`module`, :meth:`sample`, :meth:`log_prob`, :meth:`imitation_loss` and
+    :meth:`parameter_groups`.
     What must stay frozen (e.g. BITS's policy, TrafficGen's initializer) is simply not offered by
     :meth:`parameter_groups`. Run :func:`trafficrlhf_sdk.testing.check_adapter` on a new adapter.
     """
@@ -120,6 +121,7 @@ class TrafficModelAdapter(abc.ABC):
     name: ClassVar[str] = ""
     Options: ClassVar[type[AdapterOptions]] = AdapterOptions
     horizon: int = 20
+    history_steps: int = 10  # history steps (before "now") the model reads; set from the model's config
 
     def __init__(self, config: dict[str, Any] | None = None, **options: Any) -> None:
         self.options = self.Options(**options)

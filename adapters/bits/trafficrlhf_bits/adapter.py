@@ -98,6 +98,7 @@ class BITSAdapter(TrafficModelAdapter):
             BITSConfig, BITSModel,
         )
         self.horizon = self.cfg.horizon
+        self.history_steps = self.cfg.history_steps
         self.model.policy.requires_grad_(False)  # frozen in TrafficRLHF: never offered, never differentiated
         self.model.eval()
 

@@ -62,6 +62,7 @@ class CTGAdapter(TrafficModelAdapter):
             CTGConfig, CTGModel,
         )
         self.horizon = self.cfg.horizon
+        self.history_steps = self.cfg.history_steps
         self.model.eval()
 
     def get_config(self) -> dict[str, Any]:

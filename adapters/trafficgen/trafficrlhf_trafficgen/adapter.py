@@ -77,6 +77,7 @@ class TrafficGenAdapter(TrafficModelAdapter):
             TrafficGenConfig, TrafficGenModel,
         )
         self.horizon = self.cfg.horizon
+        self.history_steps = self.cfg.history_steps
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
 

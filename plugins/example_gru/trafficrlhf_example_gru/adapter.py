@@ -68,6 +68,7 @@ class ExampleGRUAdapter(TrafficModelAdapter):
                               "with `python -m trafficrlhf_example_gru.train`.", stacklevel=2)
         self.config = GRUConfig(**(config or {}))
         self.horizon = self.config.horizon
+        self.history_steps = self.config.history_steps
         self.net = GRUPolicyNet(self.config)
         self.net.eval()
         if weights_dir is not None:

@@ -1,0 +1,90 @@
+"""Reward-ranked imitation beside PPO (``winner_coef``): the best sample of each context (agent) as a target."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
+from trafficrlhf_sdk.align.rewards import FailureReward
+from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.scenario import ScenarioTensor
+
+gru = pytest.importorskip("trafficrlhf_example_gru")
+
+FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=4, minibatch_contexts=2, ppo_epochs=1,
+            progress_bar=False, log_formats=("csv",))
+
+
+class SlowDownReward:
+    """Per-step reward: how much the controlled agents slowed down since ``current_index`` (easy to learn)."""
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        now = scenario.current_index
+        mask = (scenario.controlled[:, :, None] & scenario.valid & scenario.valid[:, :, now, None]).float()
+        drop = (scenario.states[:, :, now, None, 2] - scenario.states[..., 2]) / 2.0
+        return ((drop * mask).sum(1) / mask.sum(1).clamp_min(1)).clamp(-1, 1)
+
+
+@pytest.fixture(scope="module")
+def train_scenes(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[no-untyped-def]
+    batch = nuscenes_source.load_batch("train", 8)
+    return [batch[i] for i in range(batch.num_scenes)]
+
+
+def _model():  # type: ignore[no-untyped-def]
+    torch.manual_seed(0)
+    return gru.ExampleGRUAdapter()
+
+
+def test_winner_scene_holds_each_agents_best_sample(train_scenes: list[ScenarioTensor]) -> None:
+    model = _model()
+    trainer = AlignTrainer(model, FailureReward(), AlignConfig(credit="agent", winner_coef=1.0, **FAST),
+                           scenes=train_scenes)
+    contexts, _ = trainer._contexts(0)
+    out = trainer._sample(contexts, torch.Generator().manual_seed(0))
+    futures, agents = out.futures.detach(), out.trace.agents
+    b, s, a, h = futures.shape[:4]
+    rewards = torch.randn(b, s, a)
+    rewards[:, :, 0] = 0.5  # agent 0: all samples tie -> nothing to learn from it
+    winners = trainer.winner_scenarios(contexts, futures, agents, rewards)
+    hist = min(model.history_steps, contexts.current_index)  # the GRU reads 31 steps; contexts hold 30
+    assert winners.num_steps == hist + 1 + h and winners.current_index == hist
+    # the history is the context's, unchanged
+    now = contexts.current_index
+    assert torch.equal(winners.states[:, :, : hist + 1], contexts.states[:, :, now - hist : now + 1])
+    best = rewards.argmax(1)
+    for i in range(b):
+        for j in range(a):
+            future_valid = winners.valid[i, j, hist + 1 :]
+            if not agents[i, j] or j == 0:
+                assert not future_valid.any()
+                continue
+            assert future_valid.all()
+            expected = futures[i, best[i, j], j]
+            got = winners.states[i, j, hist + 1 :]
+            assert torch.allclose(got[:, :3], expected[:, :3])
+            assert torch.allclose(got[:, 3], wrap_angle(expected[:, 3]), atol=1e-6)
+    # a gap above every spread keeps no winner at all
+    config = AlignConfig(credit="agent", winner_coef=1.0, winner_min_gap=100.0, **FAST)
+    strict = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    assert not strict.winner_scenarios(contexts, futures, agents, rewards).valid[:, :, hist + 1 :].any()
+
+
+def test_winner_term_is_off_by_default_and_logged_when_on(train_scenes: list[ScenarioTensor]) -> None:
+    plain = AlignTrainer(_model(), SlowDownReward(), AlignConfig(**FAST), scenes=train_scenes)
+    assert plain._rollout(0).winners is None
+    history = align(_model(), SlowDownReward(), alpha=1.0, scenes=train_scenes, winner_coef=1.0, **FAST).history
+    assert math.isfinite(history[0]["winner_loss"]) and history[0]["first_ratio_max_dev"] == 0.0
+
+
+def test_imitating_winners_alone_raises_the_mean_reward(train_scenes: list[ScenarioTensor]) -> None:
+    # no PPO surrogate and no logged imitation: only the best sample of each context is learned from
+    config = {**FAST, "epochs": 12, "contexts_per_epoch": 6, "minibatch_contexts": 3, "ppo_epochs": 2,
+              "imitation_coef": 0.0, "winner_coef": 1.0, "learning_rate": 3e-3}
+    history = align(_model(), SlowDownReward(), alpha=0.0, scenes=train_scenes, **config).history
+    first = sum(h["reward_mean"] for h in history[:3]) / 3
+    last = sum(h["reward_mean"] for h in history[-3:]) / 3
+    assert last > first + 0.05, (first, last)
