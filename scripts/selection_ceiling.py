@@ -1,0 +1,98 @@
+"""How far could choosing among a model's own samples go? A diagnostic for alignment, not a traffic model.
+
+At every replan the wrapped model draws ``--samples`` futures per agent (with its guidance), extends each to
+``--lookahead`` steps at constant speed and heading, scores every agent's future with a hand-written reward
+(``builtin:failure-margins`` by default: it reads the drivable map) and executes, per agent, the best one. The
+planner sees only the simulated past, never the log's future; agents it does not control are left out of the
+scored futures. The closed-loop failure rate of this reward-selected policy estimates what fine-tuning towards
+the reward's preferred samples could reach at best (a "best-of-N" ceiling), and how much of it the aligned model
+has already taken.
+
+    python scripts/selection_ceiling.py --model ctg [--checkpoint DIR] --samples 8 --lookahead 40 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+import torch
+
+from trafficrlhf_sdk import get_scenario_source
+from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.cli.evaluate import build_policy
+from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+from trafficrlhf_sdk.models.adapter import extend_constant_velocity
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import Plan
+
+
+class RewardSelectedPlanner:
+    """A closed-loop policy: ``adapter``'s samples, the best per agent by ``reward.agent_scores``."""
+
+    def __init__(self, adapter: Any, reward: Any, samples: int, lookahead: int, reward_history: int = 10) -> None:
+        self.adapter, self.reward = adapter, reward
+        self.samples, self.lookahead, self.reward_history = samples, lookahead, reward_history
+
+    def reset(self, scenario: ScenarioTensor) -> None:
+        """Reset the wrapped adapter (guidance fit, sampling seed) on the logged scene."""
+        self.adapter.reset(scenario)
+
+    def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
+        """``Plan`` of ``(B, A, horizon, 4)``: per agent the sample with the highest reward over the lookahead."""
+        adapter = self.adapter
+        with torch.enable_grad() if adapter.guidance is not None else torch.no_grad():
+            out = adapter.sample(context, self.samples, adapter.guidance, adapter._generator)
+        futures = out.futures.detach()  # (B, S, A, H, 4)
+        b, s, a = futures.shape[:3]
+        steps = max(self.lookahead, futures.shape[-2])
+        scored = extend_constant_velocity(futures, steps, context.dt).to(context.states.dtype)
+        scored = torch.cat([scored[..., :3], wrap_angle(scored[..., 3:])], -1)
+        agents = out.trace.agents  # (B, A) sampled agents; the others have no known future here
+        valid = agents[:, None, :, None].expand(b, s, a, steps)
+        now = context.current_index
+        history = context[torch.arange(b).repeat_interleave(s)].time_slice(max(0, now - self.reward_history), now + 1)
+        scenarios = history.replace_unchecked(
+            states=torch.cat([history.states, (scored * valid[..., None]).reshape(b * s, a, steps, 4)], 2),
+            valid=torch.cat([history.valid, valid.reshape(b * s, a, steps)], 2))
+        with torch.no_grad():
+            scores = self.reward.agent_scores(scenarios).reshape(b, s, a)
+        if adapter.guidance is not None:  # among equal rewards, the lowest guidance loss (the adapter's own rule)
+            loss = adapter.guidance.loss(futures, now, context).detach()
+            scores = scores - 1e-4 * loss / (loss.abs().amax(1, keepdim=True) + 1e-9)
+        choice = scores.argmax(1)
+        index = choice[:, None, :, None, None].expand(-1, 1, -1, futures.shape[-2], 4)
+        best = futures.gather(1, index)[:, 0]
+        return Plan(extend_constant_velocity(best, horizon, context.dt).cpu())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default="ctg")
+    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--guidance", default="no_collision")
+    parser.add_argument("--reward-model", default="builtin:failure-margins")
+    parser.add_argument("--samples", type=int, default=8)
+    parser.add_argument("--lookahead", type=int, default=40, help="Steps each sample is scored over (0.1 s).")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--scenes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.manual_seed(args.seed)
+    adapter = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint,
+                                        "seed": args.seed})
+    policy = RewardSelectedPlanner(adapter, load_reward(args.reward_model), args.samples, args.lookahead)
+    source = get_scenario_source("nuscenes_pred")
+    ids = source.scene_ids(args.split)[: args.scenes]
+    report = evaluate_policy(policy, source.load_batch(args.split, scene_ids=ids),
+                             EvaluationConfig(batch_size=50, seed=args.seed))
+    keys = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body")
+    print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "samples": args.samples,
+                      "lookahead": args.lookahead, "seed": args.seed,
+                      **{k: round(report.values[k], 4) for k in keys}}))
+
+
+if __name__ == "__main__":
+    main()
