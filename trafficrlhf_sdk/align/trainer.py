@@ -18,7 +18,9 @@ One epoch:
    elementwise (per agent, per denoising step where the adapter returns ``(B, S, A, K)``), surrogate
    ``min(ratio * A, clip(ratio) * A)`` averaged over sampled agents (and steps), loss
    ``imitation_coef * imitation_loss - alpha * surrogate (+ kl_coef * KL to the frozen starting model)``,
-   gradient clipping, and SB3's early stop once the approximate KL passes ``1.5 * target_kl``.
+   gradient clipping, and SB3's early stop once the approximate KL passes ``1.5 * target_kl``. With
+   ``winner_coef > 0`` the loss also holds ``winner_coef * imitation_loss`` of each context's best sample
+   (:meth:`AlignTrainer.winner_scenarios`; reward-ranked fine-tuning beside the surrogate).
 
 ``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
 pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
