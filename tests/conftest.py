@@ -35,3 +35,10 @@ def nuscenes_source(data_root: str):  # type: ignore[no-untyped-def]
 def val_scenes(nuscenes_source) -> ScenarioTensor:  # type: ignore[no-untyped-def]
     """The first 8 long-enough val scenes of nuscenes_pred (sorted by name) as one batch."""
     return nuscenes_source.load_batch("val", NUM_VAL_SCENES)
+
+
+@pytest.fixture(scope="session")
+def train_scene_list(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[no-untyped-def]
+    """The first 8 long-enough train scenes of nuscenes_pred, one single-scene tensor each (alignment tests)."""
+    batch = nuscenes_source.load_batch("train", 8)
+    return [batch[i] for i in range(batch.num_scenes)]

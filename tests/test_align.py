@@ -17,22 +17,12 @@ from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step
 from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.testing.rewards import SlowDownReward
 
 gru = pytest.importorskip("trafficrlhf_example_gru")
 
 FAST = dict(epochs=2, contexts_per_epoch=4, samples_per_context=3, minibatch_contexts=2, ppo_epochs=2,
             progress_bar=False, log_formats=("csv",))
-
-
-class SlowDownReward:
-    """Per-step reward: how much the controlled agents slowed down since ``current_index`` (easy to learn)."""
-
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        now = scenario.current_index
-        mask = (scenario.controlled[:, :, None] & scenario.valid & scenario.valid[:, :, now, None]).float()
-        drop = (scenario.states[:, :, now, None, 2] - scenario.states[..., 2]) / 2.0
-        per_step = (drop * mask).sum(1) / mask.sum(1).clamp_min(1)
-        return per_step.clamp(-1, 1)
 
 
 class NoCollisionReward:

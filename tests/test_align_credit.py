@@ -20,9 +20,8 @@ FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=3, minibatch_con
 
 
 @pytest.fixture(scope="module")
-def train_scenes(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[no-untyped-def]
-    batch = nuscenes_source.load_batch("train", 8)
-    return [batch[i] for i in range(batch.num_scenes)]
+def train_scenes(train_scene_list: list[ScenarioTensor]) -> list[ScenarioTensor]:
+    return train_scene_list
 
 
 def _model():  # type: ignore[no-untyped-def]

@@ -9,22 +9,13 @@ import torch
 from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.testing.rewards import SlowDownReward
 
 gru = pytest.importorskip("trafficrlhf_example_gru")
 
 FAST = dict(epochs=3, contexts_per_epoch=4, samples_per_context=3, minibatch_contexts=2, ppo_epochs=2,
             progress_bar=False, log_formats=("csv",))
 SCRIPTED = {1: 0.30, 2: 0.10, 3: 0.20}  # held-out failure rate after each epoch: epoch 2 is the best
-
-
-class SlowDownReward:
-    """Per-step reward: how much the controlled agents slowed down since ``current_index``."""
-
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        now = scenario.current_index
-        mask = (scenario.controlled[:, :, None] & scenario.valid & scenario.valid[:, :, now, None]).float()
-        drop = (scenario.states[:, :, now, None, 2] - scenario.states[..., 2]) / 2.0
-        return ((drop * mask).sum(1) / mask.sum(1).clamp_min(1)).clamp(-1, 1)
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.align.rewards import FailureReward
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.testing.rewards import SlowDownReward
 
 gru = pytest.importorskip("trafficrlhf_example_gru")
 
@@ -18,20 +19,9 @@ FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=4, minibatch_con
             progress_bar=False, log_formats=("csv",))
 
 
-class SlowDownReward:
-    """Per-step reward: how much the controlled agents slowed down since ``current_index`` (easy to learn)."""
-
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        now = scenario.current_index
-        mask = (scenario.controlled[:, :, None] & scenario.valid & scenario.valid[:, :, now, None]).float()
-        drop = (scenario.states[:, :, now, None, 2] - scenario.states[..., 2]) / 2.0
-        return ((drop * mask).sum(1) / mask.sum(1).clamp_min(1)).clamp(-1, 1)
-
-
 @pytest.fixture(scope="module")
-def train_scenes(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[no-untyped-def]
-    batch = nuscenes_source.load_batch("train", 8)
-    return [batch[i] for i in range(batch.num_scenes)]
+def train_scenes(train_scene_list: list[ScenarioTensor]) -> list[ScenarioTensor]:
+    return train_scene_list
 
 
 def _model():  # type: ignore[no-untyped-def]
