@@ -134,6 +134,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ema", type=float, default=0.995)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--root", default=None, help="nuscenes_pred data directory (default: shared data).")
+    parser.add_argument("--horizon", type=int, default=20,
+                        help="Planned steps at 0.1 s (default 20 = 2 s; even, for the U-Net's one down level).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -143,9 +145,11 @@ def main(argv: list[str] | None = None) -> None:
     from trafficrlhf_sdk import get_scenario_source
 
     options = {"root": args.root} if args.root else {}
-    # history_s=0: windows start at the first logged step; we pick "now" ourselves. min_future_s=2: every scene.
-    source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=2.0, **options)
-    cfg = CTGConfig()
+    if args.horizon < 2 or args.horizon % 2:
+        parser.error(f"--horizon must be an even number of steps >= 2; got {args.horizon}.")
+    cfg = CTGConfig(horizon=args.horizon)
+    # history_s=0: windows start at the first logged step; we pick "now" ourselves; every scene with one horizon
+    source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
     train = build_samples(source, "train", train_ids, cfg, args.stride)
     # validation: val scenes outside the first 100 long-enough ones (those are the evaluation scenes)
