@@ -19,18 +19,13 @@ FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=3, minibatch_con
             progress_bar=False, log_formats=("csv",))
 
 
-@pytest.fixture(scope="module")
-def train_scenes(train_scene_list: list[ScenarioTensor]) -> list[ScenarioTensor]:
-    return train_scene_list
-
-
 def _model():  # type: ignore[no-untyped-def]
     torch.manual_seed(0)
     return gru.ExampleGRUAdapter()
 
 
-def test_failure_reward_agent_scores_count_each_agents_failing_steps(train_scenes: list[ScenarioTensor]) -> None:
-    scene = train_scenes[0].replace_unchecked(current_index=10)
+def test_failure_reward_agent_scores_count_each_agents_failing_steps(train_scene_list: list[ScenarioTensor]) -> None:
+    scene = train_scene_list[0].replace_unchecked(current_index=10)
     scores = FailureReward().agent_scores(scene)
     assert scores.shape == (1, scene.num_agents)
     bad = (collisions_per_step(scene) & scene.valid) | offroad_per_step(scene)
@@ -44,12 +39,12 @@ def test_failure_reward_agent_scores_count_each_agents_failing_steps(train_scene
         assert torch.isclose(scores[0, a], expected.float())
 
 
-def test_learned_reward_agent_scores_average_to_the_scene_score(train_scenes: list[ScenarioTensor]) -> None:
+def test_learned_reward_agent_scores_average_to_the_scene_score(train_scene_list: list[ScenarioTensor]) -> None:
     from trafficrlhf_sdk.reward import CTGMLPRewardModel, RewardEnsemble
 
     torch.manual_seed(0)
     model = RewardEnsemble(members=[CTGMLPRewardModel(), CTGMLPRewardModel()])
-    scene = train_scenes[1].replace_unchecked(current_index=10).time_slice(0, 31)
+    scene = train_scene_list[1].replace_unchecked(current_index=10).time_slice(0, 31)
     # keep the agents valid over the whole window: then "mean over steps of the mean over agents" (the scene
     # score) equals "mean over agents of the mean over steps"
     full = scene.valid.all(-1) & scene.controlled
@@ -61,10 +56,10 @@ def test_learned_reward_agent_scores_average_to_the_scene_score(train_scenes: li
 
 
 def test_failure_contexts_start_shortly_before_a_failure_of_the_driving_model(
-        train_scenes: list[ScenarioTensor]) -> None:
+        train_scene_list: list[ScenarioTensor]) -> None:
     config = AlignConfig(failure_fraction=1.0, failure_scenes=8, failure_drive_s=6.0, failure_lead_steps=(3, 8),
                          history_steps=10, contexts_per_epoch=6)
-    sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scenes, None, future_steps=20)
+    sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scene_list, None, future_steps=20)
     contexts, logged = sampler.failure_contexts(6, torch.Generator().manual_seed(0))
     assert sampler.last_failure_events > 0  # constant velocity leaves the road within 6 s in these scenes
     assert contexts.num_scenes == logged.num_scenes <= 6
@@ -84,11 +79,11 @@ def test_failure_contexts_start_shortly_before_a_failure_of_the_driving_model(
     assert (failed & again.controlled).any(-1).all()
 
 
-def test_agent_credit_gives_each_sampled_agent_its_own_advantage(train_scenes: list[ScenarioTensor]) -> None:
+def test_agent_credit_gives_each_sampled_agent_its_own_advantage(train_scene_list: list[ScenarioTensor]) -> None:
     model = _model()
     config = AlignConfig(alpha=1.0, credit="agent", failure_fraction=0.5, failure_scenes=4, failure_drive_s=4.0,
                          **FAST)
-    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scene_list)
     rollout = trainer._rollout(0)
     b, a = rollout.contexts.num_scenes, rollout.contexts.num_agents
     assert rollout.advantages.shape == (b, 3, a)
@@ -99,13 +94,13 @@ def test_agent_credit_gives_each_sampled_agent_its_own_advantage(train_scenes: l
     assert history[0]["first_ratio_max_dev"] == 0.0
 
 
-def test_agent_credit_needs_agent_scores(train_scenes: list[ScenarioTensor]) -> None:
+def test_agent_credit_needs_agent_scores(train_scene_list: list[ScenarioTensor]) -> None:
     class SceneOnly:
         def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
             return torch.zeros(scenario.num_scenes, scenario.num_steps)
 
     with pytest.raises(TrafficRLHFError, match="agent_scores"):
-        AlignTrainer(_model(), SceneOnly(), AlignConfig(credit="agent", **FAST), scenes=train_scenes)
+        AlignTrainer(_model(), SceneOnly(), AlignConfig(credit="agent", **FAST), scenes=train_scene_list)
 
 
 def test_failure_settings_are_checked() -> None:
@@ -115,11 +110,11 @@ def test_failure_settings_are_checked() -> None:
         AlignConfig(failure_fraction=0.7, closed_loop_fraction=0.5)
 
 
-def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scenes: list[ScenarioTensor]) -> None:
+def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scene_list: list[ScenarioTensor]) -> None:
     ctg = pytest.importorskip("trafficrlhf_ctg")
     model = ctg.CTGAdapter()
     config = AlignConfig(alpha=1.0, denoising_steps=2, kl_coef=0.1, **FAST)
-    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scene_list)
     rollout = trainer._rollout(0)
     assert rollout.sample_log_prob.shape[-1] == 5  # the adapter's whole chain is traced ...
     assert trainer._steps(rollout.sample_log_prob).shape[-1] == 2  # ... the PPO terms see its first 2 steps
@@ -127,13 +122,13 @@ def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scen
     assert history[0]["first_ratio_max_dev"] == 0.0 and history[0]["sample_log_prob_gap"] < 1e-3
 
 
-def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scenes: list[ScenarioTensor]) -> None:
+def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scene_list: list[ScenarioTensor]) -> None:
     from trafficrlhf_sdk.align.rewards import PessimisticReward
     from trafficrlhf_sdk.reward import CTGMLPRewardModel, RewardEnsemble
 
     torch.manual_seed(1)
     ensemble = RewardEnsemble(members=[CTGMLPRewardModel(), CTGMLPRewardModel(), CTGMLPRewardModel()])
-    scene = train_scenes[2].replace_unchecked(current_index=10)
+    scene = train_scene_list[2].replace_unchecked(current_index=10)
     with torch.no_grad():
         per_member = torch.stack([m.agent_scores(scene) for m in ensemble.members])
         pessimistic = PessimisticReward(ensemble, beta=2.0)
@@ -144,9 +139,9 @@ def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scenes: list
         PessimisticReward(FailureReward(), 1.0)
 
 
-def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_scenes: list[ScenarioTensor]) -> None:
+def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_scene_list: list[ScenarioTensor]) -> None:
     model = _model()
-    trainer = AlignTrainer(model, FailureReward(), AlignConfig(alpha=1.0, kl_coef=1.0, **FAST), scenes=train_scenes)
+    trainer = AlignTrainer(model, FailureReward(), AlignConfig(alpha=1.0, kl_coef=1.0, **FAST), scenes=train_scene_list)
     assert trainer.reference is not None
     with torch.no_grad():  # a reference whose densities differ from the model's by far more than exp() can hold
         for p in trainer.reference.module.parameters():
@@ -156,10 +151,10 @@ def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_sce
     assert history[0]["updates"] + history[0]["skipped_updates"] >= 1
 
 
-def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_scenes: list[ScenarioTensor]) -> None:
+def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_scene_list: list[ScenarioTensor]) -> None:
     from trafficrlhf_sdk.align.rewards import RealismReward
 
-    log = train_scenes[3].replace_unchecked(current_index=10).time_slice(0, 31)
+    log = train_scene_list[3].replace_unchecked(current_index=10).time_slice(0, 31)
     now = log.current_index
     moving = log.controlled & log.valid[:, :, now:].all(-1) & (log.states[:, :, now + 1:, 2].amin(-1) > 3.0)
     assert moving.any(), "the scene needs an agent driving faster than 3 m/s throughout"
@@ -179,4 +174,4 @@ def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_sce
     with pytest.raises(TrafficRLHFError, match="logged"):
         reward.agent_scores(stalled)
     with pytest.raises(TrafficRLHFError, match="credit='agent'"):
-        AlignTrainer(_model(), reward, AlignConfig(**FAST), scenes=train_scenes)
+        AlignTrainer(_model(), reward, AlignConfig(**FAST), scenes=train_scene_list)

@@ -19,20 +19,15 @@ FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=4, minibatch_con
             progress_bar=False, log_formats=("csv",))
 
 
-@pytest.fixture(scope="module")
-def train_scenes(train_scene_list: list[ScenarioTensor]) -> list[ScenarioTensor]:
-    return train_scene_list
-
-
 def _model():  # type: ignore[no-untyped-def]
     torch.manual_seed(0)
     return gru.ExampleGRUAdapter()
 
 
-def test_winner_scene_holds_each_agents_best_sample(train_scenes: list[ScenarioTensor]) -> None:
+def test_winner_scene_holds_each_agents_best_sample(train_scene_list: list[ScenarioTensor]) -> None:
     model = _model()
     trainer = AlignTrainer(model, FailureReward(), AlignConfig(credit="agent", winner_coef=1.0, **FAST),
-                           scenes=train_scenes)
+                           scenes=train_scene_list)
     contexts, _ = trainer._contexts(0)
     out = trainer._sample(contexts, torch.Generator().manual_seed(0))
     futures, agents = out.futures.detach(), out.trace.agents
@@ -59,22 +54,22 @@ def test_winner_scene_holds_each_agents_best_sample(train_scenes: list[ScenarioT
             assert torch.allclose(got[:, 3], wrap_angle(expected[:, 3]), atol=1e-6)
     # a gap above every spread keeps no winner at all
     config = AlignConfig(credit="agent", winner_coef=1.0, winner_min_gap=100.0, **FAST)
-    strict = AlignTrainer(model, FailureReward(), config, scenes=train_scenes)
+    strict = AlignTrainer(model, FailureReward(), config, scenes=train_scene_list)
     assert not strict.winner_scenarios(contexts, futures, agents, rewards).valid[:, :, hist + 1 :].any()
 
 
-def test_winner_term_is_off_by_default_and_logged_when_on(train_scenes: list[ScenarioTensor]) -> None:
-    plain = AlignTrainer(_model(), SlowDownReward(), AlignConfig(**FAST), scenes=train_scenes)
+def test_winner_term_is_off_by_default_and_logged_when_on(train_scene_list: list[ScenarioTensor]) -> None:
+    plain = AlignTrainer(_model(), SlowDownReward(), AlignConfig(**FAST), scenes=train_scene_list)
     assert plain._rollout(0).winners is None
-    history = align(_model(), SlowDownReward(), alpha=1.0, scenes=train_scenes, winner_coef=1.0, **FAST).history
+    history = align(_model(), SlowDownReward(), alpha=1.0, scenes=train_scene_list, winner_coef=1.0, **FAST).history
     assert math.isfinite(history[0]["winner_loss"]) and history[0]["first_ratio_max_dev"] == 0.0
 
 
-def test_imitating_winners_alone_raises_the_mean_reward(train_scenes: list[ScenarioTensor]) -> None:
+def test_imitating_winners_alone_raises_the_mean_reward(train_scene_list: list[ScenarioTensor]) -> None:
     # no PPO surrogate and no logged imitation: only the best sample of each context is learned from
     config = {**FAST, "epochs": 12, "contexts_per_epoch": 6, "minibatch_contexts": 3, "ppo_epochs": 2,
               "imitation_coef": 0.0, "winner_coef": 1.0, "learning_rate": 3e-3}
-    history = align(_model(), SlowDownReward(), alpha=0.0, scenes=train_scenes, **config).history
+    history = align(_model(), SlowDownReward(), alpha=0.0, scenes=train_scene_list, **config).history
     first = sum(h["reward_mean"] for h in history[:3]) / 3
     last = sum(h["reward_mean"] for h in history[-3:]) / 3
     assert last > first + 0.05, (first, last)
