@@ -42,3 +42,17 @@ def train_scene_list(nuscenes_source) -> list[ScenarioTensor]:  # type: ignore[n
     """The first 8 long-enough train scenes of nuscenes_pred, one single-scene tensor each (alignment tests)."""
     batch = nuscenes_source.load_batch("train", 8)
     return [batch[i] for i in range(batch.num_scenes)]
+
+
+@pytest.fixture
+def make_gru_adapter():  # type: ignore[no-untyped-def]
+    """A factory of ``example_gru`` adapters with the same seeded random weights (skips without the plugin)."""
+    gru = pytest.importorskip("trafficrlhf_example_gru")
+
+    def make():  # type: ignore[no-untyped-def]
+        import torch
+
+        torch.manual_seed(0)
+        return gru.ExampleGRUAdapter()
+
+    return make

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import pytest
 import torch
 
 from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
@@ -13,19 +12,13 @@ from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.testing.rewards import SlowDownReward
 
-gru = pytest.importorskip("trafficrlhf_example_gru")
-
 FAST = dict(epochs=1, contexts_per_epoch=4, samples_per_context=4, minibatch_contexts=2, ppo_epochs=1,
             progress_bar=False, log_formats=("csv",))
 
 
-def _model():  # type: ignore[no-untyped-def]
-    torch.manual_seed(0)
-    return gru.ExampleGRUAdapter()
-
-
-def test_winner_scene_holds_each_agents_best_sample(train_scene_list: list[ScenarioTensor]) -> None:
-    model = _model()
+def test_winner_scene_holds_each_agents_best_sample(  # type: ignore[no-untyped-def]
+        train_scene_list: list[ScenarioTensor], make_gru_adapter) -> None:
+    model = make_gru_adapter()
     trainer = AlignTrainer(model, FailureReward(), AlignConfig(credit="agent", winner_coef=1.0, **FAST),
                            scenes=train_scene_list)
     contexts, _ = trainer._contexts(0)
@@ -58,18 +51,21 @@ def test_winner_scene_holds_each_agents_best_sample(train_scene_list: list[Scena
     assert not strict.winner_scenarios(contexts, futures, agents, rewards).valid[:, :, hist + 1 :].any()
 
 
-def test_winner_term_is_off_by_default_and_logged_when_on(train_scene_list: list[ScenarioTensor]) -> None:
-    plain = AlignTrainer(_model(), SlowDownReward(), AlignConfig(**FAST), scenes=train_scene_list)
+def test_winner_term_is_off_by_default_and_logged_when_on(  # type: ignore[no-untyped-def]
+        train_scene_list: list[ScenarioTensor], make_gru_adapter) -> None:
+    plain = AlignTrainer(make_gru_adapter(), SlowDownReward(), AlignConfig(**FAST), scenes=train_scene_list)
     assert plain._rollout(0).winners is None
-    history = align(_model(), SlowDownReward(), alpha=1.0, scenes=train_scene_list, winner_coef=1.0, **FAST).history
+    history = align(make_gru_adapter(), SlowDownReward(), alpha=1.0, scenes=train_scene_list, winner_coef=1.0,
+                    **FAST).history
     assert math.isfinite(history[0]["winner_loss"]) and history[0]["first_ratio_max_dev"] == 0.0
 
 
-def test_imitating_winners_alone_raises_the_mean_reward(train_scene_list: list[ScenarioTensor]) -> None:
+def test_imitating_winners_alone_raises_the_mean_reward(  # type: ignore[no-untyped-def]
+        train_scene_list: list[ScenarioTensor], make_gru_adapter) -> None:
     # no PPO surrogate and no logged imitation: only the best sample of each context is learned from
     config = {**FAST, "epochs": 12, "contexts_per_epoch": 6, "minibatch_contexts": 3, "ppo_epochs": 2,
               "imitation_coef": 0.0, "winner_coef": 1.0, "learning_rate": 3e-3}
-    history = align(_model(), SlowDownReward(), alpha=0.0, scenes=train_scene_list, **config).history
+    history = align(make_gru_adapter(), SlowDownReward(), alpha=0.0, scenes=train_scene_list, **config).history
     first = sum(h["reward_mean"] for h in history[:3]) / 3
     last = sum(h["reward_mean"] for h in history[-3:]) / 3
     assert last > first + 0.05, (first, last)
