@@ -2,7 +2,8 @@
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
-# guidance, and the aligned CTG; a comparison table closes. Outputs land in out/main/.
+# guidance, the aligned CTG, and the 4 s CTG with its aligned version; a comparison table closes. Outputs land
+# in out/main/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -20,6 +21,11 @@ $T evaluate --model ctg --guidance no_collision --source nuscenes_pred --split v
 # stage III: the committed aligned CTG (trafficrlhf align, see reference_models/aligned/ctg/README.md)
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg_aligned_no_collision"
+# the same pair for the CTG trained over a 4 s plan (reference_models/aligned/ctg_4s/README.md)
+$T evaluate --model ctg --guidance no_collision --checkpoint reference_models/ctg/checkpoints/ctg_small_4s \
+  --source nuscenes_pred --split val --scenes 100 --out "$OUT/ctg4s_no_collision"
+$T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s --source nuscenes_pred \
+  --split val --scenes 100 --out "$OUT/ctg4s_aligned_no_collision"
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
-  | tee "$OUT/comparison.md"
+  "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" | tee "$OUT/comparison.md"
 echo "main job done: results in $OUT/"
