@@ -6,6 +6,7 @@ Data-dependent tests are skipped when ``trafficrlhf_sdk.scenario.default_data_ro
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -46,6 +47,47 @@ def test_check_adapter(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
     assert facts["log_prob_shape"][3] == adapter.cfg.sample_steps
     assert set(facts["groups_with_gradient"]) == {"encoder", "decoder"}
     assert 300_000 <= sum(facts["parameters"].values()) <= 1_500_000
+
+
+REPO = Path(__file__).resolve().parents[3]
+COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1 s)
+    "reference_models/ctg/checkpoints/ctg_small": 20,
+    "reference_models/ctg/checkpoints/ctg_small_4s": 40,
+    "reference_models/aligned/ctg": 20,
+    "reference_models/aligned/ctg_4s": 40,
+}
+
+
+@needs_data
+@pytest.mark.parametrize("path", sorted(COMMITTED))
+def test_committed_checkpoints_load_and_plan(path, scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_ctg import CTGAdapter
+
+    adapter = CTGAdapter(checkpoint=str(REPO / path), seed=0)
+    assert adapter.horizon == COMMITTED[path]
+    now = scenes.current_index
+    out = adapter.sample(scenes, 2, None, torch.Generator().manual_seed(0))
+    assert out.futures.shape[-2] == COMMITTED[path]
+    agents = scenes.controlled & scenes.valid[:, :, now]
+    moved = out.futures[:, :, :, -1, :2] - scenes.xy[:, None, :, now]  # (B, S, A, 2)
+    assert torch.isfinite(out.futures).all()
+    # a trained model keeps its plan within what a car can drive in H steps (< 40 m/s on average)
+    assert moved.norm(dim=-1)[agents[:, None].expand_as(moved[..., 0])].max() < 40.0 * COMMITTED[path] * 0.1
+
+
+@pytest.mark.parametrize("aligned,base", [
+    ("reference_models/aligned/ctg", "reference_models/ctg/checkpoints/ctg_small"),
+    ("reference_models/aligned/ctg_4s", "reference_models/ctg/checkpoints/ctg_small_4s"),
+])
+def test_committed_aligned_checkpoints_are_fine_tuned_from_their_base(aligned: str, base: str) -> None:
+    from safetensors.torch import load_file
+
+    tuned = load_file(str(REPO / aligned / "model.safetensors"))
+    start = load_file(str(REPO / base / "model.safetensors"))
+    assert tuned.keys() == start.keys()
+    assert all(tuned[k].shape == start[k].shape for k in tuned)
+    changed = [k for k in tuned if tuned[k].is_floating_point() and not torch.equal(tuned[k], start[k])]
+    assert len(changed) > len(tuned) // 2, f"only {len(changed)} of {len(tuned)} tensors differ from the base"
 
 
 @needs_data

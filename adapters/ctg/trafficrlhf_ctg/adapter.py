@@ -46,7 +46,8 @@ class CTGOptions(AdapterOptions):
 
 
 class CTGAdapter(TrafficModelAdapter):
-    """Compact CTG diffusion traffic model (horizon 20 steps = 2 s at 0.1 s)."""
+    """Compact CTG diffusion traffic model; its plan horizon comes from the checkpoint (20 steps = 2 s at 0.1 s for
+    the bundled ``ctg_small``, 40 for ``ctg_small_4s``)."""
 
     name = "ctg"
     Options = CTGOptions
@@ -109,7 +110,8 @@ class CTGAdapter(TrafficModelAdapter):
     # ------------------------------------------------------------ contract
     def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
                generator: torch.Generator | None = None) -> SampleOutput:
-        """Draw ``num_samples`` futures ``(B, S, A, 20, 4)`` for the controlled agents valid now."""
+        """Draw ``num_samples`` futures ``(B, S, A, H, 4)``, H = ``self.horizon``, for the controlled agents valid
+        now."""
         self._check_dt(context)
         now = context.current_index
         b, a, s, h = context.num_scenes, context.num_agents, num_samples, self.horizon
