@@ -81,6 +81,55 @@ def test_realism_reward_with_margins_adds_the_same_costs(jittered: ScenarioTenso
     torch.testing.assert_close(extra, expected)
 
 
+def _with_future_speed(scene: ScenarioTensor, factor: float) -> ScenarioTensor:
+    states = scene.states.clone()
+    states[:, :, scene.current_index + 1:, 2] *= factor
+    return scene.replace_unchecked(states=states)
+
+
+def _reference_speed_term(scene: ScenarioTensor, logged: ScenarioTensor, mask: torch.Tensor, tolerance: float,
+                          floor: float) -> np.ndarray:
+    """Per agent mean of min(1, relu(|v - v_log| / max(v_log, floor) - tolerance)), numpy, written out."""
+    now = scene.current_index
+    v = np.abs(scene.states[:, :, now + 1:, 2].double().numpy())
+    v_log = np.abs(logged.states[:, :, now + 1:, 2].double().numpy())
+    both = mask[:, :, now + 1:].numpy() & logged.valid[:, :, now + 1:].numpy()
+    err = np.clip(np.abs(v - v_log) / np.maximum(v_log, floor) - tolerance, 0, 1) * both
+    return err.sum(-1) / np.maximum(both.sum(-1), 1)
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.5, 0.9])
+def test_speed_mismatch_term_matches_a_written_out_reference(jittered: ScenarioTensor, factor: float) -> None:
+    scene = _with_future_speed(jittered, factor)
+    without, with_speed = RealismReward(), RealismReward(speed_weight=2.0, speed_tolerance=0.2, speed_floor=2.5)
+    added = without.agent_scores(scene, logged=jittered) - with_speed.agent_scores(scene, logged=jittered)
+    _, mask = without._failures(scene)
+    expected = 2.0 * _reference_speed_term(scene, jittered, mask, 0.2, 2.5)
+    np.testing.assert_allclose(added.double().numpy(), expected, atol=1e-5)
+    assert (added > 0).any() == (abs(factor - 1) > 0.2)
+
+
+def test_speed_mismatch_is_symmetric_and_free_for_the_log(jittered: ScenarioTensor) -> None:
+    reward = RealismReward(speed_weight=1.0, speed_floor=1e-3)
+    base = RealismReward()
+    assert torch.equal(reward.agent_scores(jittered, logged=jittered), base.agent_scores(jittered, logged=jittered))
+    slow, fast = _with_future_speed(jittered, 0.5), _with_future_speed(jittered, 1.5)
+    slow_cost = base.agent_scores(slow, logged=jittered) - reward.agent_scores(slow, logged=jittered)
+    fast_cost = base.agent_scores(fast, logged=jittered) - reward.agent_scores(fast, logged=jittered)
+    torch.testing.assert_close(slow_cost, fast_cost)  # 50 % too slow costs what 50 % too fast costs
+    assert float(slow_cost.max()) > 0.2
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"speed_weight": -1.0}, "speed_weight"),
+    ({"speed_tolerance": -0.1}, "speed_tolerance"),
+    ({"speed_floor": 0.0}, "speed_floor"),
+])
+def test_bad_speed_settings_name_the_argument(kwargs: dict, match: str) -> None:
+    with pytest.raises(TrafficRLHFError, match=match):
+        RealismReward(**kwargs)
+
+
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"corner_weight": 1.5}, "corner_weight"),
     ({"near_weight": -0.1}, "near_weight"),
@@ -94,7 +143,9 @@ def test_bad_margin_settings_name_the_argument(kwargs: dict, match: str) -> None
 def test_builtin_reward_names() -> None:
     assert load_reward("builtin:failure-margins").margins
     realism = load_reward("builtin:realism-margins")
-    assert isinstance(realism, RealismReward) and realism.margins
+    assert isinstance(realism, RealismReward) and realism.margins and realism.speed_weight == 0
+    speed = load_reward("builtin:realism-speed")
+    assert isinstance(speed, RealismReward) and speed.margins and speed.speed_weight == 1.0
     assert not load_reward("builtin:failure").margins
     with pytest.raises(TrafficRLHFError, match="builtin:realism-margins"):
         load_reward("builtin:nope")

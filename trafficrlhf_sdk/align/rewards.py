@@ -137,7 +137,11 @@ class RealismReward(FailureReward):
       ``stall_log_speed`` (the synthetic annotator's stall term with a stricter ratio than its 0.25; 0.8 went
       too far: the aligned CTG then sped, speed-limit violation 0.40 -> 1.50 m/s; it needs the logged future,
       so the fine-tuner passes ``logged``: the same scenarios with the log in place of the samples);
-    * acceleration excess: ``relu(|dv/dt| - max_accel) / max_accel`` on 0.5 s speed differences.
+    * acceleration excess: ``relu(|dv/dt| - max_accel) / max_accel`` on 0.5 s speed differences;
+    * speed mismatch (``speed_weight > 0``): per future step where both are valid,
+      ``min(1, relu(|v - v_log| / max(v_log, speed_floor) - speed_tolerance))``, averaged over the agent's steps.
+      Symmetric, so it penalizes driving faster than the log as much as slower; it closes the way out the stall
+      term leaves open (avoid failures by slowing to just above ``stall_ratio`` x the logged speed).
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
     39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
@@ -146,10 +150,17 @@ class RealismReward(FailureReward):
     uses_log = True
 
     def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.5,
-                 stall_log_speed: float = 2.0, max_accel: float = 3.0, margins: bool = False) -> None:
+                 stall_log_speed: float = 2.0, max_accel: float = 3.0, margins: bool = False,
+                 speed_weight: float = 0.0, speed_tolerance: float = 0.25, speed_floor: float = 3.0) -> None:
         super().__init__(margins=margins)
+        for name, value in (("speed_weight", speed_weight), ("speed_tolerance", speed_tolerance)):
+            if value < 0:
+                raise TrafficRLHFError(f"`{name}` is {value}; use a value >= 0.")
+        if speed_floor <= 0:
+            raise TrafficRLHFError(f"`speed_floor` is {speed_floor}; use a speed > 0 in m/s (e.g. 3.0).")
         self.stall_weight, self.accel_weight = stall_weight, accel_weight
         self.stall_ratio, self.stall_log_speed, self.max_accel = stall_ratio, stall_log_speed, max_accel
+        self.speed_weight, self.speed_tolerance, self.speed_floor = speed_weight, speed_tolerance, speed_floor
 
     def agent_scores(self, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
         """``(B, A)`` rewards (0 for agents not scored); ``logged``: ``scenario`` with the logged future."""
@@ -173,4 +184,9 @@ class RealismReward(FailureReward):
         excess = (excess * accel_ok).sum(-1) / accel_ok.sum(-1).clamp_min(1)
         penalty = (cost.sum(-1) / steps + self.stall_weight * stalled.sum(-1) / driving.sum(-1).clamp_min(1)
                    + self.accel_weight * excess)
+        if self.speed_weight:
+            both = mask & logged.valid[:, :, future]
+            relative = (speed - log_speed).abs() / log_speed.clamp_min(self.speed_floor)
+            mismatch = (relative - self.speed_tolerance).clamp(0, 1) * both
+            penalty = penalty + self.speed_weight * mismatch.sum(-1) / both.sum(-1).clamp_min(1)
         return -(penalty * mask.any(-1))

@@ -18,7 +18,8 @@ BUILTIN_PREFIX = "builtin:"
 def load_reward(spec: str) -> object:
     """A saved reward-model folder, or a hand-written reward: ``builtin:failure``, ``builtin:collision``,
     ``builtin:realism``, or ``builtin:failure-margins`` / ``builtin:realism-margins`` (the same with the
-    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`)."""
+    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`), or ``builtin:realism-speed``
+    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`)."""
     if spec.startswith(BUILTIN_PREFIX):
         from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward
         from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -29,6 +30,7 @@ def load_reward(spec: str) -> object:
             "realism": RealismReward,
             "failure-margins": lambda: FailureReward(margins=True),
             "realism-margins": lambda: RealismReward(margins=True),
+            "realism-speed": lambda: RealismReward(margins=True, speed_weight=1.0),
         }
         name = spec[len(BUILTIN_PREFIX):]
         if name not in builders:
@@ -58,7 +60,7 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
               help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
-                   "builtin:realism / builtin:failure-margins / builtin:realism-margins.")
+                   "builtin:realism / builtin:failure-margins / builtin:realism-margins / builtin:realism-speed.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
               help="Weight of the PPO surrogate [default: the paper's value: ctg 0.1, bits 0.5, trafficgen 0.3].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
