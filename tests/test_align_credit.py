@@ -175,3 +175,47 @@ def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_sce
         reward.agent_scores(stalled)
     with pytest.raises(TrafficRLHFError, match="credit='agent'"):
         AlignTrainer(_model(), reward, AlignConfig(**FAST), scenes=train_scene_list)
+
+
+def test_failure_refresh_reuses_one_drive_per_block_of_epochs(train_scene_list: list[ScenarioTensor]) -> None:
+    config = AlignConfig(failure_fraction=1.0, failure_scenes=8, failure_drive_s=6.0, failure_lead_steps=(3, 8),
+                         history_steps=10, contexts_per_epoch=4, failure_refresh_every=2)
+    sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scene_list, None, future_steps=20)
+    drives: list[int] = []
+    original = sampler.drive_for_failures
+
+    def counting(gen: torch.Generator, epoch: int = 0):  # type: ignore[no-untyped-def]
+        drives.append(epoch)
+        return original(gen, epoch)
+
+    sampler.drive_for_failures = counting  # type: ignore[method-assign]
+    drawn = [sampler.draw(torch.Generator().manual_seed(e), e)[0] for e in range(5)]
+    assert drives == [0, 2, 4]  # epochs 1 and 3 cut their contexts from the previous epoch's drive
+    assert sampler.last_failure_events > 0
+    # the reused drive still gives that epoch its own contexts (other events or leads)
+    assert not torch.equal(drawn[0].states, drawn[1].states)
+    # without an epoch (or with failure_refresh_every=1) every call drives afresh
+    sampler.draw(torch.Generator().manual_seed(9))
+    assert drives == [0, 2, 4, 0]
+
+
+def test_failure_refresh_run_resumed_mid_block_matches_uninterrupted(train_scene_list: list[ScenarioTensor],
+                                                                     tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import os
+
+    from trafficrlhf_sdk.align import align
+
+    config = {**FAST, "epochs": 3, "save_every": 1, "credit": "agent", "failure_fraction": 0.5,
+              "failure_scenes": 3, "failure_drive_s": 3.0, "failure_refresh_every": 2}
+    full = _model()
+    align(full, FailureReward(), alpha=1.0, scenes=train_scene_list, output_dir=str(tmp_path / "full"), **config)
+    part = _model()
+    align(part, FailureReward(), alpha=1.0, scenes=train_scene_list, output_dir=str(tmp_path / "cut"),
+          callback=lambda epoch, stats: epoch < 0, **config)  # stops after epoch 0: epoch 1 reuses its drive
+    assert os.path.isfile(tmp_path / "cut" / "checkpoints" / "checkpoint-1" / "failure_drive.safetensors")
+    resumed = _model()
+    align(resumed, FailureReward(), alpha=1.0, scenes=train_scene_list, output_dir=str(tmp_path / "cut"),
+          resume=True, **config)
+    expected, got = full.module.state_dict(), resumed.module.state_dict()
+    for key, value in expected.items():
+        assert torch.equal(value, got[key]), key

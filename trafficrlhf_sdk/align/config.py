@@ -91,6 +91,11 @@ class AlignConfig(BaseModel):
                                                       "failures (`failure_fraction` > 0).")
     failure_drive_s: float = Field(10.0, gt=0, description="Length (s) of the closed-loop runs that find failures "
                                                            "(the evaluation protocol's 10 s).")
+    failure_refresh_every: int = Field(1, ge=1, description="Drive the failure scenes in epochs 0, k, 2k, ... "
+                                       "only and cut the epochs in between from the same run (other events, "
+                                       "other leads): the drive is most of an epoch's rollout time, so k = 2 "
+                                       "saves a good part of each second epoch, at the price of contexts up to "
+                                       "k - 1 epochs stale. 1: a fresh drive every epoch.")
     failure_lead_steps: tuple[int, int] = Field((5, 15), description="A failure-focused context starts d steps "
                                                 "before the agent's first failure, d uniform in this range.")
     credit: Literal["scene", "agent"] = Field("scene", description="'scene': one reward per sample, shared by "

@@ -11,12 +11,15 @@ paired with the same window of the *log* (the imitation loss always learns from 
   ``t = f - d`` (``d`` drawn in ``failure_lead_steps``) from the simulated scene. Failures build up over a
   10 s rollout while a sample covers 2 s, so contexts drawn from the log rarely contain a sample that fails;
   these contexts put the states that lead to failures in front of the reward model (a prioritized replay of
-  the model's own mistakes, as DAgger-style data aggregation does for imitation).
+  the model's own mistakes, as DAgger-style data aggregation does for imitation). With
+  ``failure_refresh_every = k`` the closed-loop drive (most of an epoch's rollout time) runs in epochs
+  0, k, 2k, ... only; the epochs between cut new contexts (other events, other leads) from the same drive.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 
@@ -27,7 +30,7 @@ from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_ste
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["ContextSampler", "held_out_scene_ids", "training_scene_ids"]
+__all__ = ["ContextSampler", "FailureDrive", "held_out_scene_ids", "training_scene_ids"]
 
 
 def training_scene_ids(scene_ids: Sequence[str], holdout_every: int | None) -> list[str]:
@@ -62,17 +65,19 @@ class ContextSampler:
         self.guidance = guidance
         self.future_steps = future_steps
         self.last_failure_events = 0
+        self.failure_drive: FailureDrive | None = None  # the newest closed-loop failure run and its epoch
 
-    def draw(self, gen: torch.Generator) -> tuple[ScenarioTensor, ScenarioTensor]:
+    def draw(self, gen: torch.Generator, epoch: int | None = None) -> tuple[ScenarioTensor, ScenarioTensor]:
         """``(contexts, logged)``: ``contexts_per_epoch`` windows each, in the order failure-focused,
-        closed-loop lead-in, log."""
+        closed-loop lead-in, log. ``epoch`` (0-based) lets failure-focused contexts reuse the drive of an
+        earlier epoch of the same ``failure_refresh_every`` block; None: always drive afresh."""
         cfg = self.config
         total = cfg.contexts_per_epoch
         failing = min(total, round(cfg.failure_fraction * total))
         closed = min(total - failing, round(cfg.closed_loop_fraction * total))
         pairs: list[tuple[ScenarioTensor, ScenarioTensor]] = []
         if failing:
-            pairs.append(self.failure_contexts(failing, gen))
+            pairs.append(self.failure_contexts(failing, gen, epoch))
             failing = pairs[-1][0].num_scenes  # may fall short: the log fills in
         if closed:
             pairs.append(self.closed_loop_contexts(closed, gen))
@@ -150,20 +155,45 @@ class ContextSampler:
         log = self.window(batch.replace_unchecked(controlled=hybrid.controlled), lead)
         return sim, log
 
-    def failure_contexts(self, count: int, gen: torch.Generator) -> tuple[ScenarioTensor, ScenarioTensor]:
-        """Up to ``count`` contexts cut shortly before the failures of a closed-loop run of the current model on
-        ``failure_scenes`` training scenes (fewer if it produced fewer failures). Sets ``last_failure_events``."""
+    def drive_for_failures(self, gen: torch.Generator, epoch: int = 0) -> FailureDrive:
+        """Drive ``failure_scenes`` random training scenes closed loop for ``failure_drive_s`` with the current
+        model and record each controlled agent's first failure step."""
         cfg, scenes, hist, h = self.config, self.scenes(), self.config.history_steps, self.future_steps
         dt = scenes[0].dt
         drive = max(1, round(cfg.failure_drive_s / dt))
-        fits = [s for s in scenes if s.num_steps >= hist + drive + h + 1]
+        fits = [i for i, s in enumerate(scenes) if s.num_steps >= hist + drive + h + 1]
         if not fits:
             raise DataNotFoundError(f"no training scene is long enough for a {drive * dt:.1f} s closed-loop run "
                                     f"plus {h} future steps; lower `failure_drive_s`.")
-        order = torch.randperm(len(fits), generator=gen)[: cfg.failure_scenes].tolist()
-        batch = ScenarioTensor.concat([fits[i].time_slice(0, hist + drive + h + 1) for i in order])
-        batch = batch.replace_unchecked(current_index=hist)
-        hybrid = self._drive(batch, drive)
+        order = [fits[i] for i in torch.randperm(len(fits), generator=gen)[: cfg.failure_scenes].tolist()]
+        hybrid = self._drive(self._drive_batch(order, drive), drive)
+        return FailureDrive(epoch, order, hybrid.states, hybrid.valid, hybrid.controlled)
+
+    def _drive_batch(self, order: Sequence[int], drive: int) -> ScenarioTensor:
+        scenes, hist = self.scenes(), self.config.history_steps
+        batch = ScenarioTensor.concat([scenes[i].time_slice(0, hist + drive + self.future_steps + 1)
+                                       for i in order])
+        return batch.replace_unchecked(current_index=hist)
+
+    def _current_drive(self, gen: torch.Generator, epoch: int | None) -> FailureDrive:
+        every, cached = self.config.failure_refresh_every, self.failure_drive
+        fresh = (epoch is None or cached is None or every == 1
+                 or epoch // every != cached.epoch // every or epoch < cached.epoch)
+        if fresh:
+            self.failure_drive = self.drive_for_failures(gen, 0 if epoch is None else epoch)
+        assert self.failure_drive is not None
+        return self.failure_drive
+
+    def failure_contexts(self, count: int, gen: torch.Generator,
+                         epoch: int | None = None) -> tuple[ScenarioTensor, ScenarioTensor]:
+        """Up to ``count`` contexts cut shortly before the failures of a closed-loop run of the current model on
+        ``failure_scenes`` training scenes (fewer if it produced fewer failures); the run is reused within a
+        ``failure_refresh_every`` block of epochs. Sets ``last_failure_events``."""
+        cfg, hist = self.config, self.config.history_steps
+        run = self._current_drive(gen, epoch)
+        drive = max(1, round(cfg.failure_drive_s / self.scenes()[0].dt))
+        batch = self._drive_batch(run.order, drive)
+        hybrid = batch.replace_unchecked(states=run.states, valid=run.valid, controlled=run.controlled)
         driven = slice(hist + 1, hist + drive + 1)
         sim = hybrid.time_slice(0, hist + drive + 1)
         failed = collisions_per_step(sim) & sim.valid
@@ -193,3 +223,28 @@ class ContextSampler:
         if not sims:
             return self.log_contexts(count, gen)
         return ScenarioTensor.concat(sims), ScenarioTensor.concat(logs)
+
+
+@dataclass
+class FailureDrive:
+    """A closed-loop run of the model being aligned, kept for reuse: the epoch (0-based) it was driven in, the
+    indices of the training scenes it drove, and its simulated ``states (B, A, T, 4)``, ``valid (B, A, T)`` and
+    ``controlled (B, A)`` (the log after the driven steps)."""
+
+    epoch: int
+    order: list[int]
+    states: torch.Tensor
+    valid: torch.Tensor
+    controlled: torch.Tensor
+
+    def to_tensors(self) -> dict[str, torch.Tensor]:
+        """Flat tensors for a safetensors checkpoint."""
+        return {"epoch": torch.tensor([self.epoch]), "order": torch.tensor(self.order, dtype=torch.long),
+                "states": self.states.contiguous(), "valid": self.valid.contiguous(),
+                "controlled": self.controlled.contiguous()}
+
+    @classmethod
+    def from_tensors(cls, tensors: dict[str, torch.Tensor]) -> FailureDrive:
+        """The inverse of :meth:`to_tensors`."""
+        return cls(int(tensors["epoch"][0]), tensors["order"].tolist(), tensors["states"], tensors["valid"],
+                   tensors["controlled"])

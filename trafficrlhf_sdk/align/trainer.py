@@ -44,7 +44,7 @@ import torch
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
-from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
+from trafficrlhf_sdk.align.contexts import ContextSampler, FailureDrive, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
@@ -58,6 +58,7 @@ __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenari
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
 BEST_FILE = "best_model.safetensors"  # weights of the best held-out evaluation so far (keep_best)
+DRIVE_FILE = "failure_drive.safetensors"  # the failure run reused by later epochs (failure_refresh_every > 1)
 MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
 
 
@@ -263,7 +264,7 @@ class AlignTrainer:
     def _contexts(self, epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
         """The epoch's contexts and the same windows of the log (see :class:`ContextSampler`); every draw comes
         from a generator seeded by ``(seed, epoch)``."""
-        return self.context_sampler.draw(_generator(self.config.seed, epoch, "contexts"))
+        return self.context_sampler.draw(_generator(self.config.seed, epoch, "contexts"), epoch)
 
     # ------------------------------------------------------------------ rollout
     def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
@@ -487,6 +488,9 @@ class AlignTrainer:
         if self.held_out is not None and self.held_out.best_state is not None:
             save_file({k: v.contiguous() for k, v in self.held_out.best_state.items()},
                       os.path.join(tmp, BEST_FILE), metadata={"format": "pt"})
+        drive = self.context_sampler.failure_drive
+        if drive is not None and self.config.failure_refresh_every > 1:
+            save_file(drive.to_tensors(), os.path.join(tmp, DRIVE_FILE), metadata={"format": "pt"})
         payload = {
             "epochs_done": epochs_done,
             "groups": list(self.group_names),
@@ -545,6 +549,9 @@ class AlignTrainer:
             self.held_out.best_epoch = int(best["best_epoch"])
             self.held_out.best_failure_rate = float(best["best_failure_rate"])
             self.held_out.best_state, _ = safe_load_file(os.path.join(directory, BEST_FILE))
+        drive_file = os.path.join(directory, DRIVE_FILE)
+        if os.path.isfile(drive_file):
+            self.context_sampler.failure_drive = FailureDrive.from_tensors(safe_load_file(drive_file)[0])
 
     # ------------------------------------------------------------------ logging
     def _configure_logger(self) -> Any:

@@ -91,6 +91,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
               help="Share of contexts cut just before the current model's own closed-loop failures (default 0).")
 @click.option("--failure-scenes", type=click.IntRange(min=1), default=None,
               help="Training scenes driven per epoch to find those failures [default: 16].")
+@click.option("--failure-refresh", "failure_refresh", type=click.IntRange(min=1), default=None,
+              help="Drive the failure scenes every K epochs only; the epochs between reuse that run [default: 1].")
 @click.option("--failure-lead", default=None, metavar="LO,HI",
               help="A failure-focused context starts LO..HI steps before the failure [default: 5,15].")
 @click.option("--credit", type=click.Choice(["scene", "agent"]), default=None,
@@ -130,7 +132,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
                   target_kl: float | None, imitation_coef: float | None, winner_coef: float | None,
                   winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
-                  failure_lead: str | None, credit: str | None, denoising_steps: int | None, pessimism: float | None,
+                  failure_refresh: int | None, failure_lead: str | None, credit: str | None,
+                  denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, holdout_every: int | None, eval_every: int | None,
                   eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
@@ -168,7 +171,8 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
         "target_kl": target_kl, "imitation_coef": imitation_coef, "winner_coef": winner_coef,
         "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
-        "failure_scenes": failure_scenes, "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
+        "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
+        "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
