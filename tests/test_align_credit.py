@@ -219,3 +219,23 @@ def test_failure_refresh_run_resumed_mid_block_matches_uninterrupted(train_scene
     expected, got = full.module.state_dict(), resumed.module.state_dict()
     for key, value in expected.items():
         assert torch.equal(value, got[key]), key
+
+
+def test_a_reward_horizon_shorter_than_the_models_scores_only_the_first_steps(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.align.rewards import RealismReward
+
+    seen: list[int] = []
+
+    class Recording(RealismReward):
+        def agent_scores(self, scenario, logged=None):  # type: ignore[no-untyped-def]
+            assert logged is not None and logged.num_steps == scenario.num_steps
+            seen.append(scenario.num_steps - scenario.current_index - 1)
+            return super().agent_scores(scenario, logged=logged)
+
+    model = _model()
+    config = AlignConfig(alpha=1.0, credit="agent", reward_horizon=5, **FAST)
+    trainer = AlignTrainer(model, Recording(), config, scenes=train_scene_list)
+    assert trainer.future_steps == model.horizon > 5  # the imitation loss keeps the whole horizon
+    trainer._rollout(0)
+    assert seen == [5]

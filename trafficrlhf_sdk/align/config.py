@@ -105,7 +105,9 @@ class AlignConfig(BaseModel):
                                               "agents independently given the context, such as CTG.")
     reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
                                        "longer value than the model's horizon extends the sample at constant "
-                                       "speed and heading (denser failure signal); None: the horizon.")
+                                       "speed and heading (denser failure signal), a shorter one scores only "
+                                       "the first steps of each sample (the imitation loss still sees the whole "
+                                       "horizon); None: the horizon.")
     reward_history_steps: int = Field(10, ge=0, description="History steps handed to the reward model in front "
                                                             "of the sampled future (it sees step_dt back).")
 

@@ -188,6 +188,7 @@ class AlignTrainer:
         self.config = config or AlignConfig()
         self.horizon = self.config.horizon or int(getattr(model, "horizon", 20))
         self.future_steps = max(self.horizon, self.config.reward_horizon or 0)  # log steps kept after "now"
+        self.reward_steps = self.config.reward_horizon or self.horizon  # sampled steps the reward model scores
         offered = model.parameter_groups()
         names = tuple(offered) if self.config.groups is None else self.config.groups
         unknown = [n for n in names if n not in offered]
@@ -293,7 +294,7 @@ class AlignTrainer:
         repeat = torch.arange(b).repeat_interleave(s)
         scenario = contexts[repeat].with_future(states.reshape(b * s, *states.shape[2:]),
                                                 valid.reshape(b * s, *valid.shape[2:]))
-        return scenario.time_slice(max(0, now - self.config.reward_history_steps))
+        return scenario.time_slice(max(0, now - self.config.reward_history_steps), now + 1 + self.reward_steps)
 
     def _rollout(self, epoch: int) -> _Rollout:
         contexts, logged = self._contexts(epoch)
@@ -307,7 +308,7 @@ class AlignTrainer:
             if getattr(self.reward_model, "uses_log", False):  # each context's own future is the log
                 repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
                 start = max(0, contexts.current_index - self.config.reward_history_steps)
-                reference = contexts[repeat].time_slice(start)
+                reference = contexts[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
             per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
