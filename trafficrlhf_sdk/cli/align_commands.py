@@ -102,7 +102,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--pessimism", type=click.FloatRange(min=0), default=None,
               help="With an ensemble reward model: reward = mean - PESSIMISM x std over its members.")
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
-              help="Steps each sample is scored over (extended at constant velocity past the model's horizon).")
+              help="Steps each sample is scored over (extended at constant velocity past the model's horizon; "
+                   "fewer than the horizon scores the first steps only).")
 @click.option("--holdout-every", type=click.IntRange(min=2), default=None,
               help="Never train on every k-th scene of the split (a held-out set spread over it; "
                    "scripts/align_dev_eval.py --holdout-every k evaluates them).")
