@@ -19,7 +19,7 @@ paired with the same window of the *log* (the imitation loss always learns from 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -166,8 +166,9 @@ class ContextSampler:
             raise DataNotFoundError(f"no training scene is long enough for a {drive * dt:.1f} s closed-loop run "
                                     f"plus {h} future steps; lower `failure_drive_s`.")
         order = [fits[i] for i in torch.randperm(len(fits), generator=gen)[: cfg.failure_scenes].tolist()]
-        hybrid = self._drive(self._drive_batch(order, drive), drive)
-        return FailureDrive(epoch, order, hybrid.states, hybrid.valid, hybrid.controlled)
+        batch = self._drive_batch(order, drive)
+        hybrid = self._drive(batch, drive)
+        return FailureDrive(epoch, order, hybrid.states, hybrid.valid, hybrid.controlled, batch)
 
     def _drive_batch(self, order: Sequence[int], drive: int) -> ScenarioTensor:
         scenes, hist = self.scenes(), self.config.history_steps
@@ -192,7 +193,9 @@ class ContextSampler:
         cfg, hist = self.config, self.config.history_steps
         run = self._current_drive(gen, epoch)
         drive = max(1, round(cfg.failure_drive_s / self.scenes()[0].dt))
-        batch = self._drive_batch(run.order, drive)
+        if run.batch is None:  # restored from a checkpoint: rebuild the logged scenes it drove
+            run.batch = self._drive_batch(run.order, drive)
+        batch = run.batch
         hybrid = batch.replace_unchecked(states=run.states, valid=run.valid, controlled=run.controlled)
         driven = slice(hist + 1, hist + drive + 1)
         sim = hybrid.time_slice(0, hist + drive + 1)
@@ -229,13 +232,15 @@ class ContextSampler:
 class FailureDrive:
     """A closed-loop run of the model being aligned, kept for reuse: the epoch (0-based) it was driven in, the
     indices of the training scenes it drove, and its simulated ``states (B, A, T, 4)``, ``valid (B, A, T)`` and
-    ``controlled (B, A)`` (the log after the driven steps)."""
+    ``controlled (B, A)`` (the log after the driven steps); ``batch``: the logged scenes it started from (not
+    saved, rebuilt from ``order``)."""
 
     epoch: int
     order: list[int]
     states: torch.Tensor
     valid: torch.Tensor
     controlled: torch.Tensor
+    batch: ScenarioTensor | None = field(default=None, repr=False)
 
     def to_tensors(self) -> dict[str, torch.Tensor]:
         """Flat tensors for a safetensors checkpoint."""
