@@ -259,3 +259,40 @@ def test_cli_evaluate(tmp_path) -> None:  # type: ignore[no-untyped-def]
     result = CliRunner().invoke(cli, ["evaluate", "--model", "trafficgen", "--scenes", "3", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "results.json").is_file()
+
+
+# --------------------------------------------------------------------------------------------- training script
+@needs_data
+@pytest.mark.slow
+def test_train_longer_horizon_copies_the_initializer(synthetic, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``train --horizon 40 --init-from CKPT``: a 4 s forecaster beside the donor's initializer, bitwise; the
+    adapter loads it and plans 40 steps."""
+    from safetensors.torch import load_file
+
+    from trafficgen_reference.train import main
+    from trafficrlhf_trafficgen import TrafficGenAdapter, default_checkpoint
+
+    _checkpoint_or_skip()
+    out = tmp_path / "tg_4s"
+    main(["--out", str(out), "--horizon", "40", "--init-from", str(default_checkpoint()), "--steps", "3",
+          "--train-scenes", "3", "--val-every", "1000"])
+    donor, trained = load_file(default_checkpoint() / "model.safetensors"), load_file(out / "model.safetensors")
+    initializer = [k for k in donor if k.startswith("initializer.")]
+    assert initializer and all(torch.equal(donor[k], trained[k]) for k in initializer)
+    assert any(not torch.equal(donor[k], trained[k]) for k in donor if k.startswith("forecaster.")
+               and donor[k].shape == trained[k].shape)
+    adapter = TrafficGenAdapter(checkpoint=str(out), seed=0)
+    assert adapter.horizon == 40
+    plan = adapter.plan(synthetic, 40).states
+    assert plan.shape == (1, 3, 40, 4) and torch.isfinite(plan).all()
+
+
+def test_train_rejects_a_bad_horizon_and_a_missing_donor(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from trafficgen_reference.train import main
+
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--horizon", "15"])
+    assert "--horizon must be an even number" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--init-from", str(tmp_path / "nowhere")])
+    assert "--init-from" in capsys.readouterr().err

@@ -29,7 +29,7 @@ import sys
 import time
 
 import torch
-from safetensors.torch import save_file
+from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features, to_agent_frame
@@ -149,6 +149,23 @@ def validate_initializer(model: TrafficGenModel, data: dict[str, torch.Tensor]) 
     return {"loss": float(loss), **parts}
 
 
+INITIALIZER_FIELDS = ("init_crop_px", "init_crop_res_m", "init_cell_px", "init_width", "init_components")
+
+
+def load_initializer(folder: str) -> tuple[dict, dict[str, torch.Tensor]] | None:
+    """(config dict, initializer state dict) of a trafficgen checkpoint folder, or None when it is not one."""
+    config_path, weights_path = os.path.join(folder, "config.json"), os.path.join(folder, "model.safetensors")
+    if not (os.path.isfile(config_path) and os.path.isfile(weights_path)):
+        return None
+    with open(config_path, encoding="utf-8") as handle:
+        config = json.load(handle).get("config", {})
+    if not all(key in config for key in INITIALIZER_FIELDS):
+        return None
+    state = load_file(weights_path)
+    prefix = "initializer."
+    return config, {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
 def train_part(name: str, params: list[torch.nn.Parameter], step_fn, validate_fn, seconds: float,
                fixed_steps: int | None, lr: float, val_every: int, curve: dict[str, list]) -> int:
     """Adam with warm-up and cosine decay over ``seconds`` (or ``fixed_steps``); returns the steps taken."""
@@ -203,7 +220,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--val-every", type=int, default=200)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared).")
     parser.add_argument("--root", default=None, help="nuscenes_pred data directory (default: shared data).")
+    parser.add_argument("--horizon", type=int, default=20,
+                        help="Forecast steps at 0.1 s (20 = 2 s, the default model; 40 = 4 s).")
+    parser.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                        help="Copy the initializer from this checkpoint folder and train the forecaster only "
+                             "(the initializer is frozen in TrafficRLHF, so both models then place the same agents).")
     args = parser.parse_args(argv)
+    if args.horizon < 2 or args.horizon % 2:
+        parser.error(f"--horizon must be an even number of steps >= 2; got {args.horizon}.")
+    donor = None
+    if args.init_from is not None:
+        donor = load_initializer(args.init_from)
+        if donor is None:
+            parser.error(f"--init-from {args.init_from!r}: no config.json + model.safetensors of a trafficgen "
+                         "checkpoint there; pass a folder written by this script.")
 
     began = time.perf_counter()
     budget = args.minutes * 60.0
@@ -213,8 +243,11 @@ def main(argv: list[str] | None = None) -> None:
 
     options = {"root": args.root} if args.root else {}
     # history_s=0: scenes start at their first logged step and we pick "now" ourselves; min_future_s=2: all scenes
-    source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=2.0, **options)
-    cfg = TrafficGenConfig()
+    cfg = TrafficGenConfig(horizon=args.horizon)
+    if donor is not None:  # the initializer's architecture must match the copied weights
+        for key in INITIALIZER_FIELDS:
+            setattr(cfg, key, donor[0][key])
+    source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
     ftrain, itrain = build(source, "train", train_ids, cfg, args.stride, args.init_stride, "featurizing train")
     held_out = set(get_scenario_source("nuscenes_pred", **options).scene_ids("val")[:100])  # the evaluation scenes
@@ -234,6 +267,8 @@ def main(argv: list[str] | None = None) -> None:
     cfg.action_mean = [float(v) for v in acts.mean(0)]
     cfg.action_std = [float(v) for v in acts.std(0).clamp_min(1e-3)]
     model = TrafficGenModel(cfg)
+    if donor is not None:
+        model.initializer.load_state_dict(donor[1])
     counts = {"initializer": sum(p.numel() for p in model.initializer.parameters()),
               "forecaster": sum(p.numel() for p in model.forecaster.parameters())}
     print(f"parameters: {counts}")
@@ -252,9 +287,11 @@ def main(argv: list[str] | None = None) -> None:
 
     model.train()
     t0 = time.perf_counter()
-    init_steps = train_part("init", list(model.initializer.parameters()), init_step,
-                            lambda: validate_initializer(model, ival), train_seconds * args.init_fraction,
-                            args.init_steps, args.lr, args.val_every, curve)
+    init_steps = 0
+    if donor is None:
+        init_steps = train_part("init", list(model.initializer.parameters()), init_step,
+                                lambda: validate_initializer(model, ival), train_seconds * args.init_fraction,
+                                args.init_steps, args.lr, args.val_every, curve)
     init_time = time.perf_counter() - t0
     t0 = time.perf_counter()
     steps = train_part("forecaster", list(model.forecaster.parameters()), forecaster_step,
@@ -280,6 +317,7 @@ def main(argv: list[str] | None = None) -> None:
         "initializer_snapshots": n_i, "stride": args.stride, "init_stride": args.init_stride,
         "data_prep_s": round(prep_time, 1), "initializer_train_s": round(init_time, 1),
         "forecaster_train_s": round(forecaster_time, 1), "wall_time_s": round(time.perf_counter() - began, 1),
+        "horizon": cfg.horizon, "initializer_from": args.init_from,
         "threads": args.threads, "machine": f"{platform.machine()} {platform.processor()}".strip(),
         "torch": torch.__version__, "final_val_initializer": final_init, "final_val_forecaster": final_forecaster,
         "final_train_forecaster": final_train, "curve": curve, "data_licence": "nuScenes, CC BY-NC-SA 4.0",
