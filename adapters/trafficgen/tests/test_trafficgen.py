@@ -261,6 +261,37 @@ def test_cli_evaluate(tmp_path) -> None:  # type: ignore[no-untyped-def]
     assert (tmp_path / "results.json").is_file()
 
 
+# --------------------------------------------------------------------------------------------- committed weights
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+BUNDLED = "reference_models/trafficgen/checkpoints/trafficgen_small"
+COMMITTED = {  # committed TrafficGen checkpoints, their forecast horizons (steps of 0.1 s) and their starting weights
+    BUNDLED: (20, None),
+    "reference_models/trafficgen/checkpoints/trafficgen_small_4s": (40, BUNDLED),
+    "reference_models/aligned/trafficgen": (20, BUNDLED),
+}
+
+
+@pytest.mark.parametrize("path", sorted(COMMITTED))
+def test_committed_checkpoints_plan_and_keep_the_initializer(path, synthetic) -> None:  # type: ignore[no-untyped-def]
+    """Every committed checkpoint loads, plans its horizon, and shares the bundled initializer bitwise (it is
+    frozen everywhere: alignment never trains it, the 4 s forecaster was trained with ``--init-from``)."""
+    from safetensors.torch import load_file
+
+    from trafficrlhf_trafficgen import TrafficGenAdapter
+
+    horizon, start = COMMITTED[path]
+    full = os.path.join(REPO, path)
+    adapter = TrafficGenAdapter(checkpoint=full, seed=0)
+    assert adapter.horizon == horizon
+    plan = adapter.plan(synthetic, horizon).states
+    assert plan.shape == (1, 3, horizon, 4) and torch.isfinite(plan).all()
+    if start is not None:
+        mine = load_file(os.path.join(full, "model.safetensors"))
+        base = load_file(os.path.join(REPO, start, "model.safetensors"))
+        initializer = [k for k in base if k.startswith("initializer.")]
+        assert initializer and all(torch.equal(mine[k], base[k]) for k in initializer)
+
+
 # --------------------------------------------------------------------------------------------- training script
 @needs_data
 @pytest.mark.slow
