@@ -268,6 +268,7 @@ COMMITTED = {  # committed TrafficGen checkpoints, their forecast horizons (step
     BUNDLED: (20, None),
     "reference_models/trafficgen/checkpoints/trafficgen_small_4s": (40, BUNDLED),
     "reference_models/aligned/trafficgen": (20, BUNDLED),
+    "reference_models/aligned/trafficgen_4s": (40, "reference_models/trafficgen/checkpoints/trafficgen_small_4s"),
 }
 
 
@@ -290,6 +291,8 @@ def test_committed_checkpoints_plan_and_keep_the_initializer(path, synthetic) ->
         base = load_file(os.path.join(REPO, start, "model.safetensors"))
         initializer = [k for k in base if k.startswith("initializer.")]
         assert initializer and all(torch.equal(mine[k], base[k]) for k in initializer)
+        forecaster = [k for k in base if k.startswith("forecaster.") and base[k].is_floating_point()]
+        assert any(mine[k].shape != base[k].shape or not torch.equal(mine[k], base[k]) for k in forecaster)
 
 
 # --------------------------------------------------------------------------------------------- training script
