@@ -9,7 +9,7 @@ Data (one pass over the train scenes):
   agent; the map crop around it and every other vehicle valid then (its cell, offset, size, heading, speed) are
   one sample. Upstream trains on the scene's first frame only; several snapshots per scene give more samples.
 * forecaster windows: (scene, vehicle, now) with ``now`` on a 0.5 s keyframe (the simulator replans there),
-  the vehicle valid now and over the next 2 s; history (1 s) may be partial.
+  the vehicle valid now and over the next ``--horizon`` steps (2 s by default); history (1 s) may be partial.
 
 Validation uses val scenes that the standard 100-scene evaluation does *not* use. ``--minutes`` bounds the whole
 run (data preparation included); ``--init-fraction`` of the training time goes to the initializer, the rest to
@@ -131,7 +131,7 @@ def rows_of(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch
 # --------------------------------------------------------------------------------------------- training
 @torch.no_grad()
 def validate_forecaster(model: TrafficGenModel, data: dict[str, torch.Tensor]) -> dict[str, float]:
-    """WTA loss parts, minADE and most-likely-mode ADE (m) over 2 s on ``data``."""
+    """WTA loss parts, minADE and most-likely-mode ADE (m) over the horizon on ``data``."""
     model.eval()
     b = rows_of(data, torch.arange(data["actions"].shape[0]))
     loss, parts = model.forecaster.loss(b, b["actions"], b["future_xy"])
