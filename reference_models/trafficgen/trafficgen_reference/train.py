@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> None:
     from trafficrlhf_sdk import get_scenario_source
 
     options = {"root": args.root} if args.root else {}
-    # history_s=0: scenes start at their first logged step and we pick "now" ourselves; min_future_s=2: all scenes
+    # history_s=0: scenes start at their first logged step and we pick "now" ourselves; min_future_s = horizon
     cfg = TrafficGenConfig(horizon=args.horizon)
     if donor is not None:  # the initializer's architecture must match the copied weights
         for key in INITIALIZER_FIELDS:
