@@ -15,10 +15,32 @@ import json
 
 import torch
 
-from trafficrlhf_sdk import get_scenario_source
+from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.align.contexts import held_out_scene_ids
 from trafficrlhf_sdk.cli.evaluate import build_policy
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+
+
+KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
+        "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed")
+
+
+def held_out_scenes(holdout_every: int | None, first: int = 400) -> tuple[list[str], ScenarioTensor]:
+    """The held-out train scene ids and their batch (every ``holdout_every``-th scene, or those after ``first``)."""
+    source = get_scenario_source("nuscenes_pred")
+    ids = source.scene_ids("train")
+    ids = held_out_scene_ids(ids, holdout_every) if holdout_every else ids[first:]
+    return ids, source.load_batch("train", scene_ids=ids)
+
+
+def held_out_report(model: str, checkpoint: str | None, guidance: str | None, scenario: ScenarioTensor,
+                    seed: int) -> dict[str, float]:
+    """Closed-loop metrics of ``model`` (optionally ``checkpoint``) on ``scenario``; failure rates are shares of
+    controlled agents, realism deviations Wasserstein distances (m/s^2, m/s^3)."""
+    torch.manual_seed(seed)
+    policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
+    report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=seed))
+    return {"wall_s": round(report.wall_time_s, 1), **{k: round(report.values[k], 4) for k in KEYS}}
 
 
 def main() -> None:
@@ -33,17 +55,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    torch.manual_seed(args.seed)
-    policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint, "seed": args.seed})
-    source = get_scenario_source("nuscenes_pred")
-    ids = source.scene_ids("train")
-    ids = held_out_scene_ids(ids, args.holdout_every) if args.holdout_every else ids[args.first:]
-    scenario = source.load_batch("train", scene_ids=ids)
-    report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=args.seed))
-    keys = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
-            "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed")
-    print(json.dumps({"scenes": len(ids), "checkpoint": args.checkpoint, "wall_s": round(report.wall_time_s, 1),
-                      **{k: round(report.values[k], 4) for k in keys}}))
+    ids, scenario = held_out_scenes(args.holdout_every, args.first)
+    report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed)
+    print(json.dumps({"scenes": len(ids), "checkpoint": args.checkpoint, **report}))
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
-# guidance, the aligned CTG, the 4 s CTG with its aligned version, and the 4 s TrafficGen with its aligned
-# version; a comparison table closes. Outputs land in out/main/.
+# guidance, the aligned CTG, the 4 s CTG with its aligned version, TrafficGen with its aligned-and-extrapolated
+# version, and the 4 s TrafficGen with its aligned version; a comparison table closes. Outputs land in out/main/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -26,6 +26,11 @@ $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/ct
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/ctg4s_no_collision"
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg4s_aligned_no_collision"
+# TrafficGen and its aligned version extrapolated by 2 (reference_models/aligned/trafficgen_x2/README.md)
+$T evaluate --model trafficgen --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
+  --out "$OUT/trafficgen_no_collision"
+$T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_x2 \
+  --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen_x2_no_collision"
 # the 4 s TrafficGen and its aligned version (reference_models/aligned/trafficgen_4s/README.md)
 $T evaluate --model trafficgen --guidance no_collision \
   --checkpoint reference_models/trafficgen/checkpoints/trafficgen_small_4s --source nuscenes_pred --split val \
@@ -33,6 +38,7 @@ $T evaluate --model trafficgen --guidance no_collision \
 $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_4s \
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen4s_aligned_no_collision"
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
-  "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/trafficgen4s_no_collision" \
+  "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/trafficgen_no_collision" \
+  "$OUT/trafficgen_x2_no_collision" "$OUT/trafficgen4s_no_collision" \
   "$OUT/trafficgen4s_aligned_no_collision" | tee "$OUT/comparison.md"
 echo "main job done: results in $OUT/"

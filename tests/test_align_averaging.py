@@ -1,15 +1,19 @@
-"""Weight averaging of aligned checkpoints (``average_checkpoints``, ``trafficrlhf average``)."""
+"""Weight averaging and extrapolation of aligned checkpoints (``average_checkpoints``, ``extrapolate_checkpoint``,
+``trafficrlhf average`` / ``extrapolate``, ``scripts/extrapolation_sweep.py``)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from trafficrlhf_sdk.align import average_checkpoints
+from trafficrlhf_sdk.align import average_checkpoints, extrapolate_checkpoint
 from trafficrlhf_sdk.cli import main
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
@@ -103,3 +107,98 @@ def test_cli_average(three: list[str], tmp_path, capsys) -> None:  # type: ignor
     with pytest.raises(SystemExit) as usage:
         main(["average", *three, "--out", str(tmp_path / "z"), "--weights", "1,a"])
     assert usage.value.code == 2
+
+
+def test_extrapolation_is_base_plus_factor_times_the_step(three: list[str], tmp_path) -> None:  # type: ignore[no-untyped-def]
+    base_dir, aligned_dir = three[0], three[1]
+    base, aligned = _weights(base_dir), _weights(aligned_dir)
+    frozen = next(k for k, v in base.items() if v.is_floating_point())
+    aligned[frozen] = base[frozen].clone()  # a parameter group alignment did not train
+    save_file(aligned, os.path.join(aligned_dir, "model.safetensors"))
+    for factor in (0.0, 0.5, 1.0, 2.0, 3.5):
+        out = _weights(extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / f"x{factor}"), factor))
+        assert out.keys() == base.keys()
+        for name, value in out.items():
+            assert value.dtype == base[name].dtype
+            expected = base[name].double() + factor * (aligned[name].double() - base[name].double())
+            torch.testing.assert_close(value.double(), expected, atol=1e-6, rtol=0)
+        assert torch.equal(out[frozen], base[frozen]), "an untrained tensor must stay bitwise equal to the base"
+        if factor in (0.0, 1.0):
+            source = base if factor == 0.0 else aligned
+            assert all(torch.equal(out[k], source[k]) for k in out)
+    record = json.loads((tmp_path / "x2.0" / "extrapolated_from.json").read_text())
+    assert record == {"base": base_dir, "aligned": aligned_dir, "factor": 2.0}
+    adapter = gru.ExampleGRUAdapter.from_pretrained(str(tmp_path / "x2.0"))
+    assert torch.equal(adapter.module.state_dict()[frozen], base[frozen])
+
+
+def test_extrapolation_rejects_bad_requests(three: list[str], tmp_path) -> None:  # type: ignore[no-untyped-def]
+    for factor in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(TrafficRLHFError, match="factor"):
+            extrapolate_checkpoint(three[0], three[1], str(tmp_path / "x"), factor)
+    with pytest.raises(TrafficRLHFError, match="one of the inputs"):
+        extrapolate_checkpoint(three[0], three[1], three[1], 2.0)
+    with pytest.raises(DataNotFoundError, match=r"model\.safetensors|config\.json"):
+        extrapolate_checkpoint(three[0], str(tmp_path / "missing"), str(tmp_path / "x"), 2.0)
+    shrunk = tmp_path / "shrunk"
+    shrunk.mkdir()
+    (shrunk / "config.json").write_text(open(os.path.join(three[1], "config.json")).read())
+    state = _weights(three[1])
+    name = next(k for k, v in state.items() if v.is_floating_point() and v.dim() > 0)
+    state[name] = state[name][:1].clone()
+    save_file(state, str(shrunk / "model.safetensors"))
+    with pytest.raises(DataFormatError, match=name):
+        extrapolate_checkpoint(three[0], str(shrunk), str(tmp_path / "x"), 2.0)
+    assert not (tmp_path / "x").exists(), "nothing is written when the inputs are bad"
+
+
+def test_cli_extrapolate(three: list[str], tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    out = str(tmp_path / "x2")
+    with pytest.raises(SystemExit) as done:
+        main(["extrapolate", three[1], "--base", three[0], "--factor", "2", "--out", out])
+    assert done.value.code in (0, None)
+    assert "base + 2 x (aligned - base)" in capsys.readouterr().out
+    assert json.loads(open(os.path.join(out, "extrapolated_from.json")).read())["factor"] == 2.0
+    with pytest.raises(SystemExit) as usage:
+        main(["extrapolate", three[1], "--base", three[0], "--factor", "-1", "--out", str(tmp_path / "y")])
+    assert usage.value.code == 2
+    assert "--factor" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as failed:
+        main(["extrapolate", str(tmp_path / "nope"), "--base", three[0], "--factor", "2", "--out", str(tmp_path / "z")])
+    assert failed.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("Error:") and "Traceback" not in err
+
+
+def _sweep_script():  # type: ignore[no-untyped-def]
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    sys.path.insert(0, str(scripts))  # the script imports its neighbour align_dev_eval
+    try:
+        spec = importlib.util.spec_from_file_location("extrapolation_sweep", scripts / "extrapolation_sweep.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(scripts))
+    return module
+
+
+def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[str], tmp_path, data_root,
+                                                                   capsys) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("trafficrlhf_nuscenes_pred")
+    out = tmp_path / "sweep"
+    code = _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", three[1],
+                                 "--factors", "0,1,2", "--seeds", "0", "--max-scenes", "2", "--out", str(out)])
+    assert code == 0
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["scenes"] == 2 and result["factors"] == [0.0, 1.0, 2.0]
+    failures = {f: result["mean"][f]["failure_rate"] for f in ("0", "1", "2")}
+    assert all(0.0 <= v <= 1.0 for v in failures.values())
+    assert result["best_factor"] == float(min(failures, key=failures.__getitem__))
+    assert (out / "sweep.png").stat().st_size > 1000
+    assert all(torch.equal(v, _weights(three[0])[k]) for k, v in _weights(str(out / "x0")).items())
+    printed = capsys.readouterr().out
+    assert "| factor |" in printed and f"factor {result['best_factor']:g}" in printed
+    assert _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", str(tmp_path / "no"),
+                                 "--factors", "2", "--seeds", "0", "--max-scenes", "1", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith("Error:")

@@ -228,3 +228,23 @@ def average_command(checkpoints: tuple[str, ...], out_dir: str, weights: str | N
 
     average_checkpoints(checkpoints, out_dir, _parse_weights(weights))
     click.echo(f"averaged {len(checkpoints)} checkpoints into {out_dir}")
+
+
+@cli.command("extrapolate")
+@click.argument("aligned", type=click.Path(file_okay=False))
+@click.option("--base", "base_dir", required=True, type=click.Path(file_okay=False),
+              help="The checkpoint ALIGNED was fine-tuned from (e.g. the model's bundled checkpoint folder).")
+@click.option("--factor", required=True, type=click.FloatRange(min=0),
+              help="base + FACTOR x (aligned - base): 1 = ALIGNED, 2 = as far again past it, 0.5 = halfway back.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for config.json + model.safetensors (+ extrapolated_from.json).")
+def extrapolate_command(aligned: str, base_dir: str, factor: float, out_dir: str) -> None:
+    """Move an ALIGNED checkpoint further along the direction alignment took from --base (ExPO).
+
+    Choose --factor on held-out scenes (scripts/extrapolation_sweep.py); the result loads like any checkpoint:
+    `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
+    """
+    from trafficrlhf_sdk.align.averaging import extrapolate_checkpoint
+
+    extrapolate_checkpoint(base_dir, aligned, out_dir, factor)
+    click.echo(f"wrote base + {factor:g} x (aligned - base) to {out_dir}")
