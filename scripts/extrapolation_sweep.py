@@ -3,7 +3,8 @@ r"""Choose an extrapolation factor for an aligned checkpoint on held-out *train*
 For each factor f, writes base + f x (aligned - base) (``trafficrlhf extrapolate``) to OUT/x<f>, drives the
 held-out scenes in closed loop with every seed, and prints a table of the mean metrics; the factor with the lowest
 mean held-out failure rate is named last and recorded in OUT/sweep.json (with every per-seed figure), and
-OUT/sweep.png plots failure rate and realism against the factor.
+OUT/sweep.png plots failure rate and realism against the factor. With factor 0 (the base) in the sweep, it also
+names the lowest-failure factor whose held-out realism deviations (ctg and body) are both not above the base's.
 
     python scripts/extrapolation_sweep.py --model trafficgen --guidance no_collision \
         --base reference_models/trafficgen/checkpoints/trafficgen_small \
@@ -23,6 +24,8 @@ from tqdm import tqdm
 
 from trafficrlhf_sdk.align import extrapolate_checkpoint
 from trafficrlhf_sdk.errors import TrafficRLHFError
+
+REALISM = ("realism_ctg", "realism_body")  # both deviations count for "realism not worse"
 
 
 def _numbers(text: str, kind: type, option: str) -> list:  # type: ignore[type-arg]
@@ -59,8 +62,12 @@ def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list
     progress.close()
     mean = {f: {k: sum(r[k] for r in runs) / len(runs) for k in KEYS} for f, runs in per_seed.items()}
     best = min(mean, key=lambda f: mean[f]["failure_rate"])
-    return {"model": model, "base": base, "aligned": aligned, "scenes": len(ids), "seeds": seeds,
-            "factors": [float(f) for f in factors], "per_seed": per_seed, "mean": mean, "best_factor": float(best)}
+    result = {"model": model, "base": base, "aligned": aligned, "scenes": len(ids), "seeds": seeds,
+              "factors": [float(f) for f in factors], "per_seed": per_seed, "mean": mean, "best_factor": float(best)}
+    if "0" in mean:  # the base was evaluated: also name the best factor whose realism is not worse than the base's
+        keeping = [f for f in mean if all(mean[f][k] <= mean["0"][k] for k in REALISM)]
+        result["best_factor_keeping_realism"] = float(min(keeping, key=lambda f: mean[f]["failure_rate"]))
+    return result
 
 
 def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
@@ -122,6 +129,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {key} | {mean['failure_rate']:.4f} ({seeds}) | {mean['collision_rate']:.4f} | "
               f"{mean['offroad_rate']:.4f} | {mean['realism_ctg']:.4f} | {mean['realism_body']:.4f} |")
     print(f"lowest held-out failure rate: factor {result['best_factor']:g} ({args.out}/x{result['best_factor']:g})")
+    if "best_factor_keeping_realism" in result:
+        keep = result["best_factor_keeping_realism"]
+        print(f"lowest with both realism deviations not above the base's: factor {keep:g} ({args.out}/x{keep:g})")
     return 0
 
 

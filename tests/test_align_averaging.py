@@ -195,6 +195,9 @@ def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[s
     failures = {f: result["mean"][f]["failure_rate"] for f in ("0", "1", "2")}
     assert all(0.0 <= v <= 1.0 for v in failures.values())
     assert result["best_factor"] == float(min(failures, key=failures.__getitem__))
+    keeping = [f for f in failures if all(result["mean"][f][k] <= result["mean"]["0"][k]
+                                          for k in ("realism_ctg", "realism_body"))]
+    assert "0" in keeping and result["best_factor_keeping_realism"] == float(min(keeping, key=failures.__getitem__))
     assert (out / "sweep.png").stat().st_size > 1000
     assert all(torch.equal(v, _weights(three[0])[k]) for k, v in _weights(str(out / "x0")).items())
     printed = capsys.readouterr().out
