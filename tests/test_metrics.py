@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -23,6 +24,7 @@ from trafficrlhf_sdk.metrics import (  # noqa: E402
     HistogramSpec,
     RealismMetric,
     RewardCostMetric,
+    SpeedMetric,
     box_corners,
     boxes_overlap,
     collisions_per_step,
@@ -447,3 +449,22 @@ def test_constant_reward_gives_linear_cost(synthetic_rollout, r) -> None:  # typ
 def test_bad_reward_fn_raises(synthetic_rollout, make, match) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ValueError, match=match):
         RewardCostMetric(make).compute(synthetic_rollout)
+
+
+# ------------------------------------------------------------------------------------- speed against the log
+def test_speed_metric_on_log_replay_and_a_slowed_copy(synthetic_rollout) -> None:  # type: ignore[no-untyped-def]
+    """Log replay runs at the log's pace (ratio 1, same stopped share); a copy at 40 % speed whose second
+    agent stops for the last steps gives the pooled speed ratio and one stopped agent of two."""
+    values = SpeedMetric().compute(synthetic_rollout).values
+    assert values["speed_ratio"] == pytest.approx(1.0)
+    assert values["stopped_share"] == values["stopped_share_logged"] == 0.0
+    states = synthetic_rollout.simulated.states.clone()
+    states[..., 2] *= 0.4
+    states[0, 1, -5:, 2] = 0.0
+    slowed = dataclasses.replace(synthetic_rollout,
+                                 simulated=synthetic_rollout.simulated.replace_unchecked(states=states))
+    values = SpeedMetric().compute(slowed).values
+    window = slice(synthetic_rollout.start_index + 1, synthetic_rollout.end_index + 1)
+    expected = states[0, :, window, 2].double().sum() / synthetic_rollout.logged.states[0, :, window, 2].double().sum()
+    assert values["speed_ratio"] == pytest.approx(float(expected))
+    assert values["stopped_share"] == 0.5 and values["stopped_share_logged"] == 0.0

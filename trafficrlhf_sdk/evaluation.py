@@ -21,7 +21,7 @@ from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_
 
 __all__ = ["EvaluationConfig", "EvaluationReport", "evaluate_policy", "plot_histograms", "run_batched"]
 
-DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives")
+DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives", "speed")
 
 
 class EvaluationConfig(BaseModel):

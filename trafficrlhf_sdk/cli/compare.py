@@ -22,6 +22,9 @@ ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
     ("guidance_target_speed", "target-speed error (m/s)"),
     ("guidance_goal_waypoint", "goal distance (m)"),
+    ("speed_ratio", "speed / logged speed"),
+    ("stopped_share", "stopped at the end (share)"),
+    ("stopped_share_logged", "  stopped in the log"),
     ("reward_cost", "reward cost"),
 )
 

@@ -1,4 +1,5 @@
-"""Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), reward cost."""
+"""Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), speed against the log,
+reward cost."""
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_corner_share, offroad_per_step
@@ -12,6 +13,7 @@ from trafficrlhf_sdk.metrics.realism import (
     scene_histogram,
 )
 from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric, RewardFn
+from trafficrlhf_sdk.metrics.speed import SpeedMetric
 
 __all__ = [
     "FailureMetric",
@@ -22,6 +24,7 @@ __all__ = [
     "RealismMetric",
     "RewardCostMetric",
     "RewardFn",
+    "SpeedMetric",
     "box_corners",
     "boxes_overlap",
     "collisions_per_step",
