@@ -22,7 +22,7 @@ from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
 
 KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
-        "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed")
+        "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed", "speed_ratio", "stopped_share")
 
 
 def held_out_scenes(holdout_every: int | None, first: int = 400) -> tuple[list[str], ScenarioTensor]:

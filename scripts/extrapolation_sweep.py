@@ -5,6 +5,7 @@ held-out scenes in closed loop with every seed, and prints a table of the mean m
 mean held-out failure rate is named last and recorded in OUT/sweep.json (with every per-seed figure), and
 OUT/sweep.png plots failure rate and realism against the factor. With factor 0 (the base) in the sweep, it also
 names the lowest-failure factor whose held-out realism deviations (ctg and body) are both not above the base's.
+Read the speed columns too: a factor can cut failures by stopping agents (speed / log well below 1).
 
     python scripts/extrapolation_sweep.py --model trafficgen --guidance no_collision \
         --base reference_models/trafficgen/checkpoints/trafficgen_small \
@@ -71,7 +72,7 @@ def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list
 
 
 def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
-    """Failure rate (mean and per seed) and both realism deviations against the factor, as a PNG."""
+    """Failure rate (mean and per seed), both realism deviations and the speed against the log, per factor (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,7 +80,7 @@ def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
 
     factors = result["factors"]
     keys = [f"{f:g}" for f in factors]
-    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
+    fig, (left, right, speed) = plt.subplots(1, 3, figsize=(13, 3.5))
     for i in range(len(result["seeds"])):
         left.plot(factors, [result["per_seed"][k][i]["failure_rate"] for k in keys], color="0.7", lw=1)
     left.plot(factors, [result["mean"][k]["failure_rate"] for k in keys], "o-", color="C3", label="mean of seeds")
@@ -89,6 +90,12 @@ def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
         right.plot(factors, [result["mean"][k][name] for k in keys], "o-", color=color, label=name)
     right.set(xlabel="factor", ylabel="realism deviation (lower is better)")
     right.legend()
+    speed.plot(factors, [result["mean"][k]["speed_ratio"] for k in keys], "o-", color="C1", label="speed / logged")
+    speed.plot(factors, [result["mean"][k]["stopped_share"] for k in keys], "o-", color="C4",
+               label="stopped at the end")
+    speed.axhline(1.0, color="0.6", lw=0.8, ls="--")
+    speed.set(xlabel="factor", ylabel="speed ratio / share of agents")
+    speed.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -122,12 +129,13 @@ def main(argv: list[str] | None = None) -> int:
         json.dump(result, handle, indent=2)
     plot(result, os.path.join(args.out, "sweep.png"))
     print(f"held out: {result['scenes']} scenes, seeds {args.seeds}")
-    print("| factor | failure (per seed) | collision | off-road | realism ctg | realism body |")
-    print("|---|---|---|---|---|---|")
+    print("| factor | failure (per seed) | collision | off-road | realism ctg | realism body | speed / log | stopped |")
+    print("|---|---|---|---|---|---|---|---|")
     for key, mean in result["mean"].items():
         seeds = " / ".join(f"{r['failure_rate']:.4f}" for r in result["per_seed"][key])
         print(f"| {key} | {mean['failure_rate']:.4f} ({seeds}) | {mean['collision_rate']:.4f} | "
-              f"{mean['offroad_rate']:.4f} | {mean['realism_ctg']:.4f} | {mean['realism_body']:.4f} |")
+              f"{mean['offroad_rate']:.4f} | {mean['realism_ctg']:.4f} | {mean['realism_body']:.4f} | "
+              f"{mean['speed_ratio']:.3f} | {mean['stopped_share']:.3f} |")
     print(f"lowest held-out failure rate: factor {result['best_factor']:g} ({args.out}/x{result['best_factor']:g})")
     if "best_factor_keeping_realism" in result:
         keep = result["best_factor_keeping_realism"]
