@@ -41,11 +41,13 @@ def _numbers(text: str, kind: type, option: str) -> list:  # type: ignore[type-a
 
 def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list[int], out_dir: str,
           guidance: str | None, holdout_every: int | None, first: int = 400,
-          max_scenes: int | None = None) -> dict:  # type: ignore[type-arg]
+          max_scenes: int | None = None, min_speed_ratio: float | None = None) -> dict:  # type: ignore[type-arg]
     """Evaluate base + f x (aligned - base) for every f in ``factors`` on the held-out scenes, every seed.
 
     Returns {"factors": [...], "per_seed": {f: [report per seed]}, "mean": {f: {metric: mean}}, "best_factor": f};
-    rates are shares of controlled agents, realism deviations Wasserstein distances (m/s^2, m/s^3).
+    rates are shares of controlled agents, realism deviations Wasserstein distances (m/s^2, m/s^3). With
+    ``min_speed_ratio``, only factors whose mean held-out speed / logged speed reaches it can be chosen
+    (``best_factor`` None when none does).
     """
     ids, scenario = held_out_scenes(holdout_every, first)
     if max_scenes is not None:
@@ -62,12 +64,17 @@ def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list
             progress.update()
     progress.close()
     mean = {f: {k: sum(r[k] for r in runs) / len(runs) for k in KEYS} for f, runs in per_seed.items()}
-    best = min(mean, key=lambda f: mean[f]["failure_rate"])
+    fast_enough = [f for f in mean if min_speed_ratio is None or mean[f]["speed_ratio"] >= min_speed_ratio]
+
+    def lowest_failure(candidates: list[str]) -> float | None:
+        return float(min(candidates, key=lambda f: mean[f]["failure_rate"])) if candidates else None
+
     result = {"model": model, "base": base, "aligned": aligned, "scenes": len(ids), "seeds": seeds,
-              "factors": [float(f) for f in factors], "per_seed": per_seed, "mean": mean, "best_factor": float(best)}
+              "factors": [float(f) for f in factors], "per_seed": per_seed, "mean": mean,
+              "min_speed_ratio": min_speed_ratio, "best_factor": lowest_failure(fast_enough)}
     if "0" in mean:  # the base was evaluated: also name the best factor whose realism is not worse than the base's
-        keeping = [f for f in mean if all(mean[f][k] <= mean["0"][k] for k in REALISM)]
-        result["best_factor_keeping_realism"] = float(min(keeping, key=lambda f: mean[f]["failure_rate"]))
+        keeping = [f for f in fast_enough if all(mean[f][k] <= mean["0"][k] for k in REALISM)]
+        result["best_factor_keeping_realism"] = lowest_failure(keeping)
     return result
 
 
@@ -114,6 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--holdout-every", type=int, default=10,
                         help="The scenes `align --holdout-every K` kept out [default: 10].")
     parser.add_argument("--max-scenes", type=int, default=None, help="Only the first N held-out scenes (smoke runs).")
+    parser.add_argument("--min-speed-ratio", type=float, default=None,
+                        help="Choose only among factors whose held-out speed / logged speed is at least this, "
+                             "e.g. 0.9 (failures avoided by stopping do not count).")
     parser.add_argument("--out", required=True, help="Folder for the checkpoints, sweep.json and sweep.png.")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -121,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--factors has a negative value ({args.factors}); factors are >= 0.")
     try:
         result = sweep(args.model, args.base, args.aligned, args.factors, args.seeds, args.out, args.guidance,
-                       args.holdout_every, max_scenes=args.max_scenes)
+                       args.holdout_every, max_scenes=args.max_scenes, min_speed_ratio=args.min_speed_ratio)
     except TrafficRLHFError as exc:
         print(f"Error: {exc}", file=sys.stderr)
         return 2
@@ -136,10 +146,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {key} | {mean['failure_rate']:.4f} ({seeds}) | {mean['collision_rate']:.4f} | "
               f"{mean['offroad_rate']:.4f} | {mean['realism_ctg']:.4f} | {mean['realism_body']:.4f} | "
               f"{mean['speed_ratio']:.3f} | {mean['stopped_share']:.3f} |")
-    print(f"lowest held-out failure rate: factor {result['best_factor']:g} ({args.out}/x{result['best_factor']:g})")
-    if "best_factor_keeping_realism" in result:
-        keep = result["best_factor_keeping_realism"]
-        print(f"lowest with both realism deviations not above the base's: factor {keep:g} ({args.out}/x{keep:g})")
+    pace = "" if args.min_speed_ratio is None else f" (speed / log >= {args.min_speed_ratio:g})"
+    for label, key in (("lowest held-out failure rate", "best_factor"),
+                       ("lowest with both realism deviations not above the base's", "best_factor_keeping_realism")):
+        if key in result:
+            factor = result[key]
+            print(f"{label}{pace}: " + ("no factor qualifies" if factor is None else f"factor {factor:g} "
+                                                                                  f"({args.out}/x{factor:g})"))
     return 0
 
 

@@ -202,6 +202,10 @@ def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[s
     assert all(torch.equal(v, _weights(three[0])[k]) for k, v in _weights(str(out / "x0")).items())
     printed = capsys.readouterr().out
     assert "| factor |" in printed and f"factor {result['best_factor']:g}" in printed
+    slow = _sweep_script().sweep("example_gru", three[0], three[1], [0.0, 2.0], [0], str(tmp_path / "s2"), None, 10,
+                                 max_scenes=2, min_speed_ratio=1e6)
+    assert slow["best_factor"] is None and slow["best_factor_keeping_realism"] is None
+    capsys.readouterr()
     assert _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", str(tmp_path / "no"),
                                  "--factors", "2", "--seeds", "0", "--max-scenes", "1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.startswith("Error:")

@@ -42,7 +42,7 @@ def _read(directory: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     weights_path = os.path.join(directory, "model.safetensors")
     for path in (config_path, weights_path):
         if not os.path.isfile(path):
-            raise DataNotFoundError(f"{path!r} does not exist: each folder to average must hold config.json and "
+            raise DataNotFoundError(f"{path!r} does not exist: each checkpoint folder must hold config.json and "
                                     "model.safetensors (written by `trafficrlhf align --out` or save_pretrained).")
     with open(config_path, encoding="utf-8") as handle:
         try:
