@@ -239,3 +239,32 @@ def test_a_reward_horizon_shorter_than_the_models_scores_only_the_first_steps(
     assert trainer.future_steps == model.horizon > 5  # the imitation loss keeps the whole horizon
     trainer._rollout(0)
     assert seen == [5]
+
+
+def test_rewards_that_use_the_log_get_the_log_not_the_contexts_own_continuation(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    """Failure-focused contexts continue with the driving model's own steps; the reference a ``uses_log`` reward
+    compares with must be the logged future of the same window."""
+    from trafficrlhf_sdk.align.rewards import RealismReward
+
+    seen: list[tuple[ScenarioTensor, ScenarioTensor]] = []
+
+    class Recording(RealismReward):
+        def agent_scores(self, scenario, logged=None):  # type: ignore[no-untyped-def, override]
+            seen.append((scenario, logged))
+            return super().agent_scores(scenario, logged=logged)
+
+    config = AlignConfig(credit="agent", failure_fraction=1.0, failure_scenes=8, failure_drive_s=6.0,
+                         failure_lead_steps=(3, 8), **FAST)
+    trainer = AlignTrainer(_model(), Recording(), config, scenes=train_scene_list)
+    contexts, logged = trainer._contexts(0)
+    trainer._rollout(0)
+    scenario, reference = seen[-1]
+    s, now = config.samples_per_context, contexts.current_index
+    start = now - scenario.current_index  # the reward window keeps reward_history_steps of history
+    expected = logged[torch.arange(contexts.num_scenes).repeat_interleave(s)].time_slice(
+        start, start + scenario.num_steps)
+    assert torch.equal(reference.states, expected.states) and torch.equal(reference.valid, expected.valid)
+    own = contexts.states[:, :, now + 1:] * contexts.valid[:, :, now + 1:, None]
+    log = logged.states[:, :, now + 1:] * logged.valid[:, :, now + 1:, None]
+    assert not torch.equal(own, log), "the failure-focused contexts should differ from the log after now"

@@ -305,10 +305,12 @@ class AlignTrainer:
         b = contexts.num_scenes
         if self.config.credit == "agent":
             reference = None
-            if getattr(self.reward_model, "uses_log", False):  # each context's own future is the log
+            if getattr(self.reward_model, "uses_log", False):
+                # the log of the same window, not the context: a closed-loop or failure-focused context
+                # continues with the model's own driving, which a comparison with the log must not see
                 repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
                 start = max(0, contexts.current_index - self.config.reward_history_steps)
-                reference = contexts[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
+                reference = logged[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
             per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)

@@ -15,28 +15,42 @@ __all__ = ["align_command", "load_reward"]
 BUILTIN_PREFIX = "builtin:"
 
 
-def load_reward(spec: str) -> object:
+def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
     """A saved reward-model folder, or a hand-written reward: ``builtin:failure``, ``builtin:collision``,
     ``builtin:realism``, or ``builtin:failure-margins`` / ``builtin:realism-margins`` (the same with the
-    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`), or ``builtin:realism-speed``
-    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`)."""
+    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`), ``builtin:realism-speed``
+    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`)
+    or ``builtin:realism-kinematics`` (``realism-margins`` plus its kinematic-histogram term).
+
+    ``options`` override keyword arguments of a built-in reward's constructor (``--reward-option``)."""
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+
+    options = dict(options or {})
     if spec.startswith(BUILTIN_PREFIX):
         from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward
-        from trafficrlhf_sdk.errors import TrafficRLHFError
 
         builders = {
-            "failure": FailureReward,
-            "collision": lambda: FailureReward(offroad=False),
-            "realism": RealismReward,
-            "failure-margins": lambda: FailureReward(margins=True),
-            "realism-margins": lambda: RealismReward(margins=True),
-            "realism-speed": lambda: RealismReward(margins=True, speed_weight=1.0),
+            "failure": (FailureReward, {}),
+            "collision": (FailureReward, {"offroad": False}),
+            "realism": (RealismReward, {}),
+            "failure-margins": (FailureReward, {"margins": True}),
+            "realism-margins": (RealismReward, {"margins": True}),
+            "realism-speed": (RealismReward, {"margins": True, "speed_weight": 1.0}),
+            "realism-kinematics": (RealismReward, {"margins": True, "kinematics_weight": 0.5}),
         }
         name = spec[len(BUILTIN_PREFIX):]
         if name not in builders:
             raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use one of "
                                    f"{', '.join(BUILTIN_PREFIX + n for n in builders)}.")
-        return builders[name]()
+        cls, defaults = builders[name]
+        try:
+            return cls(**{**defaults, **options})
+        except TypeError as error:
+            raise TrafficRLHFError(f"--reward-option {sorted(options)} does not fit {spec!r} ({error}); use "
+                                   f"keyword arguments of {cls.__name__}.") from None
+    if options:
+        raise TrafficRLHFError(f"--reward-option {sorted(options)} applies to built-in rewards only; {spec!r} is "
+                               "a saved reward model.")
     from trafficrlhf_sdk.reward import RewardModel
 
     return RewardModel.from_pretrained(spec).eval()
@@ -60,7 +74,10 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
               help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
-                   "builtin:realism / builtin:failure-margins / builtin:realism-margins / builtin:realism-speed.")
+                   "builtin:realism / builtin:failure-margins / builtin:realism-margins / builtin:realism-speed / "
+                   "builtin:realism-kinematics.")
+@click.option("--reward-option", "reward_options", multiple=True, metavar="KEY=VALUE",
+              help="Keyword argument of a built-in reward (JSON value), repeatable, e.g. kinematics_weight=1.0.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
               help="Weight of the PPO surrogate [default: the paper's value: ctg 0.1, bits 0.5, trafficgen 0.3].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
@@ -126,7 +143,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch tables.")
-def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: str, checkpoint: str | None,
+def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...], alpha: float | None, out_dir: str,
+                  checkpoint: str | None,
                   epochs: int | None, contexts: int | None, samples: int | None, ppo_epochs: int | None,
                   minibatch: int | None, lr: float | None, lr_schedule: str | None, clip_range: float | None,
                   kl_coef: float | None,
@@ -152,12 +170,13 @@ def align_command(model: str, reward_spec: str, alpha: float | None, out_dir: st
 
     if threads is not None:
         torch.set_num_threads(threads)
-    reward = load_reward(reward_spec)
+    from trafficrlhf_sdk.cli import parse_key_values
+
+    reward = load_reward(reward_spec, parse_key_values(reward_options, "--reward-option"))
     if pessimism is not None:
         from trafficrlhf_sdk.align.rewards import PessimisticReward
 
         reward = PessimisticReward(reward, pessimism)
-    from trafficrlhf_sdk.cli import parse_key_values
 
     adapter = build_policy(model, {**parse_key_values(model_options, "--model-option"), "checkpoint": checkpoint,
                                    "seed": seed})
