@@ -119,3 +119,20 @@ def test_builtin_and_reward_options() -> None:
         RealismReward(kinematics_weight=-0.1)
     with pytest.raises(TrafficRLHFError, match="built-in rewards only"):
         load_reward("some/reward_model_folder", {"beta": 1.0})
+
+
+def test_num_samples_keeps_the_first_future_samples_only() -> None:
+    """With one sample scored, only the first 0.5 s after now counts: agents that differ from the log only later
+    (a braking that starts 1 s after now) score like the log."""
+    log = _scenes([[0.0, 1.5, 0.0, 1.5]])
+    late = log.states.clone()
+    time_s = torch.arange(51, dtype=torch.float64) * 0.1
+    shift = (time_s - 2.0).clamp_min(0)  # agent 0 starts braking at 2 s, 1 s after now
+    late[0, 0, :, 0] -= (0.5 * 2.0 * shift**2).float()
+    sampled = log.replace_unchecked(states=late)
+    first_only = kinematic_log_ratio(sampled, log, log.controlled, num_samples=1)
+    every = kinematic_log_ratio(sampled, log, log.controlled)
+    assert torch.equal(first_only, torch.zeros_like(first_only))
+    assert every[0, 0] != 0
+    with pytest.raises(TrafficRLHFError, match="kinematics_samples"):
+        RealismReward(kinematics_weight=0.5, kinematics_samples=0)

@@ -143,7 +143,8 @@ class RealismReward(FailureReward):
       ``min(1, relu(|v - v_log| / max(v_log, speed_floor) - speed_tolerance))``, averaged over the agent's steps.
       Symmetric, so it penalizes driving faster than the log as much as slower; it closes the way out the stall
       term leaves open (avoid failures by slowing to just above ``stall_ratio`` x the logged speed);
-    * kinematic mismatch (``kinematics_weight > 0``): minus the mean over the agent's future 0.5 s samples of
+    * kinematic mismatch (``kinematics_weight > 0``): minus the mean over the agent's future 0.5 s samples (the
+      first ``kinematics_samples`` only, when set) of
       ``log p_log(q) - log p_sampled(q)`` for its body-frame longitudinal and lateral acceleration and jerk
       (:func:`~trafficrlhf_sdk.metrics.realism.kinematics`), with ``p`` the add-one-smoothed histograms of the
       logged futures and of all samples in the call (one fine-tuning epoch), the ratio clipped to +-3. A
@@ -161,7 +162,7 @@ class RealismReward(FailureReward):
     def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.5,
                  stall_log_speed: float = 2.0, max_accel: float = 3.0, margins: bool = False,
                  speed_weight: float = 0.0, speed_tolerance: float = 0.25, speed_floor: float = 3.0,
-                 kinematics_weight: float = 0.0) -> None:
+                 kinematics_weight: float = 0.0, kinematics_samples: int | None = None) -> None:
         super().__init__(margins=margins)
         for name, value in (("speed_weight", speed_weight), ("speed_tolerance", speed_tolerance),
                             ("kinematics_weight", kinematics_weight)):
@@ -172,7 +173,10 @@ class RealismReward(FailureReward):
         self.stall_weight, self.accel_weight = stall_weight, accel_weight
         self.stall_ratio, self.stall_log_speed, self.max_accel = stall_ratio, stall_log_speed, max_accel
         self.speed_weight, self.speed_tolerance, self.speed_floor = speed_weight, speed_tolerance, speed_floor
-        self.kinematics_weight = kinematics_weight
+        if kinematics_samples is not None and kinematics_samples < 1:
+            raise TrafficRLHFError(f"`kinematics_samples` is {kinematics_samples}; use None (every future 0.5 s "
+                                   "sample) or a count >= 1 (1 = the first 0.5 s, what a 2 Hz closed loop executes).")
+        self.kinematics_weight, self.kinematics_samples = kinematics_weight, kinematics_samples
 
     def agent_scores(self, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
         """``(B, A)`` rewards (0 for agents not scored); ``logged``: ``scenario`` with the logged future."""
@@ -202,7 +206,8 @@ class RealismReward(FailureReward):
             mismatch = (relative - self.speed_tolerance).clamp(0, 1) * both
             penalty = penalty + self.speed_weight * mismatch.sum(-1) / both.sum(-1).clamp_min(1)
         if self.kinematics_weight:
-            penalty = penalty - self.kinematics_weight * kinematic_log_ratio(scenario, logged, mask.any(-1))
+            ratio = kinematic_log_ratio(scenario, logged, mask.any(-1), self.kinematics_samples)
+            penalty = penalty - self.kinematics_weight * ratio
         return -(penalty * mask.any(-1))
 
 
@@ -214,7 +219,8 @@ KINEMATIC_BINS = {  # wider than the realism metric's bins: a reward must also s
 LOG_RATIO_CLIP = 3.0
 
 
-def kinematic_log_ratio(scenario: ScenarioTensor, logged: ScenarioTensor, agents: torch.Tensor) -> torch.Tensor:
+def kinematic_log_ratio(scenario: ScenarioTensor, logged: ScenarioTensor, agents: torch.Tensor,
+                        num_samples: int | None = None) -> torch.Tensor:
     """``(B, A)``: per agent, the mean over its valid future 0.5 s samples and the three body-frame quantities
     (``lon_acc``, ``lat_acc`` in m/s^2, ``jerk`` in m/s^3) of ``log p_log(q) - log p_scenario(q)``, clipped to
     +-3; 0 for agents outside ``agents (B, A)`` or without a future sample.
@@ -222,12 +228,17 @@ def kinematic_log_ratio(scenario: ScenarioTensor, logged: ScenarioTensor, agents
     ``p_log`` and ``p_scenario`` are add-one-smoothed histograms (:data:`KINEMATIC_BINS`, values outside
     clamped to the end bins) over the ``agents`` of every scenario in ``logged`` / ``scenario``: both sets of
     ``(B, A, T)`` windows must share shape, ``dt`` and ``current_index``. A sample counts as future when its
-    newest position lies after ``current_index``.
+    newest position lies after ``current_index``; ``num_samples`` keeps only the first ones (None: all). With
+    1 and a window whose history is a multiple of 0.5 s, the one sample scored is the first 0.5 s of the plan
+    joined to the history: the acceleration and jerk a 2 Hz closed loop actually executes.
     """
     q_sim, ok_sim, _ = kinematics(scenario, "body")
     q_log, ok_log, _ = kinematics(logged, "body")
     stride = max(1, round(STAT_DT / scenario.dt))
-    future = torch.arange(ok_sim.shape[-1], device=ok_sim.device) * stride > scenario.current_index
+    newest = torch.arange(ok_sim.shape[-1], device=ok_sim.device) * stride
+    future = newest > scenario.current_index
+    if num_samples is not None:
+        future &= torch.cumsum(future.long(), 0) <= num_samples
     sim_mask = ok_sim & future & agents[..., None]
     log_mask = ok_log & future & agents[..., None]
     total = torch.zeros(agents.shape, dtype=torch.float64, device=agents.device)
