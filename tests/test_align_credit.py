@@ -268,3 +268,11 @@ def test_rewards_that_use_the_log_get_the_log_not_the_contexts_own_continuation(
     own = contexts.states[:, :, now + 1:] * contexts.valid[:, :, now + 1:, None]
     log = logged.states[:, :, now + 1:] * logged.valid[:, :, now + 1:, None]
     assert not torch.equal(own, log), "the failure-focused contexts should differ from the log after now"
+    # log_reference="context" keeps the behaviour before the fix, to reproduce the runs trained with it
+    seen.clear()
+    old = AlignTrainer(_model(), Recording(), config.model_copy(update={"log_reference": "context"}),
+                       scenes=train_scene_list)
+    old._rollout(0)
+    expected_old = contexts[torch.arange(contexts.num_scenes).repeat_interleave(s)].time_slice(
+        start, start + scenario.num_steps)
+    assert torch.equal(seen[-1][1].states, expected_old.states)

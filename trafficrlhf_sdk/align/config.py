@@ -110,6 +110,12 @@ class AlignConfig(BaseModel):
                                        "horizon); None: the horizon.")
     reward_history_steps: int = Field(10, ge=0, description="History steps handed to the reward model in front "
                                                             "of the sampled future (it sees step_dt back).")
+    log_reference: Literal["log", "context"] = Field("log", description="What a reward with `uses_log` "
+                                                     "compares the samples with: 'log', the logged window; "
+                                                     "'context', each context's own continuation (the model's "
+                                                     "own driving in closed-loop and failure-focused "
+                                                     "contexts): how every run before session 11 was trained, "
+                                                     "kept to reproduce them.")
 
     # ---------------------------------------------------------------- data
     source: str = Field("nuscenes_pred", description="Registered scenario source of the training contexts.")

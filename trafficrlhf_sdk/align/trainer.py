@@ -310,7 +310,8 @@ class AlignTrainer:
                 # continues with the model's own driving, which a comparison with the log must not see
                 repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
                 start = max(0, contexts.current_index - self.config.reward_history_steps)
-                reference = logged[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
+                source = logged if self.config.log_reference == "log" else contexts
+                reference = source[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
             per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)

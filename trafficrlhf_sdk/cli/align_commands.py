@@ -121,6 +121,9 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon; "
                    "fewer than the horizon scores the first steps only).")
+@click.option("--log-reference", type=click.Choice(["log", "context"]), default=None,
+              help="What rewards that use the log compare with: the logged window, or each context's own "
+                   "continuation (how runs before session 11 were trained) [default: log].")
 @click.option("--holdout-every", type=click.IntRange(min=2), default=None,
               help="Never train on every k-th scene of the split (a held-out set spread over it; "
                    "scripts/align_dev_eval.py --holdout-every k evaluates them).")
@@ -153,7 +156,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, credit: str | None,
                   denoising_steps: int | None, pessimism: float | None,
-                  reward_horizon: int | None, holdout_every: int | None, eval_every: int | None,
+                  reward_horizon: int | None, log_reference: str | None, holdout_every: int | None,
+                  eval_every: int | None,
                   eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
                   num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
@@ -192,7 +196,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
-        "failure_lead_steps": _parse_lead(failure_lead), "credit": credit,
+        "failure_lead_steps": _parse_lead(failure_lead), "credit": credit, "log_reference": log_reference,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
