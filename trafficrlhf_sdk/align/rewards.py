@@ -152,6 +152,8 @@ class RealismReward(FailureReward):
       whose accelerations the model produces more often than the log lose, rarer ones gain, so the policy is
       pushed towards the logged histograms the realism metric compares with. The failure terms alone narrow
       them (the aligned 4 s CTG brakes and accelerates less hard than the log: realism (body) 0.102 -> 0.127).
+      Measured on the 4 s CTG (docs/explanation/alignment-results.md, session 11): it brings the paper-style
+      realism deviation below the base's, and takes most of the failure gain with it.
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
     39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
