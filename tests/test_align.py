@@ -173,6 +173,20 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:collision",
                                     "--out", out, "--failure-lead", "ten"])
     assert bad.exit_code == 2 and "--failure-lead" in bad.output and "'ten'" in bad.output
+    # a built-in reward with options, the pre-fix log reference, and a misspelt option
+    out2 = str(tmp_path / "aligned_kinematics")
+    result = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model",
+                                       "builtin:realism-kinematics", "--reward-option", "kinematics_samples=1",
+                                       "--reward-option", "kinematics_weight=0.3", "--log-reference", "context",
+                                       "--out", out2, "--epochs", "1", "--contexts", "2", "--samples", "2",
+                                       "--scenes", "3", "--threads", "1", "--quiet", "--credit", "agent"],
+                           catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    history = json.load(open(os.path.join(out2, "align_history.json"), encoding="utf-8"))
+    assert history["config"]["log_reference"] == "context"
+    bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:realism-kinematics",
+                                    "--reward-option", "kinematics_wieght=0.3", "--out", out2, "--credit", "agent"])
+    assert bad.exit_code != 0 and "kinematics_wieght" in str(bad.exception)
 
 
 def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> None:
