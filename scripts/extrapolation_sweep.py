@@ -1,4 +1,4 @@
-r"""Choose an extrapolation factor for an aligned checkpoint on held-out *train* scenes (never val).
+r"""Choose an extrapolation factor for an aligned checkpoint on development scenes (never the reported val ones).
 
 For each factor f, writes base + f x (aligned - base) (``trafficrlhf extrapolate``) to OUT/x<f>, drives the
 held-out scenes in closed loop with every seed, and prints a table of the mean metrics; the factor with the lowest
@@ -10,6 +10,9 @@ Read the speed columns too: a factor can cut failures by stopping agents (speed 
     python scripts/extrapolation_sweep.py --model trafficgen --guidance no_collision \
         --base reference_models/trafficgen/checkpoints/trafficgen_small \
         --aligned reference_models/aligned/trafficgen --factors 0,1,1.5,2,2.5,3 --holdout-every 10 --out out/sweep
+
+``--split val`` sweeps on the val scenes after the first 100 instead (unseen by every model; see
+``align_dev_eval.py``).
 """
 
 from __future__ import annotations
@@ -40,16 +43,18 @@ def _numbers(text: str, kind: type, option: str) -> list:  # type: ignore[type-a
 
 
 def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list[int], out_dir: str,
-          guidance: str | None, holdout_every: int | None, first: int = 400,
-          max_scenes: int | None = None, min_speed_ratio: float | None = None) -> dict:  # type: ignore[type-arg]
-    """Evaluate base + f x (aligned - base) for every f in ``factors`` on the held-out scenes, every seed.
+          guidance: str | None, holdout_every: int | None, first: int | None = None,
+          max_scenes: int | None = None, min_speed_ratio: float | None = None,
+          split: str = "train") -> dict:  # type: ignore[type-arg]
+    """Evaluate base + f x (aligned - base) for every f in ``factors`` on the development scenes of ``split``
+    (held-out train scenes, or the val tail after the reported 100: ``align_dev_eval.held_out_scenes``), every seed.
 
     Returns {"factors": [...], "per_seed": {f: [report per seed]}, "mean": {f: {metric: mean}}, "best_factor": f};
     rates are shares of controlled agents, realism deviations Wasserstein distances (m/s^2, m/s^3). With
     ``min_speed_ratio``, only factors whose mean held-out speed / logged speed reaches it can be chosen
     (``best_factor`` None when none does).
     """
-    ids, scenario = held_out_scenes(holdout_every, first)
+    ids, scenario = held_out_scenes(holdout_every, first, split)
     if max_scenes is not None:
         ids, scenario = ids[:max_scenes], scenario[:max_scenes]
     # every checkpoint first: a bad input fails before any driving
@@ -69,7 +74,7 @@ def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list
     def lowest_failure(candidates: list[str]) -> float | None:
         return float(min(candidates, key=lambda f: mean[f]["failure_rate"])) if candidates else None
 
-    result = {"model": model, "base": base, "aligned": aligned, "scenes": len(ids), "seeds": seeds,
+    result = {"model": model, "base": base, "aligned": aligned, "split": split, "scenes": len(ids), "seeds": seeds,
               "factors": [float(f) for f in factors], "per_seed": per_seed, "mean": mean,
               "min_speed_ratio": min_speed_ratio, "best_factor": lowest_failure(fast_enough)}
     if "0" in mean:  # the base was evaluated: also name the best factor whose realism is not worse than the base's
@@ -120,6 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--guidance", default=None, help="Guidance while driving, e.g. no_collision.")
     parser.add_argument("--holdout-every", type=int, default=10,
                         help="The scenes `align --holdout-every K` kept out [default: 10].")
+    parser.add_argument("--split", choices=("train", "val"), default="train",
+                        help="train: the held-out train scenes; val: the val scenes after the first 100 (those "
+                             "`trafficrlhf evaluate --scenes 100` reports on excluded; --holdout-every is ignored).")
     parser.add_argument("--max-scenes", type=int, default=None, help="Only the first N held-out scenes (smoke runs).")
     parser.add_argument("--min-speed-ratio", type=float, default=None,
                         help="Choose only among factors whose held-out speed / logged speed is at least this, "
@@ -131,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--factors has a negative value ({args.factors}); factors are >= 0.")
     try:
         result = sweep(args.model, args.base, args.aligned, args.factors, args.seeds, args.out, args.guidance,
-                       args.holdout_every, max_scenes=args.max_scenes, min_speed_ratio=args.min_speed_ratio)
+                       None if args.split == "val" else args.holdout_every, max_scenes=args.max_scenes,
+                       min_speed_ratio=args.min_speed_ratio, split=args.split)
     except TrafficRLHFError as exc:
         print(f"Error: {exc}", file=sys.stderr)
         return 2

@@ -183,15 +183,17 @@ def _sweep_script():  # type: ignore[no-untyped-def]
     return module
 
 
-def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[str], tmp_path, data_root,
-                                                                   capsys) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[str], tmp_path, data_root, capsys,
+                                                                   split: str) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("trafficrlhf_nuscenes_pred")
     out = tmp_path / "sweep"
     code = _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", three[1],
-                                 "--factors", "0,1,2", "--seeds", "0", "--max-scenes", "2", "--out", str(out)])
+                                 "--factors", "0,1,2", "--seeds", "0", "--max-scenes", "2", "--split", split,
+                                 "--out", str(out)])
     assert code == 0
     result = json.loads((out / "sweep.json").read_text())
-    assert result["scenes"] == 2 and result["factors"] == [0.0, 1.0, 2.0]
+    assert result["split"] == split and result["scenes"] == 2 and result["factors"] == [0.0, 1.0, 2.0]
     failures = {f: result["mean"][f]["failure_rate"] for f in ("0", "1", "2")}
     assert all(0.0 <= v <= 1.0 for v in failures.values())
     assert result["best_factor"] == float(min(failures, key=failures.__getitem__))
@@ -209,3 +211,28 @@ def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[s
     assert _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", str(tmp_path / "no"),
                                  "--factors", "2", "--seeds", "0", "--max-scenes", "1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.startswith("Error:")
+
+
+def _dev_eval_script():  # type: ignore[no-untyped-def]
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    spec = importlib.util.spec_from_file_location("align_dev_eval", scripts / "align_dev_eval.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drives(data_root) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("trafficrlhf_nuscenes_pred")
+    from trafficrlhf_sdk import get_scenario_source
+
+    dev = _dev_eval_script()
+    every_val = get_scenario_source("nuscenes_pred").scene_ids("val")
+    ids, batch = dev.held_out_scenes(None, None, "val")
+    reported = set(every_val[:100])  # what `trafficrlhf evaluate --scenes 100` drives
+    assert ids == every_val[100:] and ids and not reported & set(ids)
+    assert batch.num_scenes == len(ids)
+    with pytest.raises(ValueError, match="holdout_every"):
+        dev.held_out_scenes(10, None, "val")
+    with pytest.raises(ValueError, match="split"):
+        dev.held_out_scenes(None, None, "test")
