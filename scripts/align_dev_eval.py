@@ -7,8 +7,10 @@ Two kinds of development scenes:
   The bundled base models were trained on every train scene, these included, so they are easier for the base
   than unseen roads (4 s CTG: 0.082 held out against 0.138 on val) and rank settings differently from val;
 * the *val tail* (`--split val`): the long-enough val scenes after the first `--first` (default 100), those that
-  `trafficrlhf evaluate --scenes 100` reports on excluded. Unseen by every model, from the reported scenes'
-  distribution, and disjoint from them: choose there, report on the first 100.
+  `trafficrlhf evaluate --scenes 100` reports on excluded (60 scenes, 240 controlled agents). Unseen by every
+  model and disjoint from the reported scenes, but other roads: the 4 s CTG fails 0.031 there against 0.138 on
+  the reported 100, and collisions, not off-road, dominate (docs/explanation/alignment-results.md, session 12).
+  A check that a setting carries to other roads more than a place to tune failure rates.
 
     python scripts/align_dev_eval.py --model ctg --guidance no_collision [--checkpoint DIR] [--first 400]
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10
