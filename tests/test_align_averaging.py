@@ -170,17 +170,23 @@ def test_cli_extrapolate(three: list[str], tmp_path, capsys) -> None:  # type: i
     assert err.startswith("Error:") and "Traceback" not in err
 
 
-def _sweep_script():  # type: ignore[no-untyped-def]
+def _script(name: str):  # type: ignore[no-untyped-def]
+    """Import ``scripts/<name>.py`` (the scripts folder is on the path while it loads: the sweep imports its
+    neighbour align_dev_eval)."""
     scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))  # the script imports its neighbour align_dev_eval
+    sys.path.insert(0, str(scripts))
     try:
-        spec = importlib.util.spec_from_file_location("extrapolation_sweep", scripts / "extrapolation_sweep.py")
+        spec = importlib.util.spec_from_file_location(name, scripts / f"{name}.py")
         assert spec is not None and spec.loader is not None
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
     finally:
         sys.path.remove(str(scripts))
     return module
+
+
+def _sweep_script():  # type: ignore[no-untyped-def]
+    return _script("extrapolation_sweep")
 
 
 @pytest.mark.parametrize("split", ["train", "val"])
@@ -213,20 +219,11 @@ def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[s
     assert capsys.readouterr().err.startswith("Error:")
 
 
-def _dev_eval_script():  # type: ignore[no-untyped-def]
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    spec = importlib.util.spec_from_file_location("align_dev_eval", scripts / "align_dev_eval.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drives(data_root) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("trafficrlhf_nuscenes_pred")
     from trafficrlhf_sdk import get_scenario_source
 
-    dev = _dev_eval_script()
+    dev = _script("align_dev_eval")
     every_val = get_scenario_source("nuscenes_pred").scene_ids("val")
     ids, batch = dev.held_out_scenes(None, None, "val")
     reported = set(every_val[:100])  # what `trafficrlhf evaluate --scenes 100` drives
