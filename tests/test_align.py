@@ -215,3 +215,22 @@ def test_alignment_never_loads_held_out_scenes(data_root: str) -> None:
 
     ids = get_scenario_source("nuscenes_pred").scene_ids("train")
     assert loaded == [ids[0], ids[1], ids[3], ids[4]]
+
+
+def test_mirror_scenes_adds_a_mirror_image_of_every_training_scene(train_scenes: ScenarioTensor) -> None:
+    from trafficrlhf_sdk.scenario import MIRROR_SUFFIX
+
+    plain = AlignTrainer(_model(), NoCollisionReward(), AlignConfig(**FAST), scenes=train_scenes)._load_scenes()
+    trainer = AlignTrainer(_model(), NoCollisionReward(), AlignConfig(mirror_scenes=True, **FAST),
+                           scenes=train_scenes)
+    scenes = trainer._load_scenes()
+    n = train_scenes.num_scenes
+    assert len(plain) == n and len(scenes) == 2 * n
+    assert [s.scene_ids[0] for s in scenes[n:]] == [s.scene_ids[0] + MIRROR_SUFFIX for s in scenes[:n]]
+    assert torch.equal(scenes[n].states[..., 1], -scenes[0].states[..., 1])
+    drawn = set()
+    for epoch in range(4):
+        contexts, _ = trainer.context_sampler.draw(torch.Generator().manual_seed(epoch))
+        drawn |= set(contexts.scene_ids)
+    assert any(s.endswith(MIRROR_SUFFIX) for s in drawn) and not all(s.endswith(MIRROR_SUFFIX) for s in drawn)
+    trainer.train()  # failure drives and PPO run on both halves

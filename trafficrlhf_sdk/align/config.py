@@ -126,6 +126,11 @@ class AlignConfig(BaseModel):
                                       "(positions k-1, 2k-1, ...; before `num_scenes` is applied): never trained "
                                       "on, spread over the whole split, for choosing settings "
                                       "(`scripts/align_dev_eval.py --holdout-every k`). None: none held out.")
+    mirror_scenes: bool = Field(False, description="Also train on every training scene mirrored across its x axis "
+                                "(`trafficrlhf_sdk.scenario.mirror_scenario`: turns change sign, right-hand "
+                                "traffic becomes left-hand): twice the roads, and roads the base model never "
+                                "imitated, for contexts and failure-focused drives alike. Held-out scenes stay "
+                                "as recorded.")
 
     # ---------------------------------------------------------------- held-out evaluation
     eval_every: int | None = Field(None, ge=1, description="Every N epochs (and after the last), drive the "

@@ -45,6 +45,7 @@ from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.align.contexts import ContextSampler, FailureDrive, held_out_scene_ids, training_scene_ids
+from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
@@ -213,7 +214,7 @@ class AlignTrainer:
         if self.reference is not None:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)
-        self.scenes = self._split_scenes(scenes) if scenes is not None else None
+        self.scenes = self._with_mirrored(self._split_scenes(scenes)) if scenes is not None else None
         self.context_sampler = ContextSampler(model, self.config, self._load_scenes, self.guidance,
                                               self.future_steps)
         if getattr(reward_model, "uses_log", False) and self.config.credit != "agent":
@@ -252,8 +253,12 @@ class AlignTrainer:
             ids = training_scene_ids(source.scene_ids(cfg.split), cfg.holdout_every)[: cfg.num_scenes]
             if not ids:
                 raise DataNotFoundError(f"split {cfg.split!r} of {cfg.source!r} has no scene long enough.")
-            self.scenes = [source.load_scene(cfg.split, i) for i in ids]
+            self.scenes = self._with_mirrored([source.load_scene(cfg.split, i) for i in ids])
         return self.scenes
+
+    def _with_mirrored(self, scenes: list[ScenarioTensor]) -> list[ScenarioTensor]:
+        """``scenes``, followed by their mirror images when ``config.mirror_scenes``."""
+        return scenes + [mirror_scenario(scene) for scene in scenes] if self.config.mirror_scenes else scenes
 
     def _load_held_out(self) -> ScenarioTensor:
         cfg = self.config

@@ -139,6 +139,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
                    "for BITS.")
 @click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=None,
               help="Use the first N long-enough train scenes (default: all).")
+@click.option("--mirror-scenes", is_flag=True,
+              help="Also train on every training scene mirrored (twice the roads; held-out scenes stay as recorded).")
 @click.option("--source", default=None, help="Scenario source [default: nuscenes_pred].")
 @click.option("--root", default=None, help="Data directory of the source.")
 @click.option("--save-every", type=click.IntRange(min=1), default=None, help="Checkpoint every N epochs.")
@@ -160,7 +162,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   eval_every: int | None,
                   eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
-                  num_scenes: int | None, source: str | None, root: str | None, save_every: int | None, seed: int,
+                  num_scenes: int | None, mirror_scenes: bool, source: str | None, root: str | None, save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
 
@@ -200,6 +202,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
+        "mirror_scenes": mirror_scenes or None,
         "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
     }
     config = AlignConfig(

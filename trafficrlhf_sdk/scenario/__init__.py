@@ -4,9 +4,11 @@ from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.map import DEFAULT_LAYERS, MapRaster, PolylineType
 from trafficrlhf_sdk.scenario.source import ScenarioSource, SourceConfig, default_data_root
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.transforms import MIRROR_SUFFIX, mirror_scenario
 
 __all__ = [
     "DEFAULT_LAYERS",
+    "MIRROR_SUFFIX",
     "AgentType",
     "MapRaster",
     "PolylineType",
@@ -14,4 +16,5 @@ __all__ = [
     "ScenarioTensor",
     "SourceConfig",
     "default_data_root",
+    "mirror_scenario",
 ]

@@ -1,0 +1,63 @@
+"""Mirrored scenes (``mirror_scenario``): geometry the metrics see is the original's, turns change sign."""
+
+from __future__ import annotations
+
+import torch
+from hypothesis import given, settings
+
+from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.scenario import MIRROR_SUFFIX, ScenarioTensor, mirror_scenario
+from trafficrlhf_sdk.testing.strategies import feasible_trajectories, scenario_tensors
+
+
+@settings(deadline=None)
+@given(scenario_tensors(max_agents=4, with_map=None))
+def test_mirroring_twice_gives_the_scenario_back(scenario: ScenarioTensor) -> None:
+    mirrored = mirror_scenario(scenario)
+    back = mirror_scenario(mirrored)
+    assert torch.equal(back.states, scenario.states) and torch.equal(back.valid, scenario.valid)
+    assert back.scene_ids == scenario.scene_ids
+    assert all(s.endswith(MIRROR_SUFFIX) for s in mirrored.scene_ids)
+    valid = scenario.valid
+    assert torch.equal(mirrored.states[..., 1][valid], -scenario.states[..., 1][valid])
+    assert torch.equal(mirrored.states[..., [0, 2]], scenario.states[..., [0, 2]])
+    yaw = mirrored.states[..., 3]
+    assert bool(((yaw >= -torch.pi) & (yaw < torch.pi)).all())  # still wrapped, validated on construction
+    if scenario.map is not None:
+        assert torch.equal(back.map.world_to_pixel, scenario.map.world_to_pixel)
+        assert mirrored.map.raster is scenario.map.raster  # the raster is shared, only the transform changes
+
+
+@settings(deadline=None)
+@given(scenario_tensors(max_agents=4, with_map=True))
+def test_a_mirrored_point_reads_the_pixel_its_original_reads(scenario: ScenarioTensor) -> None:
+    assert torch.equal(offroad_per_step(mirror_scenario(scenario)), offroad_per_step(scenario))
+    assert torch.equal(mirror_scenario(scenario).map.to_pixel(scenario.xy * torch.tensor([1.0, -1.0])),
+                       scenario.map.to_pixel(scenario.xy))
+
+
+@settings(max_examples=50, deadline=None)
+@given(feasible_trajectories(max_agents=4, return_actions=True))
+def test_mirrored_turns_change_sign_and_speeds_do_not(drawn: tuple[ScenarioTensor, torch.Tensor]) -> None:
+    scenario, _ = drawn
+    original, mirrored = scenario.actions(), mirror_scenario(scenario).actions()
+    torch.testing.assert_close(mirrored[..., 0], original[..., 0])
+    torch.testing.assert_close(mirrored[..., 1], -original[..., 1], atol=1e-4, rtol=0)
+
+
+def test_recorded_scenes_keep_their_collisions_and_off_road_steps_when_mirrored(val_scenes: ScenarioTensor) -> None:
+    # the logged agents rarely fail, so push them around by a few metres to get failures of both kinds
+    noise = torch.randn(val_scenes.xy.shape, generator=torch.Generator().manual_seed(0)) * 3.0
+    states = val_scenes.states.clone()
+    states[..., :2] += noise * val_scenes.valid[..., None]
+    shaken = val_scenes.replace_unchecked(states=states)
+    mirrored = mirror_scenario(shaken)
+    collisions, offroad = collisions_per_step(shaken), offroad_per_step(shaken)
+    assert collisions.sum() > 10 and offroad.sum() > 10  # not vacuous
+    assert torch.equal(collisions_per_step(mirrored), collisions)
+    assert torch.equal(offroad_per_step(mirrored), offroad)
+    # reflection flips the sign of the signed area swept by each agent's path (its turning direction)
+    xy, m_xy = shaken.xy, mirrored.xy
+    cross = xy[..., :-1, 0] * xy[..., 1:, 1] - xy[..., :-1, 1] * xy[..., 1:, 0]
+    m_cross = m_xy[..., :-1, 0] * m_xy[..., 1:, 1] - m_xy[..., :-1, 1] * m_xy[..., 1:, 0]
+    torch.testing.assert_close(m_cross, -cross)

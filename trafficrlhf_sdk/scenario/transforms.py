@@ -1,0 +1,48 @@
+"""Geometric transforms of whole scenes that keep every agent, the map and the metrics consistent."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["MIRROR_SUFFIX", "mirror_scenario"]
+
+MIRROR_SUFFIX = "~mirror"
+"""Appended to the scene ids of a mirrored scenario, so a mirrored scene never passes for its original."""
+
+
+def mirror_scenario(scenario: ScenarioTensor) -> ScenarioTensor:
+    """The scenes reflected across their scene frame's x axis: ``y -> -y``, ``yaw -> -yaw``.
+
+    Shapes are unchanged (``states (B, A, T, 4)``: x, y m; speed m/s; yaw rad). The map raster is kept as is and
+    ``world_to_pixel`` composed with the reflection, so a mirrored point reads the pixel its original read; the
+    vector map (if any) is reflected too. Distances, speeds, box overlaps and drivable-area membership are those of
+    the original scene; turns change sign and right-hand traffic becomes left-hand traffic (nuScenes holds both:
+    Boston and Singapore). Used to show a fine-tuner roads its base model never imitated
+    (``AlignConfig.mirror_scenes``). Mirroring twice gives the original back (ids included).
+    """
+    states = scenario.states.clone()
+    states[..., 1] = -states[..., 1]
+    yaw = -states[..., 3]
+    states[..., 3] = torch.where(yaw >= torch.pi, yaw - 2 * torch.pi, yaw)  # keep [-pi, pi): -(-pi) = pi wraps
+    states = states * scenario.valid[..., None]
+    changes: dict = {"states": states}
+    if scenario.map is not None:
+        m = scenario.map
+        flip = torch.diag(torch.tensor([1.0, -1.0, 1.0], dtype=m.world_to_pixel.dtype, device=m.world_to_pixel.device))
+        map_changes: dict = {"world_to_pixel": (m.world_to_pixel @ flip).contiguous()}
+        if m.polylines is not None:
+            polylines = m.polylines.clone()
+            polylines[..., 1] = -polylines[..., 1]
+            map_changes["polylines"] = polylines * m.polyline_valid[..., None]
+        changes["map"] = dataclasses.replace(m, **map_changes)
+    if scenario.origin is not None:
+        origin = scenario.origin.clone()
+        origin[:, 1] = -origin[:, 1]
+        changes["origin"] = origin
+    changes["scene_ids"] = tuple(s[: -len(MIRROR_SUFFIX)] if s.endswith(MIRROR_SUFFIX) else s + MIRROR_SUFFIX
+                                 for s in scenario.scene_ids)
+    return dataclasses.replace(scenario, **changes)
