@@ -276,3 +276,26 @@ def test_rewards_that_use_the_log_get_the_log_not_the_contexts_own_continuation(
     expected_old = contexts[torch.arange(contexts.num_scenes).repeat_interleave(s)].time_slice(
         start, start + scenario.num_steps)
     assert torch.equal(seen[-1][1].states, expected_old.states)
+
+
+def test_failure_kinds_choose_which_failures_contexts_are_cut_before(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    events = {}
+    for kinds in (("collision",), ("offroad",), ("collision", "offroad")):
+        config = AlignConfig(failure_fraction=1.0, failure_scenes=8, failure_drive_s=6.0, failure_lead_steps=(3, 3),
+                             history_steps=10, contexts_per_epoch=6, failure_kinds=kinds)
+        sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scene_list, None, future_steps=20)
+        contexts, _ = sampler.failure_contexts(6, torch.Generator().manual_seed(0))
+        events[kinds] = sampler.last_failure_events
+        if kinds == ("collision",) and events[kinds]:
+            # driving on from "now", each context has a controlled agent in a collision within the 3-step lead
+            from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+            now = contexts.current_index
+            again = simulate(ConstantVelocityPolicy(), contexts, SimulationConfig(duration_s=0.4, start_index=now))
+            window = again.simulated.time_slice(now + 1, now + 4)
+            assert ((collisions_per_step(window) & window.valid).any(-1) & again.controlled).any(-1).all()
+    # an agent counts once, at its first failure of the kinds asked for
+    both = events[("collision", "offroad")]
+    assert 0 < events[("collision",)] < both and 0 < events[("offroad",)] < both
+    assert both <= events[("collision",)] + events[("offroad",)]

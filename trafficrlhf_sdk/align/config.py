@@ -98,6 +98,10 @@ class AlignConfig(BaseModel):
                                        "k - 1 epochs stale. 1: a fresh drive every epoch.")
     failure_lead_steps: tuple[int, int] = Field((5, 15), description="A failure-focused context starts d steps "
                                                 "before the agent's first failure, d uniform in this range.")
+    failure_kinds: tuple[Literal["collision", "offroad"], ...] = Field(
+        ("collision", "offroad"), min_length=1, description="Which closed-loop failures failure-focused contexts "
+        "are cut before: ('collision',) aims the contexts at agents that collide (with simulated or replayed "
+        "agents), ('offroad',) at agents that leave the road. The reward still scores both.")
     credit: Literal["scene", "agent"] = Field("scene", description="'scene': one reward per sample, shared by "
                                               "its agents (the paper's scenario reward). 'agent': each sampled "
                                               "agent gets its own reward and advantage (needs a reward model "

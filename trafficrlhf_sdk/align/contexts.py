@@ -199,8 +199,10 @@ class ContextSampler:
         hybrid = batch.replace_unchecked(states=run.states, valid=run.valid, controlled=run.controlled)
         driven = slice(hist + 1, hist + drive + 1)
         sim = hybrid.time_slice(0, hist + drive + 1)
-        failed = collisions_per_step(sim) & sim.valid
-        if sim.map is not None and "drivable" in sim.map.layers:
+        failed = torch.zeros_like(sim.valid)
+        if "collision" in cfg.failure_kinds:
+            failed |= collisions_per_step(sim) & sim.valid
+        if "offroad" in cfg.failure_kinds and sim.map is not None and "drivable" in sim.map.layers:
             failed |= offroad_per_step(sim)
         failed = failed[:, :, driven] & hybrid.controlled[:, :, None]
         steps = torch.arange(drive) + hist + 1

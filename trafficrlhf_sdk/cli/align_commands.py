@@ -112,6 +112,9 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
               help="Drive the failure scenes every K epochs only; the epochs between reuse that run [default: 1].")
 @click.option("--failure-lead", default=None, metavar="LO,HI",
               help="A failure-focused context starts LO..HI steps before the failure [default: 5,15].")
+@click.option("--failure-kinds", default=None, metavar="KINDS",
+              help="Failures that failure-focused contexts are cut before: collision, offroad or collision,offroad "
+                   "[default: collision,offroad].")
 @click.option("--credit", type=click.Choice(["scene", "agent"]), default=None,
               help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
@@ -156,7 +159,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   target_kl: float | None, imitation_coef: float | None, winner_coef: float | None,
                   winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
-                  failure_refresh: int | None, failure_lead: str | None, credit: str | None,
+                  failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
+                  credit: str | None,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, log_reference: str | None, holdout_every: int | None,
                   eval_every: int | None,
@@ -198,7 +202,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
-        "failure_lead_steps": _parse_lead(failure_lead), "credit": credit, "log_reference": log_reference,
+        "failure_lead_steps": _parse_lead(failure_lead),
+        "failure_kinds": None if failure_kinds is None else tuple(k.strip() for k in failure_kinds.split(",") if k.strip()), "credit": credit, "log_reference": log_reference,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
