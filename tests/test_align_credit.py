@@ -299,3 +299,9 @@ def test_failure_kinds_choose_which_failures_contexts_are_cut_before(
     both = events[("collision", "offroad")]
     assert 0 < events[("collision",)] < both and 0 < events[("offroad",)] < both
     assert both <= events[("collision",)] + events[("offroad",)]
+
+
+@pytest.mark.parametrize("kinds", [(), ("crash",)])
+def test_failure_kinds_must_name_known_failures(kinds: tuple[str, ...]) -> None:
+    with pytest.raises(ValueError, match="failure_kinds"):
+        AlignConfig(failure_kinds=kinds)

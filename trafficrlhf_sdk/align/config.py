@@ -99,7 +99,7 @@ class AlignConfig(BaseModel):
     failure_lead_steps: tuple[int, int] = Field((5, 15), description="A failure-focused context starts d steps "
                                                 "before the agent's first failure, d uniform in this range.")
     failure_kinds: tuple[Literal["collision", "offroad"], ...] = Field(
-        ("collision", "offroad"), min_length=1, description="Which closed-loop failures failure-focused contexts "
+        ("collision", "offroad"), description="Which closed-loop failures failure-focused contexts "
         "are cut before: ('collision',) aims the contexts at agents that collide (with simulated or replayed "
         "agents), ('offroad',) at agents that leave the road. The reward still scores both.")
     credit: Literal["scene", "agent"] = Field("scene", description="'scene': one reward per sample, shared by "
@@ -176,6 +176,8 @@ class AlignConfig(BaseModel):
         if self.keep_best and self.eval_every is None:
             raise ValueError("`keep_best=True` needs `eval_every` (how often the held-out scenes are driven), "
                              "e.g. eval_every=10.")
+        if not self.failure_kinds:
+            raise ValueError("`failure_kinds` is empty: name 'collision', 'offroad' or both.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
         return self

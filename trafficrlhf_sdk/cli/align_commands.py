@@ -56,6 +56,11 @@ def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
     return RewardModel.from_pretrained(spec).eval()
 
 
+def _parse_kinds(text: str | None) -> tuple[str, ...] | None:
+    """``"collision,offroad"`` -> ``("collision", "offroad")``; None stays None (AlignConfig validates names)."""
+    return None if text is None else tuple(k.strip() for k in text.split(",") if k.strip())
+
+
 def _parse_lead(text: str | None) -> tuple[int, int] | None:
     """``"LO,HI"`` -> ``(LO, HI)`` steps (None passes through)."""
     if text is None:
@@ -166,7 +171,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   eval_every: int | None,
                   eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
-                  num_scenes: int | None, mirror_scenes: bool, source: str | None, root: str | None, save_every: int | None, seed: int,
+                  num_scenes: int | None, mirror_scenes: bool, source: str | None, root: str | None,
+                  save_every: int | None, seed: int,
                   threads: int | None, resume: bool, quiet: bool) -> None:
     """PPO fine-tuning of MODEL against a reward model: loss = imitation loss - alpha * PPO surrogate.
 
@@ -203,7 +209,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
         "failure_lead_steps": _parse_lead(failure_lead),
-        "failure_kinds": None if failure_kinds is None else tuple(k.strip() for k in failure_kinds.split(",") if k.strip()), "credit": credit, "log_reference": log_reference,
+        "failure_kinds": _parse_kinds(failure_kinds), "credit": credit, "log_reference": log_reference,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
