@@ -305,3 +305,29 @@ def test_failure_kinds_choose_which_failures_contexts_are_cut_before(
 def test_failure_kinds_must_name_known_failures(kinds: tuple[str, ...]) -> None:
     with pytest.raises(ValueError, match="failure_kinds"):
         AlignConfig(failure_kinds=kinds)
+
+
+def test_counterfactual_credit_varies_one_agent_and_holds_the_others_to_sample_zero(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    config = AlignConfig(alpha=1.0, credit="agent", counterfactual_credit=True, **FAST)
+    trainer = AlignTrainer(_model(), FailureReward(margins=True), config, scenes=train_scene_list)
+    contexts, _ = trainer.context_sampler.draw(torch.Generator().manual_seed(0))
+    out = trainer._sample(contexts, torch.Generator().manual_seed(1))
+    agents = out.trace.agents
+    assert (agents.sum(-1) >= 2).any()  # some context has two sampled agents, or the test proves nothing
+    scores = trainer._counterfactual_agent_scores(contexts, out.futures, agents, None)
+    states, valid = trainer._future_states(contexts, out.futures, agents)  # (B, S, A, H, 4): all take sample s
+    b, s, a = out.futures.shape[:3]
+    for ci in range(b):
+        for i in agents[ci].nonzero().flatten().tolist():
+            for k in range(s):
+                by_hand = states[ci, 0].clone()  # everyone on sample 0 ...
+                by_hand[i] = states[ci, k, i]  # ... but agent i on sample k
+                scene = trainer._scenarios(contexts[ci], by_hand[None, None], valid[ci, :1][None])
+                expected = FailureReward(margins=True).agent_scores(scene)[0, i]
+                assert torch.isclose(scores[ci, k, i], expected, atol=1e-6)
+    assert torch.all(scores[~agents[:, None, :].expand(b, s, a)] == 0)
+    history = trainer.train()
+    assert history[0]["first_ratio_max_dev"] == 0.0
+    with pytest.raises(ValueError, match="counterfactual_credit"):
+        AlignConfig(counterfactual_credit=True, credit="scene")

@@ -107,6 +107,13 @@ class AlignConfig(BaseModel):
                                               "agent gets its own reward and advantage (needs a reward model "
                                               "with `agent_scores`); sharper credit for models that sample "
                                               "agents independently given the context, such as CTG.")
+    counterfactual_credit: bool = Field(False, description="With credit='agent': score sample k of an agent in "
+                                        "a scenario where only that agent takes sample k and every other sampled "
+                                        "agent keeps sample 0 (COMA-style counterfactual), instead of all agents "
+                                        "taking sample k together. An agent's samples then differ in its own "
+                                        "future only, so a collision between two simulated agents is charged to "
+                                        "the one whose sample caused it. Costs one scenario per sampled agent "
+                                        "and sample.")
     reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
                                        "longer value than the model's horizon extends the sample at constant "
                                        "speed and heading (denser failure signal), a shorter one scores only "
@@ -176,6 +183,9 @@ class AlignConfig(BaseModel):
         if self.keep_best and self.eval_every is None:
             raise ValueError("`keep_best=True` needs `eval_every` (how often the held-out scenes are driven), "
                              "e.g. eval_every=10.")
+        if self.counterfactual_credit and self.credit != "agent":
+            raise ValueError("`counterfactual_credit=True` needs `credit='agent'` (it changes how each agent's "
+                             "samples are scored).")
         if not self.failure_kinds:
             raise ValueError("`failure_kinds` is empty: name 'collision', 'offroad' or both.")
         if self.groups is not None and len(self.groups) == 0:

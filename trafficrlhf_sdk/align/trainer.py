@@ -282,10 +282,10 @@ class AlignTrainer:
         with torch.no_grad():
             return self.model.sample(contexts, self.config.samples_per_context, None, generator)
 
-    def sample_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor,
-                         agents: torch.Tensor) -> ScenarioTensor:
-        """``B * S`` scenarios (context-major): each context's history, then sample ``s``'s future for the
-        sampled ``agents (B, A)`` and the logged future for every other agent; cut to the reward window."""
+    def _future_states(self, contexts: ScenarioTensor, futures: torch.Tensor,
+                       agents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(states (B, S, A, H, 4), valid (B, S, A, H))``: sample ``s``'s future (extended to the reward
+        horizon) for the sampled ``agents (B, A)``, the logged future for every other agent."""
         b, s = futures.shape[:2]
         now, h = contexts.current_index, self.future_steps
         futures = extend_constant_velocity(futures.detach(), h, contexts.dt).to(contexts.states.dtype)
@@ -295,11 +295,55 @@ class AlignTrainer:
         pick = agents[:, None, :, None]  # (B, 1, A, 1)
         states = torch.where(pick[..., None], futures, log_states[:, None])  # (B, S, A, H, 4)
         valid = torch.where(pick, torch.ones_like(log_valid[:, None]), log_valid[:, None]).expand(b, s, -1, -1)
-        states = states * valid[..., None]
-        repeat = torch.arange(b).repeat_interleave(s)
-        scenario = contexts[repeat].with_future(states.reshape(b * s, *states.shape[2:]),
-                                                valid.reshape(b * s, *valid.shape[2:]))
+        return states * valid[..., None], valid
+
+    def _scenarios(self, contexts: ScenarioTensor, states: torch.Tensor, valid: torch.Tensor) -> ScenarioTensor:
+        """One scenario per row of ``states (B, R, A, H, 4)`` (context-major): the context's history, then that
+        future; cut to the reward window."""
+        b, r = states.shape[:2]
+        repeat = torch.arange(b).repeat_interleave(r)
+        scenario = contexts[repeat].with_future(states.reshape(b * r, *states.shape[2:]),
+                                                valid.reshape(b * r, *valid.shape[2:]))
+        now = contexts.current_index
         return scenario.time_slice(max(0, now - self.config.reward_history_steps), now + 1 + self.reward_steps)
+
+    def sample_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor,
+                         agents: torch.Tensor) -> ScenarioTensor:
+        """``B * S`` scenarios (context-major): each context's history, then sample ``s``'s future for the
+        sampled ``agents (B, A)`` and the logged future for every other agent; cut to the reward window."""
+        return self._scenarios(contexts, *self._future_states(contexts, futures, agents))
+
+    def counterfactual_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor,
+                                 agents: torch.Tensor) -> tuple[ScenarioTensor, torch.Tensor]:
+        """``(scenarios, slots)``: ``B * M * S`` scenarios (context, then sampled agent, then sample), where
+        the ``m``-th sampled agent of a context takes sample ``s`` and every other sampled agent sample 0 (the
+        rest the log), cut to the reward window; ``slots (B, M)`` is the agent index of each of the M = most
+        sampled agents per context (-1 for padding)."""
+        b, s, a = futures.shape[:3]
+        m = max(1, int(agents.sum(-1).max()))
+        order = torch.sort(agents.to(torch.int8), dim=-1, descending=True, stable=True).indices[:, :m]
+        slots = torch.where(torch.gather(agents, 1, order), order, torch.full_like(order, -1))  # (B, M)
+        states, valid = self._future_states(contexts, futures, agents)  # (B, S, A, H, 4)
+        own = slots[:, :, None] == torch.arange(a)[None, None, :]  # (B, M, A): the agent that varies
+        mixed = torch.where(own[:, :, None, :, None, None], states[:, None], states[:, None, :1])  # (B,M,S,A,H,4)
+        h = states.shape[3]
+        valid = valid[:, None].expand(b, m, s, a, h)
+        return self._scenarios(contexts, mixed.reshape(b, m * s, a, h, 4), valid.reshape(b, m * s, a, h)), slots
+
+    def _counterfactual_agent_scores(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
+                                     reference: ScenarioTensor | None) -> torch.Tensor:
+        """``(B, S, A)`` per-agent scores from :meth:`counterfactual_scenarios` (0 for agents not sampled)."""
+        b, s, a = futures.shape[:3]
+        scenarios, slots = self.counterfactual_scenarios(contexts, futures, agents)
+        m = slots.shape[1]
+        if reference is not None:  # (B * S) windows of the log -> one per context, repeated for (M, S)
+            reference = reference[torch.arange(b) * s][torch.arange(b).repeat_interleave(m * s)]
+        scores = agent_scores(self.reward_model, scenarios, reference).reshape(b, m, s, a)
+        own = torch.gather(scores, 3, slots.clamp_min(0)[:, :, None, None].expand(b, m, s, 1))[..., 0]  # (B,M,S)
+        out = torch.zeros(b, s, a, dtype=scores.dtype)
+        bi, mi = (slots >= 0).nonzero(as_tuple=True)
+        out[bi, :, slots[bi, mi]] = own[bi, mi]
+        return out
 
     def _rollout(self, epoch: int) -> _Rollout:
         contexts, logged = self._contexts(epoch)
@@ -317,7 +361,10 @@ class AlignTrainer:
                 start = max(0, contexts.current_index - self.config.reward_history_steps)
                 source = logged if self.config.log_reference == "log" else contexts
                 reference = source[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
-            per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
+            if self.config.counterfactual_credit:
+                per_agent = self._counterfactual_agent_scores(contexts, out.futures, trace.agents, reference)
+            else:
+                per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
             adv = self._normalize(per_agent, dim=1) * picked

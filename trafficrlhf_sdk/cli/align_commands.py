@@ -122,6 +122,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
                    "[default: collision,offroad].")
 @click.option("--credit", type=click.Choice(["scene", "agent"]), default=None,
               help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
+@click.option("--counterfactual-credit", is_flag=True,
+              help="With --credit agent: score each agent's samples with the other sampled agents held to sample 0.")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
               help="Train the surrogate on the first N denoising steps only (diffusion models) [default: all].")
 @click.option("--pessimism", type=click.FloatRange(min=0), default=None,
@@ -165,7 +167,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
-                  credit: str | None,
+                  credit: str | None, counterfactual_credit: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, log_reference: str | None, holdout_every: int | None,
                   eval_every: int | None,
@@ -209,7 +211,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
         "failure_lead_steps": _parse_lead(failure_lead),
-        "failure_kinds": _parse_kinds(failure_kinds), "credit": credit, "log_reference": log_reference,
+        "failure_kinds": _parse_kinds(failure_kinds), "credit": credit,
+        "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
