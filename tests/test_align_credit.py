@@ -331,3 +331,16 @@ def test_counterfactual_credit_varies_one_agent_and_holds_the_others_to_sample_z
     assert history[0]["first_ratio_max_dev"] == 0.0
     with pytest.raises(ValueError, match="counterfactual_credit"):
         AlignConfig(counterfactual_credit=True, credit="scene")
+
+
+def test_counterfactual_credit_hands_log_comparing_rewards_the_logged_window(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.align.rewards import RealismReward
+
+    config = AlignConfig(alpha=1.0, credit="agent", counterfactual_credit=True, failure_fraction=0.5,
+                         failure_scenes=4, failure_drive_s=4.0, **FAST)
+    trainer = AlignTrainer(_model(), RealismReward(margins=True), config, scenes=train_scene_list)
+    rollout = trainer._rollout(0)
+    b, a = rollout.contexts.num_scenes, rollout.contexts.num_agents
+    assert rollout.advantages.shape == (b, 3, a) and torch.isfinite(rollout.advantages).all()
+    assert torch.all(rollout.advantages[~rollout.trace.agents[:, None, :].expand(b, 3, a)] == 0)

@@ -30,6 +30,7 @@ by ``(seed, e)``, which makes a resumed run match an uninterrupted one.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import math
@@ -138,6 +139,34 @@ def _seed(*parts: Any) -> int:
 
 def _generator(*parts: Any) -> torch.Generator:
     return torch.Generator().manual_seed(_seed(*parts))
+
+
+def _one_scene(scenario: ScenarioTensor, index: int) -> ScenarioTensor:
+    """Scene ``index`` of ``scenario`` (B = 1) without re-validating it (a window may cut agents' validity)."""
+    def pick(t: torch.Tensor | None) -> torch.Tensor | None:
+        return None if t is None else t[index: index + 1]
+
+    return scenario.replace_unchecked(
+        states=pick(scenario.states), valid=pick(scenario.valid), extent=pick(scenario.extent),
+        agent_type=pick(scenario.agent_type), controlled=pick(scenario.controlled), origin=pick(scenario.origin),
+        map=None if scenario.map is None else scenario.map.index(index),
+        scene_ids=scenario.scene_ids[index: index + 1], agent_ids=scenario.agent_ids[index: index + 1])
+
+
+def _repeat_view(scene: ScenarioTensor, copies: int) -> ScenarioTensor:
+    """``copies`` copies of a one-scene ``scene`` as expanded views (no memory per copy, the raster included);
+    read-only: fine for scoring, not for in-place edits."""
+    def grow(t: torch.Tensor | None) -> torch.Tensor | None:
+        return None if t is None else t.expand(copies, *t.shape[1:])
+
+    m = scene.map
+    view_map = None if m is None else dataclasses.replace(
+        m, raster=grow(m.raster), world_to_pixel=grow(m.world_to_pixel), polylines=grow(m.polylines),
+        polyline_valid=grow(m.polyline_valid), polyline_type=grow(m.polyline_type))
+    return scene.replace_unchecked(states=grow(scene.states), valid=grow(scene.valid), extent=grow(scene.extent),
+                                   agent_type=grow(scene.agent_type), controlled=grow(scene.controlled),
+                                   origin=grow(scene.origin), map=view_map, scene_ids=scene.scene_ids * copies,
+                                   agent_ids=scene.agent_ids * copies)
 
 
 def _select_trace(trace: PolicyTrace, index: torch.Tensor) -> PolicyTrace:
@@ -313,36 +342,38 @@ class AlignTrainer:
         sampled ``agents (B, A)`` and the logged future for every other agent; cut to the reward window."""
         return self._scenarios(contexts, *self._future_states(contexts, futures, agents))
 
-    def counterfactual_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor,
-                                 agents: torch.Tensor) -> tuple[ScenarioTensor, torch.Tensor]:
-        """``(scenarios, slots)``: ``B * M * S`` scenarios (context, then sampled agent, then sample), where
-        the ``m``-th sampled agent of a context takes sample ``s`` and every other sampled agent sample 0 (the
-        rest the log), cut to the reward window; ``slots (B, M)`` is the agent index of each of the M = most
-        sampled agents per context (-1 for padding)."""
-        b, s, a = futures.shape[:3]
-        m = max(1, int(agents.sum(-1).max()))
-        order = torch.sort(agents.to(torch.int8), dim=-1, descending=True, stable=True).indices[:, :m]
-        slots = torch.where(torch.gather(agents, 1, order), order, torch.full_like(order, -1))  # (B, M)
-        states, valid = self._future_states(contexts, futures, agents)  # (B, S, A, H, 4)
-        own = slots[:, :, None] == torch.arange(a)[None, None, :]  # (B, M, A): the agent that varies
-        mixed = torch.where(own[:, :, None, :, None, None], states[:, None], states[:, None, :1])  # (B,M,S,A,H,4)
-        h = states.shape[3]
-        valid = valid[:, None].expand(b, m, s, a, h)
-        return self._scenarios(contexts, mixed.reshape(b, m * s, a, h, 4), valid.reshape(b, m * s, a, h)), slots
+    def counterfactual_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
+                                 context: int) -> tuple[ScenarioTensor, torch.Tensor]:
+        """``(scenarios, slots)`` for context ``context``: ``M * S`` scenarios (sampled agent-major) where its
+        ``m``-th sampled agent (agent index ``slots[m]``) takes sample ``s`` and every other sampled agent sample
+        0 (the rest the log), cut to the reward window. The copies share the context's map (expanded views), so
+        a large raster is not copied M * S times."""
+        slots = agents[context].nonzero().flatten()  # (M,)
+        m, s = slots.numel(), futures.shape[1]
+        states, valid = self._future_states(contexts[context], futures[context: context + 1],
+                                            agents[context: context + 1])  # (1, S, A, H, 4)
+        states, valid = states[0], valid[0]
+        own = slots[:, None] == torch.arange(states.shape[1])[None, :]  # (M, A): the agent that varies
+        mixed = torch.where(own[:, None, :, None, None], states[None], states[None, :1])  # (M, S, A, H, 4)
+        repeated = _repeat_view(contexts[context], m * s)
+        scenario = repeated.with_future(mixed.reshape(m * s, *mixed.shape[2:]),
+                                        valid[None].expand(m, *valid.shape).reshape(m * s, *valid.shape[1:]))
+        now = contexts.current_index
+        return scenario.time_slice(max(0, now - self.config.reward_history_steps), now + 1 + self.reward_steps), slots
 
     def _counterfactual_agent_scores(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
                                      reference: ScenarioTensor | None) -> torch.Tensor:
         """``(B, S, A)`` per-agent scores from :meth:`counterfactual_scenarios` (0 for agents not sampled)."""
         b, s, a = futures.shape[:3]
-        scenarios, slots = self.counterfactual_scenarios(contexts, futures, agents)
-        m = slots.shape[1]
-        if reference is not None:  # (B * S) windows of the log -> one per context, repeated for (M, S)
-            reference = reference[torch.arange(b) * s][torch.arange(b).repeat_interleave(m * s)]
-        scores = agent_scores(self.reward_model, scenarios, reference).reshape(b, m, s, a)
-        own = torch.gather(scores, 3, slots.clamp_min(0)[:, :, None, None].expand(b, m, s, 1))[..., 0]  # (B,M,S)
-        out = torch.zeros(b, s, a, dtype=scores.dtype)
-        bi, mi = (slots >= 0).nonzero(as_tuple=True)
-        out[bi, :, slots[bi, mi]] = own[bi, mi]
+        out = torch.zeros(b, s, a)
+        for c in range(b):
+            if not agents[c].any():
+                continue
+            scenarios, slots = self.counterfactual_scenarios(contexts, futures, agents, c)
+            m = slots.numel()
+            ref = None if reference is None else _repeat_view(_one_scene(reference, c * s), m * s)
+            scores = agent_scores(self.reward_model, scenarios, ref).reshape(m, s, a)
+            out[c][:, slots] = scores[torch.arange(m), :, slots].T.to(out.dtype)  # (S, M): agent m's own score
         return out
 
     def _rollout(self, epoch: int) -> _Rollout:

@@ -20,7 +20,6 @@ winner). Maps are cropped to the agents' area plus a margin so the database stay
 from __future__ import annotations
 
 import inspect
-import math
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -30,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
-from trafficrlhf_sdk.scenario.map import MapRaster
+from trafficrlhf_sdk.scenario.map import crop_map
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 
@@ -107,28 +106,6 @@ def build_policy(model: str, guidance: str | None, seed: int, options: dict[str,
         raise TrafficRLHFError(f"traffic model {model!r} does not accept the options {unknown}; it takes "
                                f"{sorted(params)}.")
     return factory(**kwargs)
-
-
-def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRaster:
-    """Keep the raster pixels under the bounding box of ``xy (K, 2)`` (scene-frame m) plus ``margin_m``.
-
-    One scene (B = 1). The transform is shifted so every world point keeps its map value.
-    """
-    if xy.numel() == 0:
-        return scene_map
-    lo, hi = xy.min(0).values.double() - margin_m, xy.max(0).values.double() + margin_m
-    corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
-    ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()
-    h, w = scene_map.raster.shape[-2:]
-    i0, i1 = max(math.floor(ij[:, 0].min()), 0), min(math.ceil(ij[:, 0].max()) + 1, h)
-    j0, j1 = max(math.floor(ij[:, 1].min()), 0), min(math.ceil(ij[:, 1].max()) + 1, w)
-    if i0 >= i1 or j0 >= j1:  # agents entirely off the raster: keep one empty pixel
-        i0, i1, j0, j1 = 0, 1, 0, 1
-    m = scene_map.world_to_pixel.clone()
-    m[:, 0, 2] -= i0
-    m[:, 1, 2] -= j0
-    return MapRaster(raster=scene_map.raster[:, :, i0:i1, j0:j1].contiguous(), world_to_pixel=m,
-                     layers=scene_map.layers)
 
 
 def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int, seconds: float,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from collections.abc import Sequence
 
@@ -9,7 +10,7 @@ import torch
 
 from trafficrlhf_sdk.errors import ScenarioValidationError
 
-__all__ = ["DEFAULT_LAYERS", "MapRaster", "PolylineType"]
+__all__ = ["DEFAULT_LAYERS", "MapRaster", "PolylineType", "crop_map"]
 
 DEFAULT_LAYERS: tuple[str, ...] = ("drivable", "road_divider", "lane_divider")
 
@@ -193,3 +194,26 @@ class MapRaster:
             polyline_valid=polyline_valid,
             polyline_type=polyline_type,
         )
+
+
+def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRaster:
+    """Keep the raster pixels under the bounding box of ``xy (K, 2)`` (scene-frame m) plus ``margin_m``.
+
+    One scene (B = 1). The transform is shifted so every world point keeps its map value. Polylines are
+    dropped: a cropped map is a raster-only map.
+    """
+    if xy.numel() == 0:
+        return scene_map
+    lo, hi = xy.min(0).values.double() - margin_m, xy.max(0).values.double() + margin_m
+    corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
+    ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()
+    h, w = scene_map.raster.shape[-2:]
+    i0, i1 = max(math.floor(ij[:, 0].min()), 0), min(math.ceil(ij[:, 0].max()) + 1, h)
+    j0, j1 = max(math.floor(ij[:, 1].min()), 0), min(math.ceil(ij[:, 1].max()) + 1, w)
+    if i0 >= i1 or j0 >= j1:  # agents entirely off the raster: keep one empty pixel
+        i0, i1, j0, j1 = 0, 1, 0, 1
+    m = scene_map.world_to_pixel.clone()
+    m[:, 0, 2] -= i0
+    m[:, 1, 2] -= j0
+    return MapRaster(raster=scene_map.raster[:, :, i0:i1, j0:j1].contiguous(), world_to_pixel=m,
+                     layers=scene_map.layers)
