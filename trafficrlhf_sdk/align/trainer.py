@@ -46,7 +46,6 @@ from safetensors.torch import save_file
 
 from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.align.contexts import ContextSampler, FailureDrive, held_out_scene_ids, training_scene_ids
-from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
@@ -54,6 +53,7 @@ from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, extend_constant_velocity
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
@@ -363,7 +363,8 @@ class AlignTrainer:
 
     def _counterfactual_agent_scores(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
                                      reference: ScenarioTensor | None) -> torch.Tensor:
-        """``(B, S, A)`` per-agent scores from :meth:`counterfactual_scenarios` (0 for agents not sampled)."""
+        """``(B, S, A)`` per-agent scores from :meth:`counterfactual_scenarios` (0 for agents not sampled);
+        ``reference``: one window of the log per context, for rewards that compare with it."""
         b, s, a = futures.shape[:3]
         out = torch.zeros(b, s, a)
         for c in range(b):
@@ -371,7 +372,7 @@ class AlignTrainer:
                 continue
             scenarios, slots = self.counterfactual_scenarios(contexts, futures, agents, c)
             m = slots.numel()
-            ref = None if reference is None else _repeat_view(_one_scene(reference, c * s), m * s)
+            ref = None if reference is None else _repeat_view(_one_scene(reference, c), m * s)
             scores = agent_scores(self.reward_model, scenarios, ref).reshape(m, s, a)
             out[c][:, slots] = scores[torch.arange(m), :, slots].T.to(out.dtype)  # (S, M): agent m's own score
         return out
@@ -381,26 +382,28 @@ class AlignTrainer:
         gen = _generator(self.config.seed, epoch, "sample")
         out = self._sample(contexts, gen)
         trace = out.trace.detach()
-        scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
         b = contexts.num_scenes
         if self.config.credit == "agent":
-            reference = None
+            source, window = None, slice(max(0, contexts.current_index - self.config.reward_history_steps),
+                                         contexts.current_index + 1 + self.reward_steps)
             if getattr(self.reward_model, "uses_log", False):
                 # the log of the same window, not the context: a closed-loop or failure-focused context
                 # continues with the model's own driving, which a comparison with the log must not see
-                repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
-                start = max(0, contexts.current_index - self.config.reward_history_steps)
                 source = logged if self.config.log_reference == "log" else contexts
-                reference = source[repeat].time_slice(start, contexts.current_index + 1 + self.reward_steps)
             if self.config.counterfactual_credit:
+                reference = None if source is None else source.time_slice(window.start, window.stop)  # (B) windows
                 per_agent = self._counterfactual_agent_scores(contexts, out.futures, trace.agents, reference)
             else:
+                repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
+                reference = None if source is None else source[repeat].time_slice(window.start, window.stop)
+                scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
             adv = self._normalize(per_agent, dim=1) * picked
             ranked = per_agent
         else:
+            scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
             ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
