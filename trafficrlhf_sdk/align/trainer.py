@@ -350,12 +350,13 @@ class AlignTrainer:
         a large raster is not copied M * S times."""
         slots = agents[context].nonzero().flatten()  # (M,)
         m, s = slots.numel(), futures.shape[1]
-        states, valid = self._future_states(contexts[context], futures[context: context + 1],
+        scene = contexts[context]  # (B = 1): indexing copies the raster once
+        states, valid = self._future_states(scene, futures[context: context + 1],
                                             agents[context: context + 1])  # (1, S, A, H, 4)
         states, valid = states[0], valid[0]
         own = slots[:, None] == torch.arange(states.shape[1])[None, :]  # (M, A): the agent that varies
         mixed = torch.where(own[:, None, :, None, None], states[None], states[None, :1])  # (M, S, A, H, 4)
-        repeated = _repeat_view(contexts[context], m * s)
+        repeated = _repeat_view(scene, m * s)
         scenario = repeated.with_future(mixed.reshape(m * s, *mixed.shape[2:]),
                                         valid[None].expand(m, *valid.shape).reshape(m * s, *valid.shape[1:]))
         now = contexts.current_index

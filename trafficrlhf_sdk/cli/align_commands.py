@@ -56,8 +56,8 @@ def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
     return RewardModel.from_pretrained(spec).eval()
 
 
-def _parse_kinds(text: str | None) -> tuple[str, ...] | None:
-    """``"collision,offroad"`` -> ``("collision", "offroad")``; None stays None (AlignConfig validates names)."""
+def _comma_list(text: str | None) -> tuple[str, ...] | None:
+    """``"a, b,"`` -> ``("a", "b")``; None stays None (AlignConfig validates the names)."""
     return None if text is None else tuple(k.strip() for k in text.split(",") if k.strip())
 
 
@@ -211,13 +211,13 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
         "failure_lead_steps": _parse_lead(failure_lead),
-        "failure_kinds": _parse_kinds(failure_kinds), "credit": credit,
+        "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
         "mirror_scenes": mirror_scenes or None,
-        "groups": None if groups is None else tuple(g.strip() for g in groups.split(",") if g.strip()),
+        "groups": _comma_list(groups),
     }
     config = AlignConfig(
         alpha=paper_alpha(model) if alpha is None else alpha, seed=seed, output_dir=out_dir, resume=resume,
