@@ -224,6 +224,34 @@ def test_indexing_keeps_ids(index, picked):
     assert sub.source == s.source and sub.dt == s.dt and sub.current_index == s.current_index
 
 
+@pytest.mark.parametrize("b", [1, 3])
+def test_repeat_scenes_matches_repeat_interleave(b):
+    s = make_scenario(b=b)
+    out = s.repeat_scenes(4)
+    picked = torch.arange(b).repeat_interleave(4)
+    assert out.num_scenes == 4 * b
+    for name in ("states", "valid", "extent", "agent_type", "controlled", "origin"):
+        assert torch.equal(getattr(out, name), getattr(s, name)[picked]), name
+    assert torch.equal(out.map.raster, s.map.raster[picked])
+    assert torch.equal(out.map.world_to_pixel, s.map.world_to_pixel[picked])
+    assert out.scene_ids == tuple(s.scene_ids[i] for i in picked.tolist())
+    assert out.agent_ids == tuple(s.agent_ids[i] for i in picked.tolist())
+    if b == 1:  # views: the raster is not copied
+        assert out.map.raster.data_ptr() == s.map.raster.data_ptr() and out.map.raster.stride(0) == 0
+
+
+def test_repeat_scenes_rejects_a_bad_count():
+    with pytest.raises(ValueError, match="copies"):
+        make_scenario(b=1).repeat_scenes(0)
+
+
+def test_indexing_an_unchecked_window_does_not_revalidate():
+    s = make_scenario(b=2)
+    window = s.time_slice(0, 1).replace_unchecked(controlled=torch.ones_like(s.controlled))
+    assert not window.valid[1, 2].any()  # agent 2 of scene 1 is controlled and never valid in the window
+    assert window[1].controlled.all()  # a checked copy would reject controlled agents invalid in the window
+
+
 def test_int_index_out_of_range():
     with pytest.raises(IndexError):
         make_scenario(b=2)[2]

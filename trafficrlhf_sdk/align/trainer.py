@@ -30,7 +30,6 @@ by ``(seed, e)``, which makes a resumed run match an uninterrupted one.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import hashlib
 import json
 import math
@@ -139,34 +138,6 @@ def _seed(*parts: Any) -> int:
 
 def _generator(*parts: Any) -> torch.Generator:
     return torch.Generator().manual_seed(_seed(*parts))
-
-
-def _one_scene(scenario: ScenarioTensor, index: int) -> ScenarioTensor:
-    """Scene ``index`` of ``scenario`` (B = 1) without re-validating it (a window may cut agents' validity)."""
-    def pick(t: torch.Tensor | None) -> torch.Tensor | None:
-        return None if t is None else t[index: index + 1]
-
-    return scenario.replace_unchecked(
-        states=pick(scenario.states), valid=pick(scenario.valid), extent=pick(scenario.extent),
-        agent_type=pick(scenario.agent_type), controlled=pick(scenario.controlled), origin=pick(scenario.origin),
-        map=None if scenario.map is None else scenario.map.index(index),
-        scene_ids=scenario.scene_ids[index: index + 1], agent_ids=scenario.agent_ids[index: index + 1])
-
-
-def _repeat_view(scene: ScenarioTensor, copies: int) -> ScenarioTensor:
-    """``copies`` copies of a one-scene ``scene`` as expanded views (no memory per copy, the raster included);
-    read-only: fine for scoring, not for in-place edits."""
-    def grow(t: torch.Tensor | None) -> torch.Tensor | None:
-        return None if t is None else t.expand(copies, *t.shape[1:])
-
-    m = scene.map
-    view_map = None if m is None else dataclasses.replace(
-        m, raster=grow(m.raster), world_to_pixel=grow(m.world_to_pixel), polylines=grow(m.polylines),
-        polyline_valid=grow(m.polyline_valid), polyline_type=grow(m.polyline_type))
-    return scene.replace_unchecked(states=grow(scene.states), valid=grow(scene.valid), extent=grow(scene.extent),
-                                   agent_type=grow(scene.agent_type), controlled=grow(scene.controlled),
-                                   origin=grow(scene.origin), map=view_map, scene_ids=scene.scene_ids * copies,
-                                   agent_ids=scene.agent_ids * copies)
 
 
 def _select_trace(trace: PolicyTrace, index: torch.Tensor) -> PolicyTrace:
@@ -330,8 +301,7 @@ class AlignTrainer:
         """One scenario per row of ``states (B, R, A, H, 4)`` (context-major): the context's history, then that
         future; cut to the reward window."""
         b, r = states.shape[:2]
-        repeat = torch.arange(b).repeat_interleave(r)
-        scenario = contexts[repeat].with_future(states.reshape(b * r, *states.shape[2:]),
+        scenario = contexts.repeat_scenes(r).with_future(states.reshape(b * r, *states.shape[2:]),
                                                 valid.reshape(b * r, *valid.shape[2:]))
         now = contexts.current_index
         return scenario.time_slice(max(0, now - self.config.reward_history_steps), now + 1 + self.reward_steps)
@@ -356,7 +326,7 @@ class AlignTrainer:
         states, valid = states[0], valid[0]
         own = slots[:, None] == torch.arange(states.shape[1])[None, :]  # (M, A): the agent that varies
         mixed = torch.where(own[:, None, :, None, None], states[None], states[None, :1])  # (M, S, A, H, 4)
-        repeated = _repeat_view(scene, m * s)
+        repeated = scene.repeat_scenes(m * s)
         scenario = repeated.with_future(mixed.reshape(m * s, *mixed.shape[2:]),
                                         valid[None].expand(m, *valid.shape).reshape(m * s, *valid.shape[1:]))
         now = contexts.current_index
@@ -373,7 +343,7 @@ class AlignTrainer:
                 continue
             scenarios, slots = self.counterfactual_scenarios(contexts, futures, agents, c)
             m = slots.numel()
-            ref = None if reference is None else _repeat_view(_one_scene(reference, c), m * s)
+            ref = None if reference is None else reference[c].repeat_scenes(m * s)
             scores = agent_scores(self.reward_model, scenarios, ref).reshape(m, s, a)
             out[c][:, slots] = scores[torch.arange(m), :, slots].T.to(out.dtype)  # (S, M): agent m's own score
         return out
@@ -395,8 +365,8 @@ class AlignTrainer:
                 reference = None if source is None else source.time_slice(window.start, window.stop)  # (B) windows
                 per_agent = self._counterfactual_agent_scores(contexts, out.futures, trace.agents, reference)
             else:
-                repeat = torch.arange(b).repeat_interleave(self.config.samples_per_context)
-                reference = None if source is None else source[repeat].time_slice(window.start, window.stop)
+                reference = None if source is None else source.repeat_scenes(
+                    self.config.samples_per_context).time_slice(window.start, window.stop)
                 scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)

@@ -159,6 +159,16 @@ class MapRaster:
             polyline_type=pick(self.polyline_type),
         )
 
+    def repeat_scenes(self, copies: int) -> MapRaster:
+        """Each scene's map ``copies`` times in a row (``B * copies`` scenes); with B = 1 as expanded views that
+        share the raster's memory (read-only), else as copies."""
+        if self.num_scenes != 1:
+            return self.index(torch.arange(self.num_scenes).repeat_interleave(copies))
+        grow = lambda t: None if t is None else t.expand(copies, *t.shape[1:])  # noqa: E731
+        return replace(self, raster=grow(self.raster), world_to_pixel=grow(self.world_to_pixel),
+                       polylines=grow(self.polylines), polyline_valid=grow(self.polyline_valid),
+                       polyline_type=grow(self.polyline_type))
+
     @staticmethod
     def concat(maps: Sequence[MapRaster]) -> MapRaster:
         """Stack maps along B, zero-padding rasters to the largest H, W and polylines to the largest P, L."""

@@ -244,8 +244,9 @@ class ScenarioTensor:
         positions = list(range(self.num_scenes))[index] if isinstance(index, slice) else index.tolist()
         if isinstance(index, torch.Tensor) and index.dtype == torch.bool:
             positions = index.nonzero().flatten().tolist()
-        return replace(
-            self,
+        # scenes of a valid batch form a valid batch; a window cut by `time_slice` (which may leave a controlled
+        # agent without a valid step) stays as unchecked as it was
+        return self.replace_unchecked(
             states=self.states[index],
             valid=self.valid[index],
             extent=self.extent[index],
@@ -256,6 +257,26 @@ class ScenarioTensor:
             scene_ids=tuple(self.scene_ids[i] for i in positions) if self.scene_ids else (),
             agent_ids=tuple(self.agent_ids[i] for i in positions) if self.agent_ids else (),
         )
+
+    def repeat_scenes(self, copies: int) -> ScenarioTensor:
+        """Each scene ``copies`` times in a row: ``B * copies`` scenes, scene-major (like ``repeat_interleave``).
+
+        With one scene (B = 1) the copies are expanded views that share its memory, the map raster included:
+        read-only, fine for scoring, not for in-place edits. With B > 1 they are copies.
+        """
+        if not (isinstance(copies, int) and copies >= 1):
+            raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
+        if self.num_scenes != 1:
+            return self[torch.arange(self.num_scenes).repeat_interleave(copies)]
+
+        def grow(t: torch.Tensor | None) -> torch.Tensor | None:
+            return None if t is None else t.expand(copies, *t.shape[1:])
+
+        return self.replace_unchecked(
+            states=grow(self.states), valid=grow(self.valid), extent=grow(self.extent),
+            agent_type=grow(self.agent_type), controlled=grow(self.controlled), origin=grow(self.origin),
+            map=None if self.map is None else self.map.repeat_scenes(copies),
+            scene_ids=self.scene_ids * copies, agent_ids=self.agent_ids * copies)
 
     def __len__(self) -> int:
         return self.num_scenes
