@@ -34,82 +34,28 @@ import hashlib
 import json
 import math
 import os
-import shutil
 import time
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import torch
-from safetensors.torch import save_file
 
+from trafficrlhf_sdk.align.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.align.config import AlignConfig
-from trafficrlhf_sdk.align.contexts import ContextSampler, FailureDrive, held_out_scene_ids, training_scene_ids
+from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
+from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter, extend_constant_velocity
-from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
-STATE_FILE = "trainer_state.json"
-OPTIMIZER_FILE = "optimizer.safetensors"
-BEST_FILE = "best_model.safetensors"  # weights of the best held-out evaluation so far (keep_best)
-DRIVE_FILE = "failure_drive.safetensors"  # the failure run reused by later epochs (failure_refresh_every > 1)
 MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
-
-
-class RewardLike(Protocol):
-    """What the fine-tuner needs from a reward model: per-step rewards ``(B, T)`` in [-1, 1] of a scenario."""
-
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:  # pragma: no cover - protocol
-        """Per-step rewards ``(B, T)`` in [-1, 1]."""
-
-
-def scenario_scores(reward_model: Any, scenario: ScenarioTensor) -> torch.Tensor:
-    """Scenario rewards ``(B,)``: the model's own ``score`` if it has one (a
-    :class:`~trafficrlhf_sdk.reward.RewardModel`), else the mean of ``step_rewards`` over the steps after
-    ``current_index``; a plain callable is treated as a per-step reward function ``(B, T)``."""
-    with torch.no_grad():
-        if callable(getattr(reward_model, "score", None)):
-            scores = reward_model.score(scenario)
-        else:
-            fn = getattr(reward_model, "step_rewards", None) or reward_model
-            if not callable(fn):
-                raise TypeError("`reward_model` needs a `step_rewards(scenario) -> (B, T)` method (or a `score` "
-                                f"method); got {type(reward_model).__name__}.")
-            per_step = fn(scenario)
-            if per_step.shape != (scenario.num_scenes, scenario.num_steps):
-                raise ValueError(f"step_rewards returned shape {tuple(per_step.shape)}; expected (B, T) = "
-                                 f"({scenario.num_scenes}, {scenario.num_steps}).")
-            scores = per_step[:, scenario.current_index + 1:].float().mean(1)
-    return _checked(scores, (scenario.num_scenes,), "score", "(B,)")
-
-
-def agent_scores(reward_model: Any, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
-    """Per-agent rewards ``(B, A)`` from the reward model's ``agent_scores`` (0 for agents it does not score).
-    ``logged`` (the same scenarios with the logged future) is passed to rewards that set ``uses_log``."""
-    with torch.no_grad():
-        if getattr(reward_model, "uses_log", False):
-            scores = reward_model.agent_scores(scenario, logged=logged)
-        else:
-            scores = reward_model.agent_scores(scenario)
-    return _checked(scores, (scenario.num_scenes, scenario.num_agents), "agent_scores", "(B, A)")
-
-
-def _checked(scores: torch.Tensor, shape: tuple[int, ...], method: str, names: str) -> torch.Tensor:
-    """``scores`` as float32 on the CPU, after checking its shape and that it is finite."""
-    if tuple(scores.shape) != shape:
-        raise ValueError(f"the reward model's {method} returned shape {tuple(scores.shape)}; expected {names} = "
-                         f"{shape}.")
-    scores = scores.detach().float().cpu()
-    if not torch.isfinite(scores).all():
-        raise ValueError(f"the reward model's {method} returned non-finite values.")
-    return scores
 
 
 class AlignResult(NamedTuple):
@@ -168,7 +114,7 @@ def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
     return adv.to(log_prob.dtype).expand(log_prob.shape)
 
 
-class AlignTrainer:
+class AlignTrainer(TrainerCheckpoints):
     """PPO fine-tuner of a traffic-model adapter against a reward model (see the module docstring).
 
     Args:
@@ -521,98 +467,6 @@ class AlignTrainer:
         gap = ((old - sampled).abs() * mask).max() if mask.any() else torch.zeros(())
         result["sample_log_prob_gap"] = float(gap)
         return result
-
-    # ------------------------------------------------------------------ checkpoints
-    def _checkpoint_root(self) -> str | None:
-        return None if self.config.output_dir is None else os.path.join(self.config.output_dir, "checkpoints")
-
-    def save_checkpoint(self, epochs_done: int) -> str:
-        """Write ``checkpoints/checkpoint-N``: the adapter (``save_pretrained``), the optimizer state as
-        safetensors and ``trainer_state.json`` (epochs done, history, optimizer hyper-parameters, RNG state)."""
-        root = self._checkpoint_root()
-        if root is None:
-            raise TrafficRLHFError("set `output_dir` to save checkpoints.")
-        final = os.path.join(root, f"checkpoint-{epochs_done}")
-        tmp = final + ".tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        self.model.save_pretrained(tmp)
-        state = self.optimizer.state_dict()
-        tensors: dict[str, torch.Tensor] = {}
-        scalars: dict[str, Any] = {}
-        for index, entry in state["state"].items():
-            for key, value in entry.items():
-                if isinstance(value, torch.Tensor):
-                    tensors[f"{index}.{key}"] = value.detach().cpu().contiguous()
-                else:
-                    scalars[f"{index}.{key}"] = value
-        save_file(tensors, os.path.join(tmp, OPTIMIZER_FILE), metadata={"format": "pt"})
-        if self.held_out is not None and self.held_out.best_state is not None:
-            save_file({k: v.contiguous() for k, v in self.held_out.best_state.items()},
-                      os.path.join(tmp, BEST_FILE), metadata={"format": "pt"})
-        drive = self.context_sampler.failure_drive
-        if drive is not None and self.config.failure_refresh_every > 1:
-            save_file(drive.to_tensors(), os.path.join(tmp, DRIVE_FILE), metadata={"format": "pt"})
-        payload = {
-            "epochs_done": epochs_done,
-            "groups": list(self.group_names),
-            "config": self.config.model_dump(mode="json"),
-            "history": self.history,
-            "optimizer_param_groups": state["param_groups"],
-            "optimizer_scalars": scalars,
-            "torch_rng_state": torch.get_rng_state().tolist(),
-            "held_out": None if self.held_out is None else self.held_out.state(),
-        }
-        with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
-            json.dump(payload, handle, indent=1)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        limit = self.config.save_total_limit
-        if limit is not None:
-            for old in self.list_checkpoints()[:-limit]:
-                shutil.rmtree(old, ignore_errors=True)
-        return final
-
-    def list_checkpoints(self) -> list[str]:
-        """Complete checkpoint folders in ``output_dir``, oldest first."""
-        root = self._checkpoint_root()
-        if root is None or not os.path.isdir(root):
-            return []
-        found = []
-        for name in os.listdir(root):
-            path = os.path.join(root, name)
-            complete = os.path.isfile(os.path.join(path, STATE_FILE))
-            if name.startswith("checkpoint-") and name[11:].isdigit() and complete:
-                found.append((int(name[11:]), path))
-        return [p for _, p in sorted(found)]
-
-    def load_checkpoint(self, directory: str) -> None:
-        """Restore weights, optimizer state, history and the epoch counter from a checkpoint folder."""
-        with open(os.path.join(directory, STATE_FILE), encoding="utf-8") as handle:
-            payload = json.load(handle)
-        if list(payload["groups"]) != list(self.group_names):
-            raise TrafficRLHFError(f"checkpoint {directory!r} trained groups {payload['groups']}, this run trains "
-                                   f"{list(self.group_names)}; resume with the same `groups`.")
-        self.model.load_weights(directory)
-        tensors, _ = safe_load_file(os.path.join(directory, OPTIMIZER_FILE))
-        per_param: dict[int, dict[str, Any]] = {}
-        for key, value in tensors.items():
-            index, name = key.split(".", 1)
-            per_param.setdefault(int(index), {})[name] = value
-        for key, value in payload.get("optimizer_scalars", {}).items():
-            index, name = key.split(".", 1)
-            per_param.setdefault(int(index), {})[name] = value
-        self.optimizer.load_state_dict({"state": per_param, "param_groups": payload["optimizer_param_groups"]})
-        torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
-        self.history = list(payload["history"])
-        self.start_epoch = int(payload["epochs_done"])
-        best = payload.get("held_out")
-        if self.held_out is not None and best and best.get("best_epoch") is not None:
-            self.held_out.best_epoch = int(best["best_epoch"])
-            self.held_out.best_failure_rate = float(best["best_failure_rate"])
-            self.held_out.best_state, _ = safe_load_file(os.path.join(directory, BEST_FILE))
-        drive_file = os.path.join(directory, DRIVE_FILE)
-        if os.path.isfile(drive_file):
-            self.context_sampler.failure_drive = FailureDrive.from_tensors(safe_load_file(drive_file)[0])
 
     # ------------------------------------------------------------------ logging
     def _configure_logger(self) -> Any:
