@@ -248,7 +248,7 @@ class AlignTrainer(TrainerCheckpoints):
         future; cut to the reward window."""
         b, r = states.shape[:2]
         scenario = contexts.repeat_scenes(r).with_future(states.reshape(b * r, *states.shape[2:]),
-                                                valid.reshape(b * r, *valid.shape[2:]))
+                                                         valid.reshape(b * r, *valid.shape[2:]))
         now = contexts.current_index
         return scenario.time_slice(max(0, now - self.config.reward_history_steps), now + 1 + self.reward_steps)
 
