@@ -240,9 +240,14 @@ def test_repeat_scenes_matches_repeat_interleave(b):
         assert out.map.raster.data_ptr() == s.map.raster.data_ptr() and out.map.raster.stride(0) == 0
 
 
-def test_repeat_scenes_rejects_a_bad_count():
+@pytest.mark.parametrize("copies", [0, -2, 2.0, True])
+@pytest.mark.parametrize("b", [1, 3])
+def test_repeat_scenes_rejects_a_bad_count(b, copies):
+    s = make_scenario(b=b)
     with pytest.raises(ValueError, match="copies"):
-        make_scenario(b=1).repeat_scenes(0)
+        s.repeat_scenes(copies)
+    with pytest.raises(ValueError, match="copies"):
+        s.map.repeat_scenes(copies)
 
 
 def test_indexing_an_unchecked_window_does_not_revalidate():

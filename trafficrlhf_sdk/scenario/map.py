@@ -162,6 +162,8 @@ class MapRaster:
     def repeat_scenes(self, copies: int) -> MapRaster:
         """Each scene's map ``copies`` times in a row (``B * copies`` scenes); with B = 1 as expanded views that
         share the raster's memory (read-only), else as copies."""
+        if not (isinstance(copies, int) and not isinstance(copies, bool) and copies >= 1):
+            raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
         if self.num_scenes != 1:
             return self.index(torch.arange(self.num_scenes).repeat_interleave(copies))
         grow = lambda t: None if t is None else t.expand(copies, *t.shape[1:])  # noqa: E731
