@@ -344,3 +344,52 @@ def test_counterfactual_credit_hands_log_comparing_rewards_the_logged_window(
     b, a = rollout.contexts.num_scenes, rollout.contexts.num_agents
     assert rollout.advantages.shape == (b, 3, a) and torch.isfinite(rollout.advantages).all()
     assert torch.all(rollout.advantages[~rollout.trace.agents[:, None, :].expand(b, 3, a)] == 0)
+
+
+def test_speed_neutral_advantages_are_least_squares_residuals(train_scene_list: list[ScenarioTensor]) -> None:
+    np = pytest.importorskip("numpy")
+    config = AlignConfig(alpha=1.0, credit="agent", speed_neutral_advantages=True, **FAST)
+    trainer = AlignTrainer(_model(), FailureReward(margins=True), config, scenes=train_scene_list)
+    gen = torch.Generator().manual_seed(3)
+    rewards, speed = torch.randn(4, 6, 3, generator=gen), 5 + 2 * torch.randn(4, 6, 3, generator=gen)
+    adv = trainer._normalize(rewards, dim=1, covariate=speed)
+    for c in range(4):
+        for a in range(3):
+            r, x = rewards[c, :, a].double().numpy(), speed[c, :, a].double().numpy()
+            design = np.stack([np.ones_like(x), x], 1)
+            residual = r - design @ np.linalg.lstsq(design, r, rcond=None)[0]
+            expected = np.clip(residual / (r.std() + config.advantage_eps), -5, 5)
+            assert np.allclose(adv[c, :, a].double().numpy(), expected, atol=1e-5)
+    # rewards that are exactly a line in speed leave nothing to learn; a constant speed leaves the plain advantages
+    assert trainer._normalize(3 - 0.5 * speed, dim=1, covariate=speed).abs().max() < 1e-4
+    flat = torch.full_like(speed, 4.0)
+    assert torch.allclose(trainer._normalize(rewards, dim=1, covariate=flat), trainer._normalize(rewards, dim=1))
+
+
+@pytest.mark.parametrize("credit", ["agent", "scene"])
+def test_speed_neutral_rollout_advantages_are_orthogonal_to_sample_speed(
+        train_scene_list: list[ScenarioTensor], credit: str) -> None:
+    config = AlignConfig(alpha=1.0, credit=credit, speed_neutral_advantages=True, failure_fraction=0.5,
+                         failure_scenes=4, failure_drive_s=4.0, **FAST)
+    trainer = AlignTrainer(_model(), FailureReward(margins=True), config, scenes=train_scene_list)
+    drawn = []
+    sample = trainer._sample
+    trainer._sample = lambda *args: drawn.append(sample(*args)) or drawn[-1]  # type: ignore[method-assign]
+    rollout = trainer._rollout(0)
+    del trainer._sample
+    adv, agents = rollout.advantages, rollout.trace.agents
+    speed = trainer._sample_speeds(drawn[0].futures)  # (B, S, A)
+    assert torch.isfinite(adv).all()
+    if credit == "scene":
+        picked = agents[:, None, :].float()
+        speed = (speed * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+        groups = agents.any(-1)  # (B,)
+    else:
+        groups = agents  # (B, A)
+    centred = speed - speed.mean(1, keepdim=True)
+    unclipped = adv.abs() < config.advantage_clip
+    dot = (adv * centred * unclipped).sum(1)  # residuals are orthogonal to the centred speeds of their group
+    assert torch.allclose(dot[groups], torch.zeros_like(dot[groups]), atol=1e-3)
+    assert (adv != 0).any()  # the failure reward still ranks some samples
+    history = trainer.train()
+    assert history[0]["first_ratio_max_dev"] == 0.0

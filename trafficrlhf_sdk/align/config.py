@@ -114,6 +114,12 @@ class AlignConfig(BaseModel):
                                         "future only, so a collision between two simulated agents is charged to "
                                         "the one whose sample caused it. Costs one scenario per sampled agent "
                                         "and sample.")
+    speed_neutral_advantages: bool = Field(False, description="Regress, within each advantage group (context, "
+                                           "or context and agent), the samples' rewards on their mean speed over "
+                                           "the scored window and use the residuals, divided by the group's "
+                                           "reward std: a sample no longer gains from being slower than its "
+                                           "siblings, only from how it drives at its pace (failure rewards favour "
+                                           "slow samples, and the slow-down costs realism).")
     reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
                                        "longer value than the model's horizon extends the sample at constant "
                                        "speed and heading (denser failure signal), a shorter one scores only "

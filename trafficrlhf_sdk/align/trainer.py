@@ -317,12 +317,17 @@ class AlignTrainer(TrainerCheckpoints):
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             picked = trace.agents[:, None, :].to(per_agent.dtype)
             rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
-            adv = self._normalize(per_agent, dim=1) * picked
+            speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
+            adv = self._normalize(per_agent, dim=1, covariate=speed) * picked
             ranked = per_agent
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
-            adv = self._normalize(rewards, dim=1)
+            speed = None
+            if self.config.speed_neutral_advantages:
+                picked = trace.agents[:, None, :].to(rewards.dtype)
+                speed = (self._sample_speeds(out.futures) * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+            adv = self._normalize(rewards, dim=1, covariate=speed)
             ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
         winners = None
         if self.config.winner_coef > 0:
@@ -356,12 +361,29 @@ class AlignTrainer(TrainerCheckpoints):
         return history_part.replace_unchecked(states=torch.cat([history_part.states, best], 2), valid=valid,
                                               controlled=history_part.controlled & valid.any(-1))
 
-    def _normalize(self, rewards: torch.Tensor, dim: int) -> torch.Tensor:
-        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped."""
+    def _sample_speeds(self, futures: torch.Tensor) -> torch.Tensor:
+        """``(B, S, A)`` mean speed (m/s) of each sample ``futures (B, S, A, H, 4)`` over the scored steps."""
+        return futures[..., : min(futures.shape[-2], self.reward_steps), 2].detach().mean(-1).to(torch.float32)
+
+    def _normalize(self, rewards: torch.Tensor, dim: int, covariate: torch.Tensor | None = None) -> torch.Tensor:
+        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped.
+
+        With ``covariate`` (same shape as ``rewards``, e.g. the samples' speeds), ``r - mean`` is replaced by the
+        residual of the least-squares line of ``r`` on the covariate within each group; the divisor stays the
+        std of ``r``, so a group whose rewards the covariate explains gets advantages near 0 (not inflated
+        noise)."""
         mean = rewards.mean(dim, keepdim=True)
         std = rewards.std(dim, unbiased=False, keepdim=True)
+        centred = rewards - mean
+        if covariate is not None:
+            x = covariate.to(rewards.dtype)
+            x = x - x.mean(dim, keepdim=True)
+            spread = (x * x).sum(dim, keepdim=True)
+            slope = torch.where(spread > 1e-6, (x * centred).sum(dim, keepdim=True) / spread.clamp_min(1e-6),
+                                torch.zeros_like(spread))
+            centred = centred - slope * x
         clip = self.config.advantage_clip
-        return ((rewards - mean) / (std + self.config.advantage_eps)).clamp(-clip, clip)
+        return (centred / (std + self.config.advantage_eps)).clamp(-clip, clip)
 
     # ------------------------------------------------------------------ optimization
     def learning_rate(self, epoch: int) -> float:

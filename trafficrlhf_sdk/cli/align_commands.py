@@ -124,6 +124,8 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
               help="One advantage per sample (scene, the paper) or per sampled agent (agent) [default: scene].")
 @click.option("--counterfactual-credit", is_flag=True,
               help="With --credit agent: score each agent's samples with the other sampled agents held to sample 0.")
+@click.option("--speed-neutral-advantages", is_flag=True,
+              help="Remove from each group's rewards the part explained linearly by the samples' mean speed.")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
               help="Train the surrogate on the first N denoising steps only (diffusion models) [default: all].")
 @click.option("--pessimism", type=click.FloatRange(min=0), default=None,
@@ -167,7 +169,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
-                  credit: str | None, counterfactual_credit: bool,
+                  credit: str | None, counterfactual_credit: bool, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, log_reference: str | None, holdout_every: int | None,
                   eval_every: int | None,
@@ -213,6 +215,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "failure_lead_steps": _parse_lead(failure_lead),
         "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
+        "speed_neutral_advantages": speed_neutral_advantages or None,
         "denoising_steps": denoising_steps,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
