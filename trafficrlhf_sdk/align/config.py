@@ -117,9 +117,11 @@ class AlignConfig(BaseModel):
     speed_neutral_advantages: bool = Field(False, description="Regress, within each advantage group (context, "
                                            "or context and agent), the samples' rewards on their mean speed over "
                                            "the scored window and use the residuals, divided by the group's "
-                                           "reward std: a sample no longer gains from being slower than its "
-                                           "siblings, only from how it drives at its pace (failure rewards favour "
-                                           "slow samples, and the slow-down costs realism).")
+                                           "reward std: a sample no longer gains from being slower or faster "
+                                           "than its siblings in a straight line. Removes a failure reward's lean "
+                                           "to slower samples; with a stall term (realism-*) the lean is to faster "
+                                           "ones, and removing it made the 4 s CTG stop (alignment results, "
+                                           "session 15).")
     reward_horizon: int | None = Field(None, ge=1, description="Future steps each sample is scored over; a "
                                        "longer value than the model's horizon extends the sample at constant "
                                        "speed and heading (denser failure signal), a shorter one scores only "
