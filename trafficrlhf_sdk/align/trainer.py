@@ -104,6 +104,12 @@ def _entry_mask(log_prob: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
     return mask
 
 
+def _mean_over_sampled(values: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
+    """``(B, S)`` mean of per-agent ``values (B, S, A)`` over each context's sampled ``agents (B, A)``."""
+    picked = agents[:, None, :].to(values.dtype)
+    return (values * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+
+
 def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
     """Per-(context, sample) advantages ``(B, S)`` or per-(context, sample, agent) ``(B, S, A)`` broadcast to
     ``log_prob``'s shape."""
@@ -315,18 +321,16 @@ class AlignTrainer(TrainerCheckpoints):
                     self.config.samples_per_context).time_slice(window.start, window.stop)
                 scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
-            picked = trace.agents[:, None, :].to(per_agent.dtype)
-            rewards = (per_agent * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+            rewards = _mean_over_sampled(per_agent, trace.agents)
             speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
-            adv = self._normalize(per_agent, dim=1, covariate=speed) * picked
+            adv = self._normalize(per_agent, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
             ranked = per_agent
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             speed = None
             if self.config.speed_neutral_advantages:
-                picked = trace.agents[:, None, :].to(rewards.dtype)
-                speed = (self._sample_speeds(out.futures) * picked).sum(-1) / picked.sum(-1).clamp_min(1)
+                speed = _mean_over_sampled(self._sample_speeds(out.futures), trace.agents)
             adv = self._normalize(rewards, dim=1, covariate=speed)
             ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
         winners = None

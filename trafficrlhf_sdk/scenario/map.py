@@ -26,6 +26,12 @@ class PolylineType:
     OTHER = 5
 
 
+def check_copies(copies: object) -> None:
+    """Raise a ValueError unless ``copies`` (a ``repeat_scenes`` count) is a positive int."""
+    if not (isinstance(copies, int) and not isinstance(copies, bool) and copies >= 1):
+        raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
+
+
 @dataclass(frozen=True)
 class MapRaster:
     """Semantic map layers of a batch of scenes.
@@ -162,8 +168,7 @@ class MapRaster:
     def repeat_scenes(self, copies: int) -> MapRaster:
         """Each scene's map ``copies`` times in a row (``B * copies`` scenes); with B = 1 as expanded views that
         share the raster's memory (read-only), else as copies."""
-        if not (isinstance(copies, int) and not isinstance(copies, bool) and copies >= 1):
-            raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
+        check_copies(copies)
         if self.num_scenes != 1:
             return self.index(torch.arange(self.num_scenes).repeat_interleave(copies))
         grow = lambda t: None if t is None else t.expand(copies, *t.shape[1:])  # noqa: E731

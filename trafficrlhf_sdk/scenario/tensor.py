@@ -12,7 +12,7 @@ import torch
 
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import ScenarioValidationError
-from trafficrlhf_sdk.scenario.map import MapRaster
+from trafficrlhf_sdk.scenario.map import MapRaster, check_copies
 
 __all__ = ["ScenarioTensor"]
 
@@ -264,8 +264,7 @@ class ScenarioTensor:
         With one scene (B = 1) the copies are expanded views that share its memory, the map raster included:
         read-only, fine for scoring, not for in-place edits. With B > 1 they are copies.
         """
-        if not (isinstance(copies, int) and not isinstance(copies, bool) and copies >= 1):
-            raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
+        check_copies(copies)
         if self.num_scenes != 1:
             return self[torch.arange(self.num_scenes).repeat_interleave(copies)]
 
