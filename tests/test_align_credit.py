@@ -108,6 +108,8 @@ def test_failure_settings_are_checked() -> None:
         AlignConfig(failure_lead_steps=(5, 2))
     with pytest.raises(ValueError, match="exceed 1"):
         AlignConfig(failure_fraction=0.7, closed_loop_fraction=0.5)
+    with pytest.raises(ValueError, match="perturb_fraction"):
+        AlignConfig(failure_fraction=0.75, perturb_fraction=0.5)
 
 
 def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scene_list: list[ScenarioTensor]) -> None:
@@ -393,3 +395,54 @@ def test_speed_neutral_rollout_advantages_are_orthogonal_to_sample_speed(
     assert (adv != 0).any()  # the failure reward still ranks some samples
     history = trainer.train()
     assert history[0]["first_ratio_max_dev"] == 0.0
+
+
+def test_perturbed_contexts_start_beside_the_log_on_the_road_and_imitate_the_log(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    config = AlignConfig(perturb_fraction=0.5, perturb_lateral_m=1.5, perturb_yaw_rad=0.2, **{**FAST,
+                         "contexts_per_epoch": 8})
+    sampler = ContextSampler(_model(), config, lambda: train_scene_list, None, future_steps=20)
+    contexts, logged = sampler.draw(torch.Generator().manual_seed(3))
+    assert contexts.num_scenes == logged.num_scenes == 8
+    now = contexts.current_index
+    moved = contexts[:4]  # perturbed first, then the log
+    shift = torch.linalg.vector_norm(moved.xy[:, :, now] - logged[:4].xy[:, :, now], dim=-1)
+    sampled = moved.controlled & moved.valid[:, :, now]
+    assert int((shift[sampled] > 0.05).sum()) >= sampled.sum() // 2  # most controlled agents were moved ...
+    assert float(shift.max()) <= 1.5 + 1e-4  # ... by at most the largest shift
+    assert torch.equal(shift[~sampled], torch.zeros_like(shift[~sampled]))  # replayed agents stay on the log
+    assert not bool((offroad_per_step(moved)[:, :, now] & sampled & (shift > 0)).any())  # nobody moved off-road
+    # the future and the imitation target are the log's; the logged half is not moved at all
+    assert torch.equal(moved.states[:, :, now + 1 :], logged[:4].states[:, :, now + 1 :])
+    assert torch.equal(contexts[4:].states, logged[4:].states)
+
+
+def test_a_perturbed_context_keeps_an_agent_on_its_log_where_the_move_would_leave_the_road(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    config = AlignConfig(perturb_fraction=1.0, perturb_lateral_m=25.0, perturb_yaw_rad=0.0, **{**FAST,
+                         "contexts_per_epoch": 6})
+    sampler = ContextSampler(_model(), config, lambda: train_scene_list, None, future_steps=20)
+    contexts, logged = sampler.draw(torch.Generator().manual_seed(1))
+    now = contexts.current_index
+    shift = torch.linalg.vector_norm(contexts.xy[:, :, now] - logged.xy[:, :, now], dim=-1)
+    sampled = contexts.controlled & contexts.valid[:, :, now]
+    kept = sampled & (shift < 1e-4)
+    assert bool(kept.any())  # a 25 m shift puts some agents off the road: those keep their logged history
+    assert not bool((offroad_per_step(contexts)[:, :, now] & sampled & ~kept).any())
+    assert not bool((collisions_per_step(contexts)[:, :, now] & ~collisions_per_step(logged)[:, :, now]).any())
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--perturbed-contexts", "0.5", "--perturb", "1.0"], "--perturb"),
+    (["--perturbed-contexts", "0.5", "--perturb", "a,b"], "--perturb"),
+    (["--perturbed-contexts", "0.5", "--failure-contexts", "0.75"], "perturb_fraction"),
+])
+def test_bad_perturbation_flags_get_one_clear_error(tmp_path, capsys, flags: list[str],  # type: ignore[no-untyped-def]
+                                                    message: str) -> None:
+    from trafficrlhf_sdk.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["align", "--model", "example_gru", "--reward-model", "builtin:collision", "--out", str(tmp_path),
+              *flags])
+    err = capsys.readouterr().err
+    assert exit_info.value.code != 0 and message in err and "Traceback" not in err

@@ -1,4 +1,5 @@
-"""Mirrored scenes (``mirror_scenario``): geometry the metrics see is the original's, turns change sign."""
+"""Scene transforms: mirrored scenes (``mirror_scenario``) keep the geometry the metrics see and flip turns;
+perturbed histories (``perturb_history``) move each agent's past rigidly and leave the future alone."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import torch
 from hypothesis import given, settings
 
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
-from trafficrlhf_sdk.scenario import MIRROR_SUFFIX, ScenarioTensor, mirror_scenario
+from trafficrlhf_sdk.scenario import MIRROR_SUFFIX, ScenarioTensor, mirror_scenario, perturb_history
 from trafficrlhf_sdk.testing.strategies import feasible_trajectories, scenario_tensors
 
 
@@ -61,3 +62,46 @@ def test_recorded_scenes_keep_their_collisions_and_off_road_steps_when_mirrored(
     cross = xy[..., :-1, 0] * xy[..., 1:, 1] - xy[..., :-1, 1] * xy[..., 1:, 0]
     m_cross = m_xy[..., :-1, 0] * m_xy[..., 1:, 1] - m_xy[..., :-1, 1] * m_xy[..., 1:, 0]
     torch.testing.assert_close(m_cross, -cross)
+
+
+def _random_moves(scenario: ScenarioTensor, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    shape = scenario.controlled.shape
+    return (2 * torch.rand(shape, generator=gen) - 1) * 2.0, (2 * torch.rand(shape, generator=gen) - 1) * 0.5
+
+
+@settings(max_examples=60, deadline=None)
+@given(scenario_tensors(max_agents=4, with_map=None))
+def test_a_perturbed_history_is_a_rigid_move_that_ends_beside_the_logged_pose(scenario: ScenarioTensor) -> None:
+    lateral, turn = _random_moves(scenario, 0)
+    moved = perturb_history(scenario, lateral, turn)
+    now, valid = scenario.current_index, scenario.valid
+    past = valid[:, :, : now + 1]
+    # the future, speeds, validity and agents not valid now are untouched
+    assert torch.equal(moved.states[:, :, now + 1 :], scenario.states[:, :, now + 1 :])
+    assert torch.equal(moved.states[..., 2], scenario.states[..., 2]) and torch.equal(moved.valid, valid)
+    still = ~valid[:, :, now]
+    assert torch.equal(moved.states[still], scenario.states[still])
+    # pairwise distances within each agent's history are kept (a rigid move)
+    d_before = torch.cdist(scenario.xy[:, :, : now + 1].double(), scenario.xy[:, :, : now + 1].double())
+    d_after = torch.cdist(moved.xy[:, :, : now + 1].double(), moved.xy[:, :, : now + 1].double())
+    pair = past[..., :, None] & past[..., None, :]
+    torch.testing.assert_close(d_after[pair], d_before[pair], atol=2e-3, rtol=1e-5)
+    # the pose now moved by `lateral` across the heading now, and turned by `turn`
+    on = valid[:, :, now]
+    yaw_now = scenario.yaw[:, :, now]
+    shift = moved.xy[:, :, now] - scenario.xy[:, :, now]
+    left = torch.stack([-torch.sin(yaw_now), torch.cos(yaw_now)], -1)
+    torch.testing.assert_close((shift * left).sum(-1)[on], lateral[on], atol=2e-3, rtol=0)
+    torch.testing.assert_close(torch.linalg.vector_norm(shift, dim=-1)[on], lateral.abs()[on], atol=2e-3, rtol=0)
+    dyaw = torch.remainder(moved.yaw[:, :, : now + 1] - scenario.yaw[:, :, : now + 1] - turn[..., None] + torch.pi,
+                           2 * torch.pi) - torch.pi
+    assert not bool((dyaw[past & on[..., None]].abs() > 1e-4).any())
+
+
+@settings(max_examples=30, deadline=None)
+@given(scenario_tensors(max_agents=4, with_map=None))
+def test_a_zero_perturbation_leaves_the_scenario_as_logged(scenario: ScenarioTensor) -> None:
+    zeros = torch.zeros(scenario.controlled.shape)
+    moved = perturb_history(scenario, zeros, zeros)
+    torch.testing.assert_close(moved.states, scenario.states, atol=1e-5, rtol=0)

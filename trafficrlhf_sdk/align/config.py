@@ -87,6 +87,16 @@ class AlignConfig(BaseModel):
                                     "before a failure (collision or off-road) of the current model in a "
                                     "closed-loop run on `failure_scenes` training scenes; the log fills in when "
                                     "the run has fewer failures.")
+    perturb_fraction: float = Field(0.0, ge=0, le=1, description="Share of each epoch's contexts drawn from the "
+                                    "log with every controlled agent's history moved rigidly off its logged "
+                                    "path (`perturb_lateral_m`, `perturb_yaw_rad`): recovery states on every "
+                                    "training road, not only on the roads of the failure drive (DART-style "
+                                    "noise injection). Their imitation loss still uses the unperturbed log.")
+    perturb_lateral_m: float = Field(1.0, ge=0, description="Largest sideways shift (m, across the agent's "
+                                     "current heading) of a perturbed context; drawn uniformly in +- this.")
+    perturb_yaw_rad: float = Field(0.15, ge=0, description="Largest heading change (rad) of a perturbed context, "
+                                   "a rotation of the history about the agent's current position; uniform in "
+                                   "+- this.")
     failure_scenes: int = Field(16, ge=1, description="Training scenes driven in closed loop per epoch to find "
                                                       "failures (`failure_fraction` > 0).")
     failure_drive_s: float = Field(10.0, gt=0, description="Length (s) of the closed-loop runs that find failures "
@@ -185,9 +195,11 @@ class AlignConfig(BaseModel):
         if not 1 <= lo <= hi:
             raise ValueError(f"`failure_lead_steps` is {self.failure_lead_steps}; give (low, high) with "
                              "1 <= low <= high, e.g. (5, 15).")
-        if self.failure_fraction + self.closed_loop_fraction > 1 + 1e-9:
+        shares = self.failure_fraction + self.closed_loop_fraction + self.perturb_fraction
+        if shares > 1 + 1e-9:
             raise ValueError(f"`failure_fraction` ({self.failure_fraction}) + `closed_loop_fraction` "
-                             f"({self.closed_loop_fraction}) exceed 1; lower one of them.")
+                             f"({self.closed_loop_fraction}) + `perturb_fraction` ({self.perturb_fraction}) "
+                             "exceed 1; lower one of them.")
         if self.keep_best and self.eval_every is None:
             raise ValueError("`keep_best=True` needs `eval_every` (how often the held-out scenes are driven), "
                              "e.g. eval_every=10.")

@@ -6,6 +6,8 @@ paired with the same window of the *log* (the imitation loss always learns from 
 * **log**: a training scene and a start step ``t`` drawn at random.
 * **closed-loop lead-in** (``closed_loop_fraction``): the current model drives for a random 0.5 s multiple first,
   so the history is the model's own.
+* **perturbed** (``perturb_fraction``): a logged window whose controlled agents' histories are shifted and turned
+  rigidly off the log, so the model starts off its lane on any training road (DART-style noise injection).
 * **failure-focused** (``failure_fraction``): the current model drives ``failure_scenes`` training scenes in
   closed loop; for every controlled agent that collides or leaves the road at step ``f``, a context is cut at
   ``t = f - d`` (``d`` drawn in ``failure_lead_steps``) from the simulated scene. Failures build up over a
@@ -29,6 +31,7 @@ from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.transforms import perturb_history
 
 __all__ = ["ContextSampler", "FailureDrive", "held_out_scene_ids", "training_scene_ids"]
 
@@ -69,7 +72,7 @@ class ContextSampler:
 
     def draw(self, gen: torch.Generator, epoch: int | None = None) -> tuple[ScenarioTensor, ScenarioTensor]:
         """``(contexts, logged)``: ``contexts_per_epoch`` windows each, in the order failure-focused,
-        closed-loop lead-in, log. ``epoch`` (0-based) lets failure-focused contexts reuse the drive of an
+        closed-loop lead-in, perturbed, log. ``epoch`` (0-based) lets failure-focused contexts reuse the drive of an
         earlier epoch of the same ``failure_refresh_every`` block; None: always drive afresh."""
         cfg = self.config
         total = cfg.contexts_per_epoch
@@ -81,8 +84,11 @@ class ContextSampler:
             failing = pairs[-1][0].num_scenes  # may fall short: the log fills in
         if closed:
             pairs.append(self.closed_loop_contexts(closed, gen))
-        if total - failing - closed:
-            pairs.append(self.log_contexts(total - failing - closed, gen))
+        moved = min(total - failing - closed, round(cfg.perturb_fraction * total))
+        if moved:
+            pairs.append(self.perturbed_contexts(moved, gen))
+        if total - failing - closed - moved:
+            pairs.append(self.log_contexts(total - failing - closed - moved, gen))
         return (ScenarioTensor.concat([p[0] for p in pairs]), ScenarioTensor.concat([p[1] for p in pairs]))
 
     # ------------------------------------------------------------------ pieces
@@ -112,6 +118,26 @@ class ContextSampler:
                                     f"{h} future steps in the training scenes.")
         batch = ScenarioTensor.concat(parts)
         return batch, batch
+
+    def perturbed_contexts(self, count: int, gen: torch.Generator) -> tuple[ScenarioTensor, ScenarioTensor]:
+        """``count`` logged windows whose controlled agents' histories are moved rigidly off the log
+        (:func:`~trafficrlhf_sdk.scenario.perturb_history`, shift and turn uniform in +- ``perturb_lateral_m`` /
+        ``perturb_yaw_rad``), paired with the unmoved windows. An agent the move would put off the drivable
+        layer now, or into another agent's box, keeps its logged history."""
+        cfg = self.config
+        logged, _ = self.log_contexts(count, gen)
+        shape = logged.controlled.shape
+        lateral = (2 * torch.rand(shape, generator=gen) - 1) * cfg.perturb_lateral_m
+        turn = (2 * torch.rand(shape, generator=gen) - 1) * cfg.perturb_yaw_rad
+        movable = logged.controlled
+        moved = perturb_history(logged, lateral * movable, turn * movable)
+        now = logged.current_index
+        bad = (collisions_per_step(moved.time_slice(now, now + 1))[:, :, 0]
+               & ~collisions_per_step(logged.time_slice(now, now + 1))[:, :, 0])
+        if logged.map is not None and "drivable" in logged.map.layers:
+            bad |= offroad_per_step(moved.time_slice(now, now + 1))[:, :, 0]
+        keep = movable & ~bad
+        return perturb_history(logged, lateral * keep, turn * keep), logged
 
     def _drive(self, batch: ScenarioTensor, steps: int) -> ScenarioTensor:
         """``batch`` with its controlled agents driven by the model for ``steps`` steps after ``current_index``

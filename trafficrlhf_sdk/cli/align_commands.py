@@ -75,6 +75,21 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
                                  param_hint="--failure-lead") from None
 
 
+def _parse_perturb(text: str | None) -> dict[str, float]:
+    """``"METRES,RADIANS"`` -> the AlignConfig fields ``perturb_lateral_m`` / ``perturb_yaw_rad`` ({} for None)."""
+    if text is None:
+        return {}
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        lateral, yaw = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise click.BadParameter(f"got {text!r}; give a shift in metres and a turn in radians such as 1.0,0.15.",
+                                 param_hint="--perturb") from None
+    return {"perturb_lateral_m": lateral, "perturb_yaw_rad": yaw}
+
+
 @cli.command("align")
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
@@ -111,6 +126,11 @@ def _parse_lead(text: str | None) -> tuple[int, int] | None:
               help="Share of contexts whose history the current model simulates itself (default 0).")
 @click.option("--failure-contexts", "failure_fraction", type=click.FloatRange(0, 1), default=None,
               help="Share of contexts cut just before the current model's own closed-loop failures (default 0).")
+@click.option("--perturbed-contexts", "perturb_fraction", type=click.FloatRange(0, 1), default=None,
+              help="Share of contexts from the log with the controlled agents' histories shifted and turned off "
+                   "their logged paths (default 0).")
+@click.option("--perturb", default=None, metavar="METRES,RADIANS",
+              help="Largest sideways shift and heading change of a perturbed context [default: 1.0,0.15].")
 @click.option("--failure-scenes", type=click.IntRange(min=1), default=None,
               help="Training scenes driven per epoch to find those failures [default: 16].")
 @click.option("--failure-refresh", "failure_refresh", type=click.IntRange(min=1), default=None,
@@ -167,7 +187,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   kl_coef: float | None,
                   target_kl: float | None, imitation_coef: float | None, winner_coef: float | None,
                   winner_min_gap: float | None, guidance: str | None,
-                  closed_loop: float | None, failure_fraction: float | None, failure_scenes: int | None,
+                  closed_loop: float | None, failure_fraction: float | None, perturb_fraction: float | None,
+                  perturb: str | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
@@ -212,6 +233,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
+        "perturb_fraction": perturb_fraction, **_parse_perturb(perturb),
         "failure_lead_steps": _parse_lead(failure_lead),
         "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,

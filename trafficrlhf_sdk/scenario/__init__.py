@@ -4,7 +4,7 @@ from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.map import DEFAULT_LAYERS, MapRaster, PolylineType
 from trafficrlhf_sdk.scenario.source import ScenarioSource, SourceConfig, default_data_root
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
-from trafficrlhf_sdk.scenario.transforms import MIRROR_SUFFIX, mirror_scenario
+from trafficrlhf_sdk.scenario.transforms import MIRROR_SUFFIX, mirror_scenario, perturb_history
 
 __all__ = [
     "DEFAULT_LAYERS",
@@ -17,4 +17,5 @@ __all__ = [
     "SourceConfig",
     "default_data_root",
     "mirror_scenario",
+    "perturb_history",
 ]

@@ -6,9 +6,10 @@ import dataclasses
 
 import torch
 
+from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["MIRROR_SUFFIX", "mirror_scenario"]
+__all__ = ["MIRROR_SUFFIX", "mirror_scenario", "perturb_history"]
 
 MIRROR_SUFFIX = "~mirror"
 """Appended to the scene ids of a mirrored scenario, so a mirrored scene never passes for its original."""
@@ -46,3 +47,32 @@ def mirror_scenario(scenario: ScenarioTensor) -> ScenarioTensor:
     changes["scene_ids"] = tuple(s[: -len(MIRROR_SUFFIX)] if s.endswith(MIRROR_SUFFIX) else s + MIRROR_SUFFIX
                                  for s in scenario.scene_ids)
     return dataclasses.replace(scenario, **changes)
+
+
+def perturb_history(scenario: ScenarioTensor, lateral: torch.Tensor, turn: torch.Tensor) -> ScenarioTensor:
+    """Each agent's states up to ``current_index`` moved rigidly: rotated by ``turn`` about its position now and
+    shifted ``lateral`` across its heading now (positive: to its left).
+
+    ``lateral`` (m) and ``turn`` (rad) are ``(B, A)``; zeros leave an agent as logged. Speeds, validity and the
+    steps after ``current_index`` are unchanged, so a perturbed agent's history ends off its logged path while its
+    logged future still starts on it (a context for learning to recover; ``AlignConfig.perturb_fraction``).
+    An agent not valid now is left as is.
+    """
+    now = scenario.current_index
+    movable = scenario.valid[:, :, now]
+    dtype = scenario.states.dtype
+    lateral, turn = lateral.to(dtype), turn.to(dtype)
+    past = scenario.states[:, :, : now + 1]
+    pivot = past[:, :, now, :2]  # (B, A, 2)
+    yaw_now = past[:, :, now, 3]
+    cos, sin = torch.cos(turn)[..., None], torch.sin(turn)[..., None]  # (B, A, 1)
+    rel = past[..., :2] - pivot[:, :, None]
+    rotated = torch.stack([cos * rel[..., 0] - sin * rel[..., 1], sin * rel[..., 0] + cos * rel[..., 1]], -1)
+    normal = torch.stack([-torch.sin(yaw_now), torch.cos(yaw_now)], -1)  # left of the heading now
+    xy = pivot[:, :, None] + rotated + (lateral[..., None] * normal)[:, :, None]
+    yaw = wrap_angle(past[..., 3] + turn[..., None])
+    moved_past = torch.cat([xy, past[..., 2:3], yaw[..., None]], -1)
+    # agents not valid now keep their states bit for bit (a zero move would still round them)
+    moved_past = torch.where(movable[:, :, None, None], moved_past, past) * scenario.valid[:, :, : now + 1, None]
+    states = torch.cat([moved_past, scenario.states[:, :, now + 1 :]], 2)
+    return dataclasses.replace(scenario, states=states)
