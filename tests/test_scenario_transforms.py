@@ -3,6 +3,7 @@ perturbed histories (``perturb_history``) move each agent's past rigidly and lea
 
 from __future__ import annotations
 
+import pytest
 import torch
 from hypothesis import given, settings
 
@@ -105,3 +106,8 @@ def test_a_zero_perturbation_leaves_the_scenario_as_logged(scenario: ScenarioTen
     zeros = torch.zeros(scenario.controlled.shape)
     moved = perturb_history(scenario, zeros, zeros)
     torch.testing.assert_close(moved.states, scenario.states, atol=1e-5, rtol=0)
+
+
+def test_a_perturbation_of_the_wrong_shape_is_refused(val_scenes: ScenarioTensor) -> None:
+    with pytest.raises(ValueError, match="`turn` has shape"):
+        perturb_history(val_scenes, torch.zeros(val_scenes.controlled.shape), torch.zeros(3))

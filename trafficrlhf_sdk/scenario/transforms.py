@@ -58,6 +58,11 @@ def perturb_history(scenario: ScenarioTensor, lateral: torch.Tensor, turn: torch
     logged future still starts on it (a context for learning to recover; ``AlignConfig.perturb_fraction``).
     An agent not valid now is left as is.
     """
+    shape = tuple(scenario.controlled.shape)
+    for name, value in (("lateral", lateral), ("turn", turn)):
+        if tuple(value.shape) != shape:
+            raise ValueError(f"`{name}` has shape {tuple(value.shape)}; give one value per agent slot, {shape} "
+                             "(batch, agents).")
     now = scenario.current_index
     movable = scenario.valid[:, :, now]
     dtype = scenario.states.dtype
