@@ -74,7 +74,8 @@ def perturb_history(scenario: ScenarioTensor, lateral: torch.Tensor, turn: torch
     rel = past[..., :2] - pivot[:, :, None]
     rotated = torch.stack([cos * rel[..., 0] - sin * rel[..., 1], sin * rel[..., 0] + cos * rel[..., 1]], -1)
     normal = torch.stack([-torch.sin(yaw_now), torch.cos(yaw_now)], -1)  # left of the heading now
-    xy = pivot[:, :, None] + rotated + (lateral[..., None] * normal)[:, :, None]
+    # added as a displacement, not as pivot + rotated: far from the origin the round trip would lose float32 bits
+    xy = past[..., :2] + (rotated - rel) + (lateral[..., None] * normal)[:, :, None]
     yaw = wrap_angle(past[..., 3] + turn[..., None])
     moved_past = torch.cat([xy, past[..., 2:3], yaw[..., None]], -1)
     # agents not valid now keep their states bit for bit (a zero move would still round them)
