@@ -3,11 +3,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -170,31 +167,14 @@ def test_cli_extrapolate(three: list[str], tmp_path, capsys) -> None:  # type: i
     assert err.startswith("Error:") and "Traceback" not in err
 
 
-def _script(name: str):  # type: ignore[no-untyped-def]
-    """Import ``scripts/<name>.py`` (the scripts folder is on the path while it loads: the sweep imports its
-    neighbour align_dev_eval)."""
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))
-    try:
-        spec = importlib.util.spec_from_file_location(name, scripts / f"{name}.py")
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(scripts))
-    return module
-
-
-def _sweep_script():  # type: ignore[no-untyped-def]
-    return _script("extrapolation_sweep")
-
-
 @pytest.mark.parametrize("split", ["train", "val"])
 def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[str], tmp_path, data_root, capsys,
+                                                                   load_script,
                                                                    split: str) -> None:  # type: ignore[no-untyped-def]
+    sweep = load_script("extrapolation_sweep")
     pytest.importorskip("trafficrlhf_nuscenes_pred")
     out = tmp_path / "sweep"
-    code = _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", three[1],
+    code = sweep.main(["--model", "example_gru", "--base", three[0], "--aligned", three[1],
                                  "--factors", "0,1,2", "--seeds", "0", "--max-scenes", "2", "--split", split,
                                  "--out", str(out)])
     assert code == 0
@@ -210,20 +190,20 @@ def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[s
     assert all(torch.equal(v, _weights(three[0])[k]) for k, v in _weights(str(out / "x0")).items())
     printed = capsys.readouterr().out
     assert "| factor |" in printed and f"factor {result['best_factor']:g}" in printed
-    slow = _sweep_script().sweep("example_gru", three[0], three[1], [0.0, 2.0], [0], str(tmp_path / "s2"), None, 10,
+    slow = sweep.sweep("example_gru", three[0], three[1], [0.0, 2.0], [0], str(tmp_path / "s2"), None, 10,
                                  max_scenes=2, min_speed_ratio=1e6)
     assert slow["best_factor"] is None and slow["best_factor_keeping_realism"] is None
     capsys.readouterr()
-    assert _sweep_script().main(["--model", "example_gru", "--base", three[0], "--aligned", str(tmp_path / "no"),
+    assert sweep.main(["--model", "example_gru", "--base", three[0], "--aligned", str(tmp_path / "no"),
                                  "--factors", "2", "--seeds", "0", "--max-scenes", "1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.startswith("Error:")
 
 
-def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drives(data_root) -> None:  # type: ignore[no-untyped-def]
+def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drives(data_root, load_script) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("trafficrlhf_nuscenes_pred")
     from trafficrlhf_sdk import get_scenario_source
 
-    dev = _script("align_dev_eval")
+    dev = load_script("align_dev_eval")
     every_val = get_scenario_source("nuscenes_pred").scene_ids("val")
     ids, batch = dev.held_out_scenes(None, None, "val")
     reported = set(every_val[:100])  # what `trafficrlhf evaluate --scenes 100` drives

@@ -2,35 +2,23 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "kinematics_profile.py"
-
-
-def _script():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("kinematics_profile", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_profile_matches_numpy() -> None:
+def test_profile_matches_numpy(load_script) -> None:  # type: ignore[no-untyped-def]
     values = torch.randn(500, generator=torch.Generator().manual_seed(0)) * 2.0
-    row = _script().profile(values)
+    row = load_script("kinematics_profile").profile(values)
     assert row["n"] == 500
     assert row["mean_abs"] == pytest.approx(float(np.abs(values.numpy()).mean()), rel=1e-6)
     assert row["q10"] == pytest.approx(float(np.quantile(values.numpy(), 0.1)), rel=1e-5)
     assert row["q99"] == pytest.approx(float(np.quantile(values.numpy(), 0.99)), rel=1e-5)
 
 
-def test_a_replayed_log_has_the_logs_profile_and_a_constant_velocity_one_is_calmer(val_scenes) -> None:  # type: ignore[no-untyped-def]
-    script = _script()
+def test_a_replayed_log_has_the_logs_profile_and_a_constant_velocity_one_is_calmer(  # type: ignore[no-untyped-def]
+        val_scenes, load_script) -> None:
+    script = load_script("kinematics_profile")
     replay = script.closed_loop_profiles("log_replay", None, None, val_scenes, seed=0, batch_size=2)
     for q in script.QUANTITIES:
         assert replay["model"][q] == pytest.approx(replay["log"][q], rel=1e-5, abs=1e-5)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
@@ -11,17 +9,6 @@ import torch
 from trafficrlhf_sdk.scenario import ScenarioTensor
 
 gru = pytest.importorskip("trafficrlhf_example_gru")
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "selection_ceiling.py"
-
-
-def _script():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("selection_ceiling", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 class SlowestReward:
     """Per agent: minus its speed at the last scored step (prefers the slowest sample)."""
 
@@ -29,12 +16,12 @@ class SlowestReward:
         return -scenario.states[:, :, -1, 2] * scenario.controlled
 
 
-def test_planner_executes_each_agents_best_sample(nuscenes_source) -> None:  # type: ignore[no-untyped-def]
+def test_planner_executes_each_agents_best_sample(nuscenes_source, load_script) -> None:  # type: ignore[no-untyped-def]
     scene = nuscenes_source.load_batch("train", 2).replace_unchecked(current_index=30)
     context = scene.time_slice(0, 31)
     torch.manual_seed(0)
     adapter = gru.ExampleGRUAdapter()
-    planner = _script().RewardSelectedPlanner(adapter, SlowestReward(), samples=4, lookahead=30)
+    planner = load_script("selection_ceiling").RewardSelectedPlanner(adapter, SlowestReward(), samples=4, lookahead=30)
     planner.reset(scene)
     state = adapter._generator.get_state()
     plan = planner.plan(context, 20)
