@@ -397,14 +397,20 @@ def test_speed_neutral_rollout_advantages_are_orthogonal_to_sample_speed(
     assert history[0]["first_ratio_max_dev"] == 0.0
 
 
+def _perturbed_draw(scenes: list[ScenarioTensor], fraction: float, lateral: float, yaw: float, count: int,
+                    seed: int) -> tuple[ScenarioTensor, ScenarioTensor, int]:
+    """``(contexts, logged, now)`` of one epoch's draw with perturbed contexts."""
+    config = AlignConfig(perturb_fraction=fraction, perturb_lateral_m=lateral, perturb_yaw_rad=yaw,
+                         **{**FAST, "contexts_per_epoch": count})
+    sampler = ContextSampler(_model(), config, lambda: scenes, None, future_steps=20)
+    contexts, logged = sampler.draw(torch.Generator().manual_seed(seed))
+    return contexts, logged, contexts.current_index
+
+
 def test_perturbed_contexts_start_beside_the_log_on_the_road_and_imitate_the_log(
         train_scene_list: list[ScenarioTensor]) -> None:
-    config = AlignConfig(perturb_fraction=0.5, perturb_lateral_m=1.5, perturb_yaw_rad=0.2, **{**FAST,
-                         "contexts_per_epoch": 8})
-    sampler = ContextSampler(_model(), config, lambda: train_scene_list, None, future_steps=20)
-    contexts, logged = sampler.draw(torch.Generator().manual_seed(3))
+    contexts, logged, now = _perturbed_draw(train_scene_list, 0.5, 1.5, 0.2, count=8, seed=3)
     assert contexts.num_scenes == logged.num_scenes == 8
-    now = contexts.current_index
     moved = contexts[:4]  # perturbed first, then the log
     shift = torch.linalg.vector_norm(moved.xy[:, :, now] - logged[:4].xy[:, :, now], dim=-1)
     sampled = moved.controlled & moved.valid[:, :, now]
@@ -419,11 +425,7 @@ def test_perturbed_contexts_start_beside_the_log_on_the_road_and_imitate_the_log
 
 def test_a_perturbed_context_keeps_an_agent_on_its_log_where_the_move_would_leave_the_road(
         train_scene_list: list[ScenarioTensor]) -> None:
-    config = AlignConfig(perturb_fraction=1.0, perturb_lateral_m=25.0, perturb_yaw_rad=0.0, **{**FAST,
-                         "contexts_per_epoch": 6})
-    sampler = ContextSampler(_model(), config, lambda: train_scene_list, None, future_steps=20)
-    contexts, logged = sampler.draw(torch.Generator().manual_seed(1))
-    now = contexts.current_index
+    contexts, logged, now = _perturbed_draw(train_scene_list, 1.0, 25.0, 0.0, count=6, seed=1)
     shift = torch.linalg.vector_norm(contexts.xy[:, :, now] - logged.xy[:, :, now], dim=-1)
     sampled = contexts.controlled & contexts.valid[:, :, now]
     kept = sampled & (shift < 1e-4)
