@@ -75,6 +75,17 @@ def test_first_ppo_epoch_ratios_are_one(train_scenes: ScenarioTensor) -> None:
     assert all(s["approx_kl"] == 0.0 and s["clip_fraction"] == 0.0 for s in frozen.history)
 
 
+def test_run_without_output_dir_logs_to_stdout_and_writes_no_files(train_scenes: ScenarioTensor, tmp_path,
+                                                                     monkeypatch, capsys) -> None:
+    # SB3's configure(None, ...) would make an SB3-<date> folder in the temp dir on every call
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes,
+          **{**FAST, "epochs": 1, "log_formats": ("stdout", "csv")})
+    assert list(tmp_path.iterdir()) == []
+    assert "train/" in capsys.readouterr().out  # the epoch's table still reaches stdout
+
+
 def test_mean_reward_rises_on_a_small_problem(train_scenes: ScenarioTensor) -> None:
     model = _model()
     config = {**FAST, "epochs": 12, "contexts_per_epoch": 6, "samples_per_context": 4, "minibatch_contexts": 3,

@@ -34,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
@@ -505,9 +506,12 @@ class AlignTrainer(TrainerCheckpoints):
             except ImportError:
                 formats.remove("tensorboard")
         if self.config.output_dir is None:
-            formats = [f for f in formats if f == "stdout"]
-        folder = None if self.config.output_dir is None else os.path.join(self.config.output_dir, "logs")
-        return configure(folder, formats)
+            # SB3's configure(None, ...) makes a fresh SB3-<date> folder in the temp dir on every call, even for
+            # stdout alone: without an output folder, build the logger itself and write nothing to disk.
+            from stable_baselines3.common.logger import HumanOutputFormat, Logger
+
+            return Logger(None, [HumanOutputFormat(sys.stdout)] if "stdout" in formats else [])
+        return configure(os.path.join(self.config.output_dir, "logs"), formats)
 
     # ------------------------------------------------------------------ main loop
     def train(self, callback: Callable[[int, dict[str, float]], bool | None] | None = None) -> list[dict[str, float]]:
