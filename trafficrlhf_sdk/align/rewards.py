@@ -15,7 +15,7 @@ from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
 from trafficrlhf_sdk.metrics.realism import STAT_DT, HistogramSpec, kinematics
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["FailureReward", "PessimisticReward", "RealismReward", "kinematic_log_ratio"]
+__all__ = ["FailureReward", "PessimisticReward", "RandomReward", "RealismReward", "kinematic_log_ratio"]
 
 
 class FailureReward:
@@ -86,6 +86,42 @@ class FailureReward:
         future = slice(scenario.current_index + 1, None)
         cost, mask = cost[:, :, future], mask[:, :, future]
         return -(cost.sum(-1) / mask.sum(-1).clamp_min(1))
+
+
+class RandomReward:
+    """A reward that carries no information: the null control of an alignment run.
+
+    Every per-agent score and per-step reward is a fixed pseudo-random function of the states it scores,
+    uniform in [-1, 1] and unrelated to failures or realism (``seed`` picks the function). PPO against it moves
+    the weights without a preference, so what such a run changes in the closed loop is the noise floor a real
+    reward's gain has to clear (the closed loop compounds small weight changes; see the alignment results,
+    session 17). A function of the states rather than a random stream, so the same samples get the same scores
+    and an interrupted run resumes exactly.
+
+    Args:
+        seed: picks the function.
+    """
+
+    def __init__(self, seed: int = 0) -> None:
+        generator = torch.Generator().manual_seed(int(seed))
+        # irrational-looking weights per state feature, so distinct states hash to unrelated values
+        self._weights = (torch.rand(4, generator=generator, dtype=torch.float64) + 0.5) * 12.9898
+
+    def _uniform(self, states: torch.Tensor, valid: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
+        """Values in [-1, 1): a sine hash of the valid ``states (B, A, T, 4)`` summed over ``dims``."""
+        x = (states.double() * self._weights).sum(-1)  # (B, A, T)
+        steps = torch.arange(1, x.shape[-1] + 1, dtype=torch.float64) * 0.6180339887
+        agents = torch.arange(1, x.shape[1] + 1, dtype=torch.float64)[:, None] * 0.4142135623
+        x = torch.where(valid, x * (1 + steps + agents), torch.zeros_like(x)).sum(dims)
+        return (torch.frac(torch.sin(x).abs() * 43758.5453) * 2 - 1).float()
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, T)`` values in [-1, 1), one per step from the states of all agents at that step."""
+        return self._uniform(scenario.states, scenario.valid, (1,))
+
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, A)`` values in [-1, 1), one per agent from its states over the window."""
+        return self._uniform(scenario.states, scenario.valid, (2,))
 
 
 class PessimisticReward:
