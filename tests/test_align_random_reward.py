@@ -41,10 +41,10 @@ def test_scores_are_uniform_and_unrelated_to_failures(val_scenes: ScenarioTensor
     assert noise.numel() > 150 and failure.std() > 0
     assert stats.kstest(noise.numpy(), stats.uniform(loc=-1, scale=2).cdf).pvalue > 1e-3
     assert abs(stats.spearmanr(noise.numpy(), failure.numpy()).statistic) < 0.2
-    # samples a centimetre apart get unrelated scores, as different samples of one context must
-    near = _jittered(val_scenes, copies=12, metres=0.01)
-    close = RandomReward().agent_scores(near)[mask].double()
-    assert abs(stats.pearsonr(close.numpy(), noise.numpy()).statistic) < 0.2
+    # futures a centimetre off the log score unrelated to the log's own, as samples of one context must
+    logged = RandomReward().agent_scores(val_scenes.repeat_scenes(12))[mask].double()
+    near = RandomReward().agent_scores(_jittered(val_scenes, copies=12, metres=0.01))[mask].double()
+    assert abs(stats.pearsonr(near.numpy(), logged.numpy()).statistic) < 0.2
 
 
 def test_cli_name_builds_it_and_takes_a_seed() -> None:
