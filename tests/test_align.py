@@ -245,3 +245,45 @@ def test_mirror_scenes_adds_a_mirror_image_of_every_training_scene(train_scenes:
         drawn |= set(contexts.scene_ids)
     assert any(s.endswith(MIRROR_SUFFIX) for s in drawn) and not all(s.endswith(MIRROR_SUFFIX) for s in drawn)
     trainer.train()  # failure drives and PPO run on both halves
+
+
+def _log_start(window: ScenarioTensor, scenes: dict[str, ScenarioTensor]) -> int | None:
+    """The step of its logged scene at which the single-scene ``window`` starts (None: not a window of the log)."""
+    scene = scenes[window.scene_ids[0]]
+    steps, agents = window.num_steps, scene.num_agents
+    for t in range(scene.num_steps - steps + 1):
+        valid = scene.valid[0, :, t: t + steps]
+        if torch.equal(window.valid[0, :agents], valid) and torch.equal(
+                window.states[0, :agents][valid], scene.states[0, :, t: t + steps][valid]):
+            return t
+    return None
+
+
+@pytest.mark.parametrize("source", ["rollout", "log"])
+def test_imitation_contexts_choose_the_windows_the_imitation_loss_learns_from(train_scenes: ScenarioTensor,
+                                                                              source: str) -> None:
+    model = _model()
+    config = AlignConfig(**{**FAST, "epochs": 1, "closed_loop_fraction": 1.0, "closed_loop_max_s": 1.0,
+                            "imitation_contexts": source})
+    trainer = AlignTrainer(model, NoCollisionReward(), config, scenes=train_scenes)
+    scenes = {s.scene_ids[0]: s for s in trainer._load_scenes()}
+    drawn: list[ScenarioTensor] = []
+    seen: list[ScenarioTensor] = []
+    contexts_of, imitation_of = trainer._contexts, model.imitation_loss
+
+    def record_contexts(epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
+        pair = contexts_of(epoch)
+        drawn.append(pair[1])
+        return pair
+
+    def record_imitation(batch: ScenarioTensor) -> torch.Tensor:
+        seen.append(batch)
+        return imitation_of(batch)
+
+    trainer._contexts = record_contexts  # type: ignore[method-assign]
+    model.imitation_loss = record_imitation  # type: ignore[method-assign]
+    trainer.train()
+    logged = {(w.scene_ids[0], _log_start(w, scenes)) for w in (drawn[0][i] for i in range(drawn[0].num_scenes))}
+    used = {(w.scene_ids[0], _log_start(w, scenes)) for b in seen for w in (b[i] for i in range(b.num_scenes))}
+    assert seen and all(start is not None for _, start in used | logged)  # always logged behaviour
+    assert (used <= logged) == (source == "rollout")  # 'log': fresh windows, not the contexts' own

@@ -76,6 +76,7 @@ class _Rollout:
     advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
     winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
+    imitation: ScenarioTensor | None = None  # windows the imitation loss learns from; None: ``logged``
 
 
 def _seed(*parts: Any) -> int:
@@ -337,7 +338,10 @@ class AlignTrainer(TrainerCheckpoints):
         winners = None
         if self.config.winner_coef > 0:
             winners = self.winner_scenarios(contexts, out.futures, trace.agents, ranked)
-        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners)
+        imitation = None
+        if self.config.imitation_contexts == "log" and self.config.imitation_coef > 0:
+            imitation = self.context_sampler.log_contexts(b, _generator(self.config.seed, epoch, "imitation_log"))[1]
+        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation)
 
     def winner_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
                          rewards: torch.Tensor) -> ScenarioTensor:
@@ -445,7 +449,8 @@ class AlignTrainer(TrainerCheckpoints):
                 loss = -cfg.alpha * surrogate
                 if cfg.imitation_coef > 0:
                     torch.manual_seed(_seed(cfg.seed, epoch, "imitation", p, j))
-                    imitation = self.model.imitation_loss(rollout.logged[idx])
+                    windows = rollout.logged if rollout.imitation is None else rollout.imitation
+                    imitation = self.model.imitation_loss(windows[idx])
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
                 if rollout.winners is not None and cfg.winner_coef > 0:

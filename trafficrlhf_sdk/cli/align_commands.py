@@ -118,6 +118,9 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--target-kl", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Early-stop an epoch's PPO passes above 1.5 x this approximate KL.")
 @click.option("--imitation-coef", type=click.FloatRange(min=0), default=None, help="Weight of the imitation loss.")
+@click.option("--imitation-contexts", type=click.Choice(["rollout", "log"]), default=None,
+              help="Windows the imitation loss learns from: the epoch's contexts (rollout, default) or fresh "
+                   "windows drawn uniformly from the training log (log).")
 @click.option("--winner-coef", type=click.FloatRange(min=0), default=None,
               help="Weight of the imitation loss on each context's best sample (per agent with --credit agent): "
                    "reward-ranked fine-tuning beside PPO [default: 0, off].")
@@ -187,7 +190,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   epochs: int | None, contexts: int | None, samples: int | None, ppo_epochs: int | None,
                   minibatch: int | None, lr: float | None, lr_schedule: str | None, clip_range: float | None,
                   kl_coef: float | None,
-                  target_kl: float | None, imitation_coef: float | None, winner_coef: float | None,
+                  target_kl: float | None, imitation_coef: float | None, imitation_contexts: str | None,
+                  winner_coef: float | None,
                   winner_min_gap: float | None, guidance: str | None,
                   closed_loop: float | None, failure_fraction: float | None, perturb_fraction: float | None,
                   perturb: str | None, failure_scenes: int | None,
@@ -231,7 +235,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "epochs": epochs, "contexts_per_epoch": contexts, "samples_per_context": samples, "ppo_epochs": ppo_epochs,
         "minibatch_contexts": minibatch, "learning_rate": lr, "lr_schedule": lr_schedule, "clip_range": clip_range,
         "kl_coef": kl_coef,
-        "target_kl": target_kl, "imitation_coef": imitation_coef, "winner_coef": winner_coef,
+        "target_kl": target_kl, "imitation_coef": imitation_coef, "imitation_contexts": imitation_contexts,
+        "winner_coef": winner_coef,
         "winner_min_gap": winner_min_gap, "guidance": guidance, "num_scenes": num_scenes,
         "closed_loop_fraction": closed_loop, "reward_horizon": reward_horizon, "failure_fraction": failure_fraction,
         "failure_refresh_every": failure_refresh, "failure_scenes": failure_scenes,
