@@ -40,15 +40,11 @@ class AlignConfig(BaseModel):
                                "the futures the reward prefers. 0 disables it.")
     winner_min_gap: float = Field(0.0, ge=0, description="A context's (agent's) best sample is imitated only when "
                                   "its reward exceeds the worst sample's by more than this (ties teach nothing).")
-    imitation_contexts: Literal["rollout", "log"] = Field("rollout", description="Which logged windows the "
-                                                          "imitation loss learns from: 'rollout', the windows of "
-                                                          "the epoch's contexts (failure-focused ones included); "
-                                                          "'log', as many fresh windows drawn uniformly from the "
-                                                          "training log, as the model was first trained on (the "
-                                                          "pretraining mix of InstructGPT's PPO-ptx): the "
-                                                          "contexts' windows cluster before failures, and "
-                                                          "imitating them alone shifts the model's kinematics "
-                                                          "(alignment results, session 18).")
+    imitation_contexts: Literal["rollout", "log"] = Field("rollout", description="Windows the imitation loss "
+                                                          "learns from: 'rollout', the epoch's contexts (failure-"
+                                                          "focused ones included); 'log', as many fresh windows "
+                                                          "drawn uniformly from the training log (InstructGPT's "
+                                                          "PPO-ptx mix).")
     kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
                                                   "(0: no reference model is kept).")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
