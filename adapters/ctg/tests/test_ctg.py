@@ -148,3 +148,20 @@ def test_cli_evaluate(tmp_path) -> None:  # type: ignore[no-untyped-def]
                                       "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "results.json").is_file()
+
+
+@needs_data
+def test_finer_map_crop_covers_the_same_ground(scenes) -> None:  # type: ignore[no-untyped-def]
+    """``map_resolution`` reaches the features: a 96-cell crop at 0.5 m spans the 48 m of the default crop, so
+    both see nearly the same drivable share per agent, while the finer one resolves more edge cells."""
+    from ctg_reference.data import agent_features
+    from ctg_reference.model import CTGConfig
+
+    coarse = agent_features(scenes, CTGConfig())["map"]
+    fine = agent_features(scenes, CTGConfig(map_size=96, map_resolution=0.5))["map"]
+    assert coarse.shape[-2:] == (48, 48) and fine.shape[-2:] == (96, 96)
+    agents = scenes.controlled & scenes.valid[:, :, scenes.current_index]
+    share_coarse = coarse[:, :, 0].mean((-1, -2))[agents]
+    share_fine = fine[:, :, 0].mean((-1, -2))[agents]
+    assert share_coarse.min() > 0.05  # controlled agents stand on roads
+    assert (share_fine - share_coarse).abs().max() < 0.03

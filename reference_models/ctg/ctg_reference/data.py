@@ -25,10 +25,11 @@ def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dty
                    ) -> dict[str, torch.Tensor]:
     """Features of every agent slot at ``context.current_index``, each with leading dims ``(B, A)``.
 
-    map ``(B, A, C, S, S)`` (1 m/px, a quarter of the crop behind the agent), history ``(B, A, Th, 5)`` and
-    history_valid, extent ``(B, A, 2)``, neighbours ``(B, A, K, 7)`` and neighbour_valid, v0 ``(B, A)``.
+    map ``(B, A, C, S, S)`` (``cfg.map_resolution`` m per cell, a quarter of the crop behind the agent),
+    history ``(B, A, Th, 5)`` and history_valid, extent ``(B, A, 2)``,
+    neighbours ``(B, A, K, 7)`` and neighbour_valid, v0 ``(B, A)``.
     """
-    crops = map_crops(context, size_px=cfg.map_size, resolution_m=1.0, behind_fraction=0.25)
+    crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.map_resolution, behind_fraction=0.25)
     history, history_valid = history_features(context, cfg.history_steps)
     neighbours, neighbour_valid = neighbour_features(context, cfg.num_neighbours)
     return {

@@ -45,6 +45,7 @@ class CTGConfig:
     dt: float = 0.1
     map_channels: int = 3
     map_size: int = 48
+    map_resolution: float = 1.0  # metres per crop cell (the crop spans map_size * map_resolution m)
     history_steps: int = 10
     num_neighbours: int = 8
     cond_dim: int = 128

@@ -67,7 +67,7 @@ def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor]
         extent=stacked.extent[mask][None], agent_type=stacked.agent_type[mask][None],
         controlled=torch.ones(1, len(rows), dtype=torch.bool), current_index=0,
     )
-    crops = map_crops(single, size_px=cfg.map_size, resolution_m=1.0, behind_fraction=0.25)[0]
+    crops = map_crops(single, size_px=cfg.map_size, resolution_m=cfg.map_resolution, behind_fraction=0.25)[0]
     fut_idx = steps[:, None] + torch.arange(1, h + 1)  # (n, H)
     future = scene.states[0][:, fut_idx].permute(1, 0, 2, 3)[mask]  # (N, H, 4)
     actions = scene.actions()[0][:, fut_idx - 1].permute(1, 0, 2, 3)[mask]  # action t: step t -> t+1
@@ -136,6 +136,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--root", default=None, help="nuscenes_pred data directory (default: shared data).")
     parser.add_argument("--horizon", type=int, default=20,
                         help="Planned steps at 0.1 s (default 20 = 2 s; even, for the U-Net's one down level).")
+    parser.add_argument("--map-size", type=int, default=48, help="Map crop side in cells (default 48).")
+    parser.add_argument("--map-resolution", type=float, default=1.0,
+                        help="Metres per map crop cell (default 1.0; the source raster has 3 px/m).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -147,7 +150,9 @@ def main(argv: list[str] | None = None) -> None:
     options = {"root": args.root} if args.root else {}
     if args.horizon < 2 or args.horizon % 2:
         parser.error(f"--horizon must be an even number of steps >= 2; got {args.horizon}.")
-    cfg = CTGConfig(horizon=args.horizon)
+    if args.map_size < 16 or args.map_resolution <= 0:
+        parser.error(f"--map-size must be >= 16 and --map-resolution > 0; got {args.map_size}, {args.map_resolution}.")
+    cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution)
     # history_s=0: windows start at the first logged step; we pick "now" ourselves; every scene with one horizon
     source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
