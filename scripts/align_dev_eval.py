@@ -31,7 +31,8 @@ from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
 
 KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
-        "realism_body_lat_acc", "realism_body_jerk", "guidance_target_speed", "speed_ratio", "stopped_share")
+        "realism_body_lat_acc", "realism_body_jerk", "realism_body_speed",
+        "guidance_target_speed", "speed_ratio", "stopped_share")
 
 
 DEFAULT_FIRST = {"train": 400, "val": 100}

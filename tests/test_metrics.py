@@ -140,6 +140,50 @@ def test_realism_ctg_matches_reference(case) -> None:  # type: ignore[no-untyped
             np.testing.assert_allclose(result.extras[which][q].numpy(), hist, rtol=0, atol=1e-12)
 
 
+def _numpy_pace_histogram(rollout, which: str, preset: str) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Scene-normalized speed histogram on 0-20 m/s (1 m/s bins) with numpy, from the SDK's kinematics."""
+    quantities, sample_valid, moving = kinematics(rollout.window(which), preset)  # type: ignore[arg-type]
+    mask = (sample_valid & moving[..., None] & rollout.controlled[..., None]).numpy()
+    speed = quantities["speed"].numpy()
+    total = np.zeros(20)
+    for b in range(speed.shape[0]):
+        counts, _ = np.histogram(speed[b][mask[b]], bins=np.linspace(0.0, 20.0, 21))
+        if counts.sum() > 0:
+            total += counts / counts.sum()
+    return total / speed.shape[0]
+
+
+@pytest.mark.parametrize("preset", ["ctg", "body"])
+def test_realism_speed_matches_scipy(case, preset) -> None:  # type: ignore[no-untyped-def]
+    """``realism_<preset>_speed``: scipy's Wasserstein-1 between numpy speed histograms (0-20 m/s); not part of
+    the three-quantity mean."""
+    values = RealismMetric(preset).compute(case.rollout).values
+    logged = _numpy_pace_histogram(case.rollout, "logged", preset)
+    simulated = _numpy_pace_histogram(case.rollout, "simulated", preset)
+    centres = np.arange(20) + 0.5
+    expected = scipy_stats.wasserstein_distance(centres, centres, logged, simulated)
+    assert values[f"realism_{preset}_speed"] == pytest.approx(expected, abs=1e-9)
+    mean = sum(values[f"realism_{preset}_{q}"] for q in ("lon_acc", "lat_acc", "jerk")) / 3
+    assert values[f"realism_{preset}"] == pytest.approx(mean, abs=1e-12)
+
+
+def test_realism_speed_sees_stopped_traffic(real_scenes) -> None:  # type: ignore[no-untyped-def]
+    """Log replay whose agents all stop 4 s into the window: the speed distance rises from 0 to more than a
+    metre per second, while the acceleration histograms (mostly near 0 either way) move far less."""
+    replay = log_rollout(real_scenes)
+    stop = replay.start_index + 40
+    states = replay.simulated.states.clone()
+    states[:, :, stop:, :2] = states[:, :, stop : stop + 1, :2]
+    states[:, :, stop:, 3] = states[:, :, stop : stop + 1, 3]
+    states[:, :, stop:, 2] = 0.0
+    stopped = dataclasses.replace(replay, simulated=replay.simulated.replace_unchecked(states=states))
+    before = RealismMetric("body").compute(replay).values
+    after = RealismMetric("body").compute(stopped).values
+    assert before["realism_body_speed"] == 0.0
+    assert after["realism_body_speed"] > 1.0
+    assert after["realism_body_speed"] > 5 * after["realism_body"]
+
+
 def test_real_comparisons_are_not_vacuous(real_scenes) -> None:  # type: ignore[no-untyped-def]
     """Constant velocity on these scenes produces both collisions and off-road steps, and a nonzero realism gap."""
     rollout = simulate(ConstantVelocityPolicy(), real_scenes)
