@@ -19,6 +19,7 @@ ROWS = (
     ("failure_rate_corners", "failure rate (box corners)"),
     ("realism_ctg", "realism dev. (ctg)"),
     ("realism_body", "realism dev. (body)"),
+    ("realism_body_speed", "speed-histogram dev. (body, m/s)"),
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
     ("guidance_target_speed", "target-speed error (m/s)"),
     ("guidance_goal_waypoint", "goal distance (m)"),
