@@ -8,15 +8,15 @@ accelerations are 0); longitudinal/lateral acceleration = |a| cos(yaw) and |a| s
 (an upstream quirk); jerk = d|a|/dt; 20 bins on [-2, 2] m/s^2 and [-1, 1] m/s^3 that drop values outside;
 agents slower than 0.5 m/s at the start masked; per-scene normalized histograms averaged over scenes.
 
+Preset ``body`` keeps the sampling, bins and masks but decomposes the acceleration vector in the vehicle's own
+frame (longitudinal along the heading, lateral across it), takes jerk as the derivative of the longitudinal
+acceleration, and drops the extrapolated first samples instead of zero-filling them.
+
 Beside the three-quantity mean, each preset reports ``realism_<preset>_speed``: the same distance between speed
 histograms on 0-20 m/s (1 m/s bins; CTG's own velocity bins, 0-4 m/s, see almost none of nuScenes' driving).
 It is not part of the mean (the paper's deviation has three quantities), but it is the one that sees traffic
 stop: agents standing still add accelerations and jerks near 0, the log's most common values, so a model can
 lower the three-quantity deviation by stopping, while its speed histogram moves away from the log's.
-
-Preset ``body`` keeps the sampling, bins and masks but decomposes the acceleration vector in the vehicle's own
-frame (longitudinal along the heading, lateral across it), takes jerk as the derivative of the longitudinal
-acceleration, and drops the extrapolated first samples instead of zero-filling them.
 """
 
 from __future__ import annotations
