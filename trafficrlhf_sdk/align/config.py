@@ -142,6 +142,19 @@ class AlignConfig(BaseModel):
                                        "speed and heading (denser failure signal), a shorter one scores only "
                                        "the first steps of each sample (the imitation loss still sees the whole "
                                        "horizon); None: the horizon.")
+    continuation_steps: int = Field(0, ge=0, description="> 0: score each sample by its closed-loop "
+                                    "consequences. Its first `continuation_executed_steps` steps are executed, "
+                                    "then the current model drives on for this many steps (replanning every 5 "
+                                    "steps, `guidance`), and the reward scores that trajectory: the credit the "
+                                    "evaluation protocol gives a plan, of which only 0.5 s is driven before the "
+                                    "next replan. The continuations of a context's samples share their random "
+                                    "numbers, so they differ by the executed steps alone. Costs one closed-loop "
+                                    "run of that length per sample. 0: score the open-loop sample.")
+    continuation_executed_steps: int = Field(5, ge=1, description="Steps of each sample executed before the "
+                                             "continuation takes over (5 = one replan at 2 Hz).")
+    continuation_weight: float = Field(1.0, ge=0, le=1, description="With `continuation_steps` > 0: the reward is "
+                                       "this share of the continuation's score plus the rest of the open-loop "
+                                       "sample's score.")
     reward_history_steps: int = Field(10, ge=0, description="History steps handed to the reward model in front "
                                                             "of the sampled future (it sees step_dt back).")
     log_reference: Literal["log", "context"] = Field("log", description="What a reward with `uses_log` "
@@ -211,6 +224,12 @@ class AlignConfig(BaseModel):
         if self.counterfactual_credit and self.credit != "agent":
             raise ValueError("`counterfactual_credit=True` needs `credit='agent'` (it changes how each agent's "
                              "samples are scored).")
+        if self.continuation_steps and self.continuation_executed_steps > (self.horizon or 10**9):
+            raise ValueError(f"`continuation_executed_steps` ({self.continuation_executed_steps}) exceeds `horizon` "
+                             f"({self.horizon}): a sample cannot execute more steps than it holds; lower it.")
+        if self.continuation_steps and self.counterfactual_credit:
+            raise ValueError("`continuation_steps` and `counterfactual_credit=True` cannot be combined (a "
+                             "continuation moves every sampled agent); choose one.")
         if not self.failure_kinds:
             raise ValueError("`failure_kinds` is empty: name 'collision', 'offroad' or both.")
         if self.groups is not None and len(self.groups) == 0:

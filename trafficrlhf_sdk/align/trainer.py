@@ -44,6 +44,7 @@ import torch
 
 from trafficrlhf_sdk.align.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.align.config import AlignConfig
+from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
@@ -142,7 +143,12 @@ class AlignTrainer(TrainerCheckpoints):
         self.reward_model = reward_model
         self.config = config or AlignConfig()
         self.horizon = self.config.horizon or int(getattr(model, "horizon", 20))
-        self.future_steps = max(self.horizon, self.config.reward_horizon or 0)  # log steps kept after "now"
+        cfg = self.config
+        if cfg.continuation_steps and cfg.continuation_executed_steps > self.horizon:
+            raise TrafficRLHFError(f"`continuation_executed_steps` is {cfg.continuation_executed_steps} but the model "
+                                   f"samples {self.horizon} steps; lower it to at most {self.horizon}.")
+        continued = cfg.continuation_executed_steps + cfg.continuation_steps if cfg.continuation_steps else 0
+        self.future_steps = max(self.horizon, cfg.reward_horizon or 0, continued)  # log steps kept after "now"
         self.reward_steps = self.config.reward_horizon or self.horizon  # sampled steps the reward model scores
         offered = model.parameter_groups()
         names = tuple(offered) if self.config.groups is None else self.config.groups
@@ -302,6 +308,30 @@ class AlignTrainer(TrainerCheckpoints):
             out[c][:, slots] = scores[torch.arange(m), :, slots].T.to(out.dtype)  # (S, M): agent m's own score
         return out
 
+    def _mix_continuation(self, open_loop: torch.Tensor, contexts: ScenarioTensor, futures: torch.Tensor,
+                          agents: torch.Tensor, epoch: int, source: ScenarioTensor | None) -> torch.Tensor:
+        """``continuation_weight`` x the scores of the samples' closed-loop continuations
+        (:func:`~trafficrlhf_sdk.align.continuation.continuation_scenarios`) + the rest x ``open_loop``; scores
+        ``(B, S)`` (scene credit) or ``(B, S, A)`` (agent credit), like ``open_loop``. ``source``: the windows a
+        reward with ``uses_log`` compares with."""
+        cfg = self.config
+        b, s, a = futures.shape[:3]
+        states, valid = self._future_states(contexts, futures, agents)
+        scenes = continuation_scenarios(self.model, contexts, states, valid, agents, cfg.continuation_executed_steps,
+                                        cfg.continuation_steps, _seed(cfg.seed, epoch, "continuation"),
+                                        self.guidance)
+        now = contexts.current_index
+        window = (max(0, now - cfg.reward_history_steps), now + 1 + cfg.continuation_executed_steps
+                  + cfg.continuation_steps)
+        scenes = scenes.time_slice(*window)
+        if open_loop.dim() == 2:
+            closed = scenario_scores(self.reward_model, scenes).reshape(b, s)
+        else:
+            reference = None if source is None else source.repeat_scenes(s).time_slice(*window)
+            closed = agent_scores(self.reward_model, scenes, reference).reshape(b, s, a)
+        w = cfg.continuation_weight
+        return w * closed + (1 - w) * open_loop
+
     def _rollout(self, epoch: int) -> _Rollout:
         contexts, logged = self._contexts(epoch)
         gen = _generator(self.config.seed, epoch, "sample")
@@ -323,6 +353,8 @@ class AlignTrainer(TrainerCheckpoints):
                     self.config.samples_per_context).time_slice(window.start, window.stop)
                 scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
+            if self.config.continuation_steps:
+                per_agent = self._mix_continuation(per_agent, contexts, out.futures, trace.agents, epoch, source)
             rewards = _mean_over_sampled(per_agent, trace.agents)
             speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
             adv = self._normalize(per_agent, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
@@ -330,6 +362,8 @@ class AlignTrainer(TrainerCheckpoints):
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
+            if self.config.continuation_steps:
+                rewards = self._mix_continuation(rewards, contexts, out.futures, trace.agents, epoch, None)
             speed = None
             if self.config.speed_neutral_advantages:
                 speed = _mean_over_sampled(self._sample_speeds(out.futures), trace.agents)

@@ -158,6 +158,14 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--reward-horizon", type=click.IntRange(min=1), default=None,
               help="Steps each sample is scored over (extended at constant velocity past the model's horizon; "
                    "fewer than the horizon scores the first steps only).")
+@click.option("--continuation", "continuation_steps", type=click.IntRange(min=0), default=None, metavar="STEPS",
+              help="Score each sample by what follows in closed loop: execute its first --continuation-executed "
+                   "steps, then let the current model drive STEPS more (2 Hz replanning) [default: 0, open loop].")
+@click.option("--continuation-executed", "continuation_executed", type=click.IntRange(min=1), default=None,
+              help="Steps of each sample executed before the continuation [default: 5].")
+@click.option("--continuation-weight", type=click.FloatRange(0, 1), default=None,
+              help="Share of the continuation's score in the reward (the rest: the open-loop sample's) "
+                   "[default: 1].")
 @click.option("--log-reference", type=click.Choice(["log", "context"]), default=None,
               help="What rewards that use the log compare with: the logged window, or each context's own "
                    "continuation (how runs before session 11 were trained) [default: log].")
@@ -198,7 +206,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
-                  reward_horizon: int | None, log_reference: str | None, holdout_every: int | None,
+                  reward_horizon: int | None, continuation_steps: int | None, continuation_executed: int | None,
+                  continuation_weight: float | None, log_reference: str | None, holdout_every: int | None,
                   eval_every: int | None,
                   eval_seeds: int | None, keep_best: bool, groups: str | None,
                   model_options: tuple[str, ...],
@@ -245,7 +254,8 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "speed_neutral_advantages": speed_neutral_advantages or None,
-        "denoising_steps": denoising_steps,
+        "denoising_steps": denoising_steps, "continuation_steps": continuation_steps,
+        "continuation_executed_steps": continuation_executed, "continuation_weight": continuation_weight,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
         "eval_every": eval_every, "eval_seeds": eval_seeds, "keep_best": keep_best or None,
         "mirror_scenes": mirror_scenes or None,
