@@ -31,7 +31,7 @@ class _ReseededPolicy:
 
     def reset(self, scenario: ScenarioTensor) -> None:
         self.model.reset(scenario)
-        self.model._generator.manual_seed(self.seed)  # noqa: SLF001 - the adapter base class's plan() generator
+        self.model._generator.manual_seed(self.seed)  # the generator the base class's plan() draws from
 
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
         return self.model.plan(context, horizon)
