@@ -9,7 +9,9 @@ One epoch:
    (``failure_fraction``). Per context the adapter draws ``samples_per_context`` futures (with the configured
    guidance, no gradient). Each sample becomes a scenario: the context's history, then the sample's future for
    the sampled (controlled) agents and the log for everyone else. Its reward is the reward model's score of that
-   scenario (``credit="scene"``), or one score per sampled agent (``credit="agent"``, ``agent_scores``).
+   scenario (``credit="scene"``), or one score per sampled agent (``credit="agent"``, ``agent_scores``). With
+   ``continuation_steps`` the score is (partly) that of the sample's first steps followed by the current model's
+   own closed-loop driving (:mod:`trafficrlhf_sdk.align.continuation`).
 2. **Advantages.** ``A = (r - mean_context) / (std_context + eps)`` over the samples of a context (of each agent
    of a context with ``credit="agent"``), clipped to ``+- advantage_clip``. With scene credit one advantage per
    (context, sample) is shared by every sampled agent; for per-step log-probabilities such as a diffusion
