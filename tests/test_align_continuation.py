@@ -128,3 +128,20 @@ def test_continuation_settings_are_checked(train_scene_list: list[ScenarioTensor
         AlignConfig(continuation_steps=10, continuation_executed_steps=30, horizon=20)
     with pytest.raises(TrafficRLHFError, match="continuation_executed_steps"):
         _trainer(train_scene_list, continuation_steps=10, continuation_executed_steps=500)
+
+
+def test_guidance_swapped_restores_the_policys_own_guidance_even_on_error() -> None:
+    from trafficrlhf_sdk.guidance import GuidanceSet, guidance_swapped
+
+    class Policy:
+        guidance = None
+
+    policy, run = Policy(), GuidanceSet.parse("no_collision")
+    with guidance_swapped(policy, run):
+        assert policy.guidance is run
+    assert policy.guidance is None
+    with pytest.raises(RuntimeError), guidance_swapped(policy, run):
+        raise RuntimeError("boom")
+    assert policy.guidance is None
+    with guidance_swapped(policy, None):  # None leaves the policy's own guidance in place
+        assert policy.guidance is None

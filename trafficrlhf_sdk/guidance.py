@@ -10,7 +10,8 @@ sample filtering (:func:`select_samples`). ``objective(rollout)`` is the matchin
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import ClassVar
 
 import torch
@@ -27,6 +28,7 @@ __all__ = [
     "NoOffroadGuidance",
     "SpeedLimitGuidance",
     "TargetSpeedGuidance",
+    "guidance_swapped",
     "make_guidance",
     "perturb_with_guidance",
     "select_samples",
@@ -374,3 +376,17 @@ def guidance_objectives(simulated: ScenarioTensor, logged: ScenarioTensor, contr
         values[f"guidance_{guidance.name}"] = guidance.objective(simulated, controlled, start, end)
     return values
 
+
+@contextmanager
+def guidance_swapped(policy: object, guidance: GuidanceSet | None) -> Iterator[None]:
+    """Inside the block ``policy.guidance`` is ``guidance`` (left alone when ``guidance`` is None); the previous
+    value is restored afterwards, also on error. For driving an adapter with a run's guidance instead of its own."""
+    if guidance is None:
+        yield
+        return
+    saved = getattr(policy, "guidance", None)
+    policy.guidance = guidance  # type: ignore[attr-defined]
+    try:
+        yield
+    finally:
+        policy.guidance = saved  # type: ignore[attr-defined]

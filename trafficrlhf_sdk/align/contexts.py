@@ -27,7 +27,7 @@ import torch
 
 from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.errors import DataNotFoundError
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.guidance import GuidanceSet, guidance_swapped
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -145,17 +145,8 @@ class ContextSampler:
         from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 
         start = batch.current_index
-        saved = getattr(self.model, "guidance", None)
-        swap = self.guidance is not None
-        if swap:
-            self.model.guidance = self.guidance
-        try:
-            with torch.no_grad():
-                rollout = simulate(self.model, batch, SimulationConfig(duration_s=steps * batch.dt,
-                                                                       start_index=start))
-        finally:
-            if swap:
-                self.model.guidance = saved
+        with guidance_swapped(self.model, self.guidance), torch.no_grad():
+            rollout = simulate(self.model, batch, SimulationConfig(duration_s=steps * batch.dt, start_index=start))
         t = start + steps
         states = torch.cat([rollout.simulated.states[:, :, : t + 1], batch.states[:, :, t + 1:]], 2)
         valid = torch.cat([rollout.simulated.valid[:, :, : t + 1], batch.valid[:, :, t + 1:]], 2)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.guidance import GuidanceSet, guidance_swapped
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
@@ -70,11 +70,8 @@ def continuation_scenarios(model: TrafficModelAdapter, contexts: ScenarioTensor,
                          f"= {total}. Keep more future steps in the contexts.")
     base = contexts.replace_unchecked(controlled=agents)
     policy = _ReseededPolicy(model, seed)
-    saved = model.guidance
-    if guidance is not None:
-        model.guidance = guidance
     per_sample: list[ScenarioTensor] = []
-    try:
+    with guidance_swapped(model, guidance):
         for k in range(s):
             scene = base.with_future(states[:, k, :, :total], valid[:, k, :, :total])
             if steps == 0:
@@ -85,7 +82,5 @@ def continuation_scenarios(model: TrafficModelAdapter, contexts: ScenarioTensor,
             with torch.no_grad():
                 rollout = simulate(policy, scene, config)
             per_sample.append(rollout.simulated.replace_unchecked(current_index=now, controlled=agents))
-    finally:
-        model.guidance = saved
     order = torch.arange(b * s).reshape(s, b).T.reshape(-1)  # sample-major -> context-major
     return ScenarioTensor.concat(per_sample)[order]
