@@ -167,6 +167,40 @@ def test_cli_extrapolate(three: list[str], tmp_path, capsys) -> None:  # type: i
     assert err.startswith("Error:") and "Traceback" not in err
 
 
+def test_further_directions_add_their_weighted_change(three: list[str], tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    base_dir, aligned_dir, stage2_dir = three
+    base, aligned, stage2 = (_weights(d) for d in three)
+    out = _weights(extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / "c"), 2.0,
+                                          [(aligned_dir, stage2_dir, 1.5), (base_dir, aligned_dir, -0.5)]))
+    for name, value in out.items():
+        b, a, s2 = base[name].double(), aligned[name].double(), stage2[name].double()
+        expected = b + 2.0 * (a - b) + 1.5 * (s2 - a) - 0.5 * (a - b)
+        torch.testing.assert_close(value.double(), expected, atol=1e-6, rtol=0)
+    record = json.loads((tmp_path / "c" / "extrapolated_from.json").read_text())
+    assert record["directions"] == [{"from": aligned_dir, "to": stage2_dir, "weight": 1.5},
+                                    {"from": base_dir, "to": aligned_dir, "weight": -0.5}]
+    # weight 1 on the second stage and factor 1 reproduce the second stage itself
+    same = _weights(extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / "s"), 1.0,
+                                           [(aligned_dir, stage2_dir, 1.0)]))
+    for name, value in same.items():
+        torch.testing.assert_close(value, stage2[name], atol=1e-6, rtol=0)
+    with pytest.raises(TrafficRLHFError, match="weight of direction"):
+        extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / "n"), 1.0,
+                               [(aligned_dir, stage2_dir, float("nan"))])
+    with pytest.raises(TrafficRLHFError, match="one of the inputs"):
+        extrapolate_checkpoint(base_dir, aligned_dir, stage2_dir, 1.0, [(aligned_dir, stage2_dir, 1.0)])
+    with pytest.raises(DataNotFoundError):
+        extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / "m"), 1.0,
+                               [(aligned_dir, str(tmp_path / "no"), 1.0)])
+    assert not (tmp_path / "n").exists() and not (tmp_path / "m").exists()
+    with pytest.raises(SystemExit) as done:
+        main(["extrapolate", aligned_dir, "--base", base_dir, "--factor", "2", "--add-direction", aligned_dir,
+              stage2_dir, "0.5", "--out", str(tmp_path / "cli")])
+    assert done.value.code in (0, None)
+    assert "+ 0.5 x (" in capsys.readouterr().out
+    assert json.loads((tmp_path / "cli" / "extrapolated_from.json").read_text())["directions"][0]["weight"] == 0.5
+
+
 @pytest.mark.parametrize("split", ["train", "val"])
 def test_sweep_evaluates_every_factor_and_names_the_lowest_failure(three: list[str], tmp_path, data_root, capsys,
                                                                    load_script,
@@ -213,3 +247,29 @@ def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drive
         dev.held_out_scenes(10, None, "val")
     with pytest.raises(ValueError, match="split"):
         dev.held_out_scenes(None, None, "test")
+
+
+def test_sweep_over_a_second_direction_evaluates_the_grid(three: list[str], tmp_path, data_root, capsys,
+                                                          load_script) -> None:  # type: ignore[no-untyped-def]
+    sweep = load_script("extrapolation_sweep")
+    pytest.importorskip("trafficrlhf_nuscenes_pred")
+    out = tmp_path / "grid"
+    code = sweep.main(["--model", "example_gru", "--base", three[0], "--aligned", three[1], "--factors", "0,2",
+                       "--direction", three[1], three[2], "--direction-weights", "0,1", "--seeds", "0",
+                       "--max-scenes", "1", "--out", str(out)])
+    assert code == 0
+    result = json.loads((out / "sweep.json").read_text())
+    assert sorted(result["mean"]) == ["0+0", "0+1", "2+0", "2+1"]
+    assert result["direction"] == {"from": three[1], "to": three[2], "weights": [0.0, 1.0]}
+    failures = {k: v["failure_rate"] for k, v in result["mean"].items()}
+    best = min(failures, key=failures.__getitem__)
+    assert result["best_factor"] == [float(x) for x in best.split("+")]
+    assert isinstance(result["best_factor_keeping_realism"], list)  # "0+0" (the base) always qualifies
+    base, aligned, stage2 = (_weights(d) for d in three)
+    for name, value in _weights(str(out / "x2_d1")).items():
+        expected = base[name].double() + 2 * (aligned[name].double() - base[name].double()) + (
+            stage2[name].double() - aligned[name].double())
+        torch.testing.assert_close(value.double(), expected, atol=1e-6, rtol=0)
+    assert all(torch.equal(v, base[k]) for k, v in _weights(str(out / "x0_d0")).items())
+    assert (out / "sweep.png").stat().st_size > 1000
+    assert "direction weight" in capsys.readouterr().out

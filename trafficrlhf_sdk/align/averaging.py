@@ -6,7 +6,8 @@ CTG seeds at 0.1292 / 0.1425 / 0.1273 averaged to 0.1190. Not always: for Traffi
 winner-takes-all, one average of two seeds (0.2035) was worse than either seed (0.1795 / 0.1793), so evaluate
 an average on held-out scenes before using it (docs/explanation/alignment-results.md).
 
-:func:`extrapolate_checkpoint` moves further along the direction alignment took: base + factor x (aligned - base).
+:func:`extrapolate_checkpoint` moves further along the direction alignment took: base + factor x (aligned - base),
+optionally plus weighted changes of later fine-tuning stages (``directions``).
 Factors in [0, 1) interpolate back towards the base (WiSE-FT); factors above 1 extrapolate past the aligned
 weights (ExPO, Zheng et al. 2024, "Weak-to-Strong Extrapolation Expedites Alignment"). PPO with a KL term and an
 imitation loss stops short of where the reward points; on nuScenes the aligned TrafficGen extrapolated with factor
@@ -91,8 +92,9 @@ def average_checkpoints(directories: Sequence[str], output_dir: str,
     return output_dir
 
 
-def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, factor: float) -> str:
-    """Write ``base + factor * (aligned - base)`` to ``output_dir``; returns ``output_dir``.
+def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, factor: float,
+                           directions: Sequence[tuple[str, str, float]] = ()) -> str:
+    """Write ``base + factor * (aligned - base)`` (plus any further ``directions``) to ``output_dir``; returns it.
 
     Args:
         base_dir: the checkpoint alignment started from (e.g. the model's bundled checkpoint).
@@ -101,22 +103,43 @@ def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, fac
             one of the inputs).
         factor: 0 gives the base, 1 the aligned weights, between them an interpolation, above 1 an
             extrapolation along the alignment direction (non-negative, finite).
+        directions: further ``(from_dir, to_dir, weight)`` terms, each adding ``weight * (to - from)``: the
+            change a second fine-tuning stage made (task arithmetic, Ilharco et al. 2023), e.g. a realism
+            stage run from the aligned checkpoint, added to an extrapolated failure direction. Weights are
+            finite and may be negative (to subtract a direction).
 
     Computed per tensor in float64 and stored in the input dtype, so tensors alignment left unchanged (frozen
-    parameter groups) stay bitwise equal to the base's. Integer tensors must be equal in both and are copied.
+    parameter groups) stay bitwise equal to the base's. Integer tensors must be equal in all and are copied.
     """
     if not isinstance(factor, (int, float)) or not math.isfinite(factor) or factor < 0:
         raise TrafficRLHFError(f"`factor` is {factor!r}; give a finite number >= 0 (1 reproduces the aligned "
                                "weights, 2 goes as far again past them).")
-    if os.path.abspath(output_dir) in {os.path.abspath(base_dir), os.path.abspath(aligned_dir)}:
+    terms = [(str(a), str(b), w) for a, b, w in directions]
+    for source, target, weight in terms:
+        if not isinstance(weight, (int, float)) or not math.isfinite(weight):
+            raise TrafficRLHFError(f"the weight of direction {source!r} -> {target!r} is {weight!r}; give a "
+                                   "finite number (1 adds the whole change, -1 removes it).")
+    inputs = {os.path.abspath(d) for d in (base_dir, aligned_dir, *(x for t in terms for x in t[:2]))}
+    if os.path.abspath(output_dir) in inputs:
         raise TrafficRLHFError(f"`output_dir` {output_dir!r} is one of the inputs; write the result elsewhere.")
     base_config, base = _read(base_dir)
     config, aligned = _read(aligned_dir)
     _check_compatible(aligned_dir, config, aligned, base_dir, base_config, base)
     moved = {name: base[name].double() + float(factor) * (tensor.double() - base[name].double())
              if tensor.is_floating_point() else tensor for name, tensor in aligned.items()}
-    _write(output_dir, base_config, base, moved, "extrapolation", EXTRAPOLATE_FILE,
-           {"base": str(base_dir), "aligned": str(aligned_dir), "factor": float(factor)})
+    for source, target, weight in terms:
+        states = []
+        for directory in (source, target):
+            other_config, state = _read(directory)
+            _check_compatible(directory, other_config, state, base_dir, base_config, base)
+            states.append(state)
+        for name, tensor in states[1].items():
+            if tensor.is_floating_point():
+                moved[name] = moved[name] + float(weight) * (tensor.double() - states[0][name].double())
+    record: dict[str, Any] = {"base": str(base_dir), "aligned": str(aligned_dir), "factor": float(factor)}
+    if terms:
+        record["directions"] = [{"from": a, "to": b, "weight": float(w)} for a, b, w in terms]
+    _write(output_dir, base_config, base, moved, "extrapolation", EXTRAPOLATE_FILE, record)
     return output_dir
 
 

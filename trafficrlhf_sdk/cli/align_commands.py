@@ -318,9 +318,15 @@ def average_command(checkpoints: tuple[str, ...], out_dir: str, weights: str | N
               help="The checkpoint ALIGNED was fine-tuned from (e.g. the model's bundled checkpoint folder).")
 @click.option("--factor", required=True, type=click.FloatRange(min=0),
               help="base + FACTOR x (aligned - base): 1 = ALIGNED, 2 = as far again past it, 0.5 = halfway back.")
+@click.option("--add-direction", "directions", multiple=True, nargs=3,
+              type=(click.Path(file_okay=False), click.Path(file_okay=False), float),
+              metavar="FROM TO WEIGHT",
+              help="Also add WEIGHT x (TO - FROM), e.g. the change of a second fine-tuning stage run from ALIGNED "
+                   "(repeatable; negative weights subtract).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Folder for config.json + model.safetensors (+ extrapolated_from.json).")
-def extrapolate_command(aligned: str, base_dir: str, factor: float, out_dir: str) -> None:
+def extrapolate_command(aligned: str, base_dir: str, factor: float,
+                        directions: tuple[tuple[str, str, float], ...], out_dir: str) -> None:
     """Move an ALIGNED checkpoint further along the direction alignment took from --base (ExPO).
 
     Choose --factor on held-out scenes (scripts/extrapolation_sweep.py); the result loads like any checkpoint:
@@ -328,5 +334,6 @@ def extrapolate_command(aligned: str, base_dir: str, factor: float, out_dir: str
     """
     from trafficrlhf_sdk.align.averaging import extrapolate_checkpoint
 
-    extrapolate_checkpoint(base_dir, aligned, out_dir, factor)
-    click.echo(f"wrote base + {factor:g} x (aligned - base) to {out_dir}")
+    extrapolate_checkpoint(base_dir, aligned, out_dir, factor, directions)
+    extra = "".join(f" + {w:g} x ({b} - {a})" for a, b, w in directions)
+    click.echo(f"wrote base + {factor:g} x (aligned - base){extra} to {out_dir}")
