@@ -75,10 +75,16 @@ def test_mismatched_or_broken_inputs_get_one_clear_error(three: list[str], tmp_p
     other = tmp_path / "other"
     other.mkdir()
     config = json.loads(open(os.path.join(three[1], "config.json")).read())
-    config["config"]["hidden"] = 2 * config["config"].get("hidden", 32)
+    field = next(iter(config["config"]))
+    config["config"][field] = [config["config"][field], "changed"]
     (other / "config.json").write_text(json.dumps(config))
     save_file(_weights(three[1]), str(other / "model.safetensors"))
-    with pytest.raises(DataFormatError, match=r"another config\.json"):
+    with pytest.raises(DataFormatError, match=f"different architecture configs \\({field}: "):
+        average_checkpoints([three[0], str(other)], str(tmp_path / "x"))
+    config["config"][field] = json.loads(open(os.path.join(three[1], "config.json")).read())["config"][field]
+    config["adapter"] = "ctg"
+    (other / "config.json").write_text(json.dumps(config))
+    with pytest.raises(DataFormatError, match="adapter 'ctg'"):
         average_checkpoints([three[0], str(other)], str(tmp_path / "x"))
     broken = {k: v.clone() for k, v in _weights(three[1]).items()}
     first = next(k for k, v in broken.items() if v.is_floating_point())
@@ -87,6 +93,19 @@ def test_mismatched_or_broken_inputs_get_one_clear_error(three: list[str], tmp_p
     with pytest.raises(DataFormatError, match="non-finite"):
         average_checkpoints(three, str(tmp_path / "x"))
     assert not (tmp_path / "x").exists(), "nothing is written when the inputs are bad"
+
+
+def test_a_config_field_only_one_checkpoint_records_is_kept(three: list[str], tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # a checkpoint saved before a config field existed (it loads with the field's default) combines with newer ones
+    older = json.loads(open(os.path.join(three[0], "config.json")).read())
+    dropped = next(iter(older["config"]))
+    value = older["config"].pop(dropped)
+    (tmp_path / "run0" / "config.json").write_text(json.dumps(older))
+    out = average_checkpoints(three[:2], str(tmp_path / "soup"))
+    assert json.loads(open(os.path.join(out, "config.json")).read())["config"][dropped] == value
+    out = extrapolate_checkpoint(three[0], three[1], str(tmp_path / "x2"), 2.0)
+    assert json.loads(open(os.path.join(out, "config.json")).read())["config"][dropped] == value
+    gru.ExampleGRUAdapter.from_pretrained(out)
 
 
 def test_cli_average(three: list[str], tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]

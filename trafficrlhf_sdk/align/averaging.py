@@ -81,14 +81,16 @@ def average_checkpoints(directories: Sequence[str], output_dir: str,
     weights = [w / total for w in weights]
 
     first_config, first = _read(dirs[0])
+    configs = [first_config]
     summed = {k: v.double() * weights[0] if v.is_floating_point() else v for k, v in first.items()}
     for directory, weight in zip(dirs[1:], weights[1:]):
         config, state = _read(directory)
         _check_compatible(directory, config, state, dirs[0], first_config, first)
+        configs.append(config)
         for name, tensor in state.items():
             if tensor.is_floating_point():
                 summed[name] = summed[name] + tensor.double() * weight
-    _write(output_dir, first_config, first, summed, "average", AVERAGE_FILE, {"sources": dirs, "weights": weights})
+    _write(output_dir, _merged(configs), first, summed, "average", AVERAGE_FILE, {"sources": dirs, "weights": weights})
     return output_dir
 
 
@@ -125,6 +127,7 @@ def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, fac
     base_config, base = _read(base_dir)
     config, aligned = _read(aligned_dir)
     _check_compatible(aligned_dir, config, aligned, base_dir, base_config, base)
+    configs = [base_config, config]
     moved = {name: base[name].double() + float(factor) * (tensor.double() - base[name].double())
              if tensor.is_floating_point() else tensor for name, tensor in aligned.items()}
     for source, target, weight in terms:
@@ -133,24 +136,40 @@ def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, fac
             other_config, state = _read(directory)
             _check_compatible(directory, other_config, state, base_dir, base_config, base)
             states.append(state)
+            configs.append(other_config)
         for name, tensor in states[1].items():
             if tensor.is_floating_point():
                 moved[name] = moved[name] + float(weight) * (tensor.double() - states[0][name].double())
     record: dict[str, Any] = {"base": str(base_dir), "aligned": str(aligned_dir), "factor": float(factor)}
     if terms:
         record["directions"] = [{"from": a, "to": b, "weight": float(w)} for a, b, w in terms]
-    _write(output_dir, base_config, base, moved, "extrapolation", EXTRAPOLATE_FILE, record)
+    _write(output_dir, _merged(configs), base, moved, "extrapolation", EXTRAPOLATE_FILE, record)
     return output_dir
+
+
+def _merged(configs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The first config with the fields that only later ones record added (see :func:`_check_compatible`)."""
+    fields: dict[str, Any] = {}
+    for config in reversed(configs):
+        fields.update(config.get("config") or {})
+    return {**configs[0], "config": fields}
 
 
 def _check_compatible(directory: str, config: dict[str, Any], state: dict[str, torch.Tensor], ref_dir: str,
                       ref_config: dict[str, Any], ref: dict[str, torch.Tensor]) -> None:
     """Raise DataFormatError unless two checkpoints share adapter, architecture, tensor names/shapes/dtypes and
     integer tensors."""
-    if config != ref_config:
-        raise DataFormatError(f"{directory!r} has another config.json than {ref_dir!r} (adapter "
-                              f"{config.get('adapter')!r} vs {ref_config.get('adapter')!r}); only "
-                              "checkpoints of one adapter and architecture can be combined.")
+    if config.get("adapter") != ref_config.get("adapter"):
+        raise DataFormatError(f"{directory!r} holds adapter {config.get('adapter')!r} weights but {ref_dir!r} "
+                              f"{ref_config.get('adapter')!r}; only checkpoints of one adapter can be combined.")
+    # A field only one config records is one added to the adapter's config after the other checkpoint was
+    # saved (it loads with the default); the tensor names and shapes below still have to match exactly.
+    fields, ref_fields = config.get("config") or {}, ref_config.get("config") or {}
+    differing = {k: (fields[k], ref_fields[k]) for k in fields.keys() & ref_fields.keys() if fields[k] != ref_fields[k]}
+    if differing:
+        shown = "; ".join(f"{k}: {a!r} vs {b!r}" for k, (a, b) in sorted(differing.items())[:5])
+        raise DataFormatError(f"{directory!r} and {ref_dir!r} have different architecture configs ({shown}); "
+                              "only checkpoints of one architecture can be combined.")
     if state.keys() != ref.keys():
         extra = sorted(state.keys() ^ ref.keys())[:5]
         raise DataFormatError(f"{directory!r} and {ref_dir!r} hold different tensors (e.g. {extra}).")
