@@ -118,6 +118,7 @@ def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
     for j, weight in enumerate(weights):
         keys = [_key(f, weight) for f in factors]
         label = "" if weight is None else f", direction x {weight:g}"
+        alpha = 1.0 - 0.6 * j / len(weights)  # later direction weights fainter
         if weight is None:
             for i in range(len(result["seeds"])):
                 left.plot(factors, [result["per_seed"][k][i]["failure_rate"] for k in keys], color="0.7", lw=1)
@@ -125,11 +126,11 @@ def plot(result: dict, path: str) -> None:  # type: ignore[type-arg]
                   label="mean of seeds" + label)
         for name, color, style in (("realism_ctg", "C0", "o-"), ("realism_body", "C2", "s--")):
             right.plot(factors, [result["mean"][k][name] for k in keys], style, color=color,
-                       alpha=1.0 - 0.6 * j / max(len(weights), 1), label=name + label)
+                       alpha=alpha, label=name + label)
         speed.plot(factors, [result["mean"][k]["speed_ratio"] for k in keys], "o-", color="C1",
-                   alpha=1.0 - 0.6 * j / max(len(weights), 1), label="speed / logged" + label)
+                   alpha=alpha, label="speed / logged" + label)
         speed.plot(factors, [result["mean"][k]["stopped_share"] for k in keys], "s--", color="C4",
-                   alpha=1.0 - 0.6 * j / max(len(weights), 1), label="stopped at the end" + label)
+                   alpha=alpha, label="stopped at the end" + label)
     left.set(xlabel="factor (0 = base, 1 = aligned)", ylabel="held-out failure rate", title=result["model"])
     left.legend(fontsize=7)
     right.set(xlabel="factor", ylabel="realism deviation (lower is better)")

@@ -125,21 +125,24 @@ def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, fac
     if os.path.abspath(output_dir) in inputs:
         raise TrafficRLHFError(f"`output_dir` {output_dir!r} is one of the inputs; write the result elsewhere.")
     base_config, base = _read(base_dir)
-    config, aligned = _read(aligned_dir)
-    _check_compatible(aligned_dir, config, aligned, base_dir, base_config, base)
-    configs = [base_config, config]
+    loaded = {os.path.abspath(base_dir): (base_config, base)}  # a folder named twice (e.g. FROM = aligned) is read once
+
+    def checked(directory: str) -> dict[str, torch.Tensor]:
+        key = os.path.abspath(directory)
+        if key not in loaded:
+            loaded[key] = _read(directory)
+            _check_compatible(directory, *loaded[key], base_dir, base_config, base)
+        return loaded[key][1]
+
+    aligned = checked(aligned_dir)
     moved = {name: base[name].double() + float(factor) * (tensor.double() - base[name].double())
              if tensor.is_floating_point() else tensor for name, tensor in aligned.items()}
     for source, target, weight in terms:
-        states = []
-        for directory in (source, target):
-            other_config, state = _read(directory)
-            _check_compatible(directory, other_config, state, base_dir, base_config, base)
-            states.append(state)
-            configs.append(other_config)
-        for name, tensor in states[1].items():
+        start, end = checked(source), checked(target)
+        for name, tensor in end.items():
             if tensor.is_floating_point():
-                moved[name] = moved[name] + float(weight) * (tensor.double() - states[0][name].double())
+                moved[name] = moved[name] + float(weight) * (tensor.double() - start[name].double())
+    configs = [config for config, _ in loaded.values()]
     record: dict[str, Any] = {"base": str(base_dir), "aligned": str(aligned_dir), "factor": float(factor)}
     if terms:
         record["directions"] = [{"from": a, "to": b, "weight": float(w)} for a, b, w in terms]
