@@ -19,7 +19,8 @@ def _hook_names() -> list[str]:
 @pytest.mark.parametrize("hook", _hook_names())
 def test_plugin_hook_is_documented(hook: str) -> None:
     """Every hook has a heading with its signature in docs/reference/plugin_hooks.md."""
-    text = open(os.path.join(DOCS, "reference", "plugin_hooks.md"), encoding="utf-8").read()
+    with open(os.path.join(DOCS, "reference", "plugin_hooks.md"), encoding="utf-8") as f:
+        text = f.read()
     assert re.search(rf"^## {hook}\((register|cli)\)$", text, re.M), f"document {hook} in plugin_hooks.md"
 
 
@@ -30,7 +31,8 @@ def test_doc_links_resolve() -> None:
         for name in files:
             if not name.endswith(".md"):
                 continue
-            text = open(os.path.join(folder, name), encoding="utf-8").read()
+            with open(os.path.join(folder, name), encoding="utf-8") as f:
+                text = f.read()
             for target in re.findall(r"\]\(([^)#:]+\.md)", text):
                 if not os.path.exists(os.path.normpath(os.path.join(folder, target))):
                     broken.append(f"{name} -> {target}")

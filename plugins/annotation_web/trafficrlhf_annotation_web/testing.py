@@ -56,6 +56,7 @@ class Server:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(timeout=10)
+        self._close_pipe()
 
     def stop(self) -> None:
         """SIGTERM, then SIGKILL after 10 s."""
@@ -65,3 +66,9 @@ class Server:
                 self.proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 self.kill9()
+        self._close_pipe()
+
+    def _close_pipe(self) -> None:
+        """Close the stderr pipe of a finished server (left open, it leaks a file handle per server)."""
+        if self.proc is not None and self.proc.poll() is not None and self.proc.stderr is not None:
+            self.proc.stderr.close()
