@@ -270,6 +270,7 @@ COMMITTED = {  # committed TrafficGen checkpoints, their forecast horizons (step
     "reference_models/aligned/trafficgen": (20, BUNDLED),
     "reference_models/aligned/trafficgen_x2": (20, BUNDLED),
     "reference_models/aligned/trafficgen_4s": (40, "reference_models/trafficgen/checkpoints/trafficgen_small_4s"),
+    "reference_models/aligned/trafficgen_4s_pace": (40, "reference_models/trafficgen/checkpoints/trafficgen_small_4s"),
 }
 
 
