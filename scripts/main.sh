@@ -3,8 +3,8 @@
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
 # guidance, the aligned CTG, the 4 s CTG with its aligned version, TrafficGen with its aligned-and-extrapolated
-# version, and the 4 s TrafficGen with its aligned version and its pace-keeping composition; a comparison table
-# closes. Outputs land in out/main/.
+# version, the 4 s TrafficGen with its aligned version and its pace-keeping composition, and BITS with its
+# aligned version; a comparison table closes. Outputs land in out/main/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -41,8 +41,14 @@ $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_mo
 # ... and that aligned version extrapolated by 2 plus half a pace-keeping stage (reference_models/aligned/trafficgen_4s_pace)
 $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_4s_pace \
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen4s_pace_no_collision"
+# BITS and its two-stage aligned version (reference_models/aligned/bits/README.md)
+$T evaluate --model bits --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
+  --out "$OUT/bits_no_collision"
+$T evaluate --model bits --guidance no_collision --checkpoint reference_models/aligned/bits --source nuscenes_pred \
+  --split val --scenes 100 --out "$OUT/bits_aligned_no_collision"
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
   "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/trafficgen_no_collision" \
   "$OUT/trafficgen_x2_no_collision" "$OUT/trafficgen4s_no_collision" \
-  "$OUT/trafficgen4s_aligned_no_collision" "$OUT/trafficgen4s_pace_no_collision" | tee "$OUT/comparison.md"
+  "$OUT/trafficgen4s_aligned_no_collision" "$OUT/trafficgen4s_pace_no_collision" \
+  "$OUT/bits_no_collision" "$OUT/bits_aligned_no_collision" | tee "$OUT/comparison.md"
 echo "main job done: results in $OUT/"

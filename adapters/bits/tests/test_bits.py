@@ -108,6 +108,27 @@ def test_policy_stays_bitwise_frozen_through_a_training_step(adapter) -> None:  
     assert any(not torch.equal(v, goal_before[k]) for k, v in model.model.goal_net.state_dict().items())
 
 
+def test_committed_aligned_checkpoint_plans_and_keeps_the_bundled_policy() -> None:
+    """``reference_models/aligned/bits`` loads, plans 2 s, and differs from the bundled checkpoint only in the goal
+    network: alignment never trains the goal-conditioned policy."""
+    from safetensors.torch import load_file
+
+    from trafficrlhf_bits import BITSAdapter, default_checkpoint
+
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    aligned = os.path.join(repo, "reference_models", "aligned", "bits")
+    model = BITSAdapter(checkpoint=aligned, seed=0)
+    plan = model.plan(synthetic_scene(), 20).states
+    assert plan.shape == (1, 4, 20, 4) and torch.isfinite(plan).all()
+    mine = load_file(os.path.join(aligned, "model.safetensors"))
+    base = load_file(str(default_checkpoint() / "model.safetensors"))
+    assert mine.keys() == base.keys()
+    policy = [k for k in base if k.startswith("policy.")]
+    goal = [k for k in base if k.startswith("goal_net.") and base[k].is_floating_point()]
+    assert policy and all(torch.equal(mine[k], base[k]) for k in policy)
+    assert any(not torch.equal(mine[k], base[k]) for k in goal)
+
+
 def test_log_prob_is_the_masked_goal_distribution(adapter) -> None:  # type: ignore[no-untyped-def]
     scene = synthetic_scene()
     out = adapter.sample(scene, 6, generator=torch.Generator().manual_seed(3))
