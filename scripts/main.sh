@@ -38,10 +38,11 @@ $T evaluate --model trafficgen --guidance no_collision \
   --scenes 100 --out "$OUT/trafficgen4s_no_collision"
 $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_4s \
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen4s_aligned_no_collision"
-# ... and that aligned version extrapolated by 2 plus half a pace-keeping stage (reference_models/aligned/trafficgen_4s_pace)
+# ... and that aligned version extrapolated by 2 plus half a pace-keeping stage
+# (reference_models/aligned/trafficgen_4s_pace/README.md)
 $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_4s_pace \
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen4s_pace_no_collision"
-# BITS and its two-stage aligned version (reference_models/aligned/bits/README.md)
+# BITS and its aligned version, three training stages (reference_models/aligned/bits/README.md)
 $T evaluate --model bits --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
   --out "$OUT/bits_no_collision"
 $T evaluate --model bits --guidance no_collision --checkpoint reference_models/aligned/bits --source nuscenes_pred \
