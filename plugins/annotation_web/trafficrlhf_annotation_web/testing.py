@@ -43,7 +43,9 @@ class Server:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited: {self.proc.stderr.read().decode()[-2000:]}")  # type: ignore[union-attr]
+                error = self.proc.stderr.read().decode()[-2000:]  # type: ignore[union-attr]
+                self._close_pipe()
+                raise RuntimeError(f"server exited: {error}")
             with contextlib.suppress(httpx.HTTPError):
                 if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
                     return self
