@@ -129,6 +129,13 @@ class AlignConfig(BaseModel):
                                         "future only, so a collision between two simulated agents is charged to "
                                         "the one whose sample caused it. Costs one scenario per sampled agent "
                                         "and sample.")
+    selection_credit: bool = Field(False, description="For models whose planner executes the best of K samples "
+                                   "by its own score (BITS): replace each sample's reward by its best-of-K return "
+                                   "(`trafficrlhf_sdk.align.selection`) before the advantages, so PPO improves "
+                                   "what the planner executes rather than single samples. Needs an adapter whose "
+                                   "`selection_scores` ranks its samples; per agent with credit='agent' (exact "
+                                   "for per-agent selection, an approximation under scene-level guidance), on "
+                                   "the scene reward with credit='scene'.")
     speed_neutral_advantages: bool = Field(False, description="Regress, within each advantage group (context, "
                                            "or context and agent), the samples' rewards on their mean speed over "
                                            "the scored window and use the residuals, divided by the group's "
@@ -227,6 +234,9 @@ class AlignConfig(BaseModel):
         if self.continuation_steps and self.continuation_executed_steps > (self.horizon or 10**9):
             raise ValueError(f"`continuation_executed_steps` ({self.continuation_executed_steps}) exceeds `horizon` "
                              f"({self.horizon}): a sample cannot execute more steps than it holds; lower it.")
+        if self.selection_credit and (self.counterfactual_credit or self.speed_neutral_advantages):
+            raise ValueError("`selection_credit=True` cannot be combined with `counterfactual_credit` or "
+                             "`speed_neutral_advantages` (each redefines the samples' returns); choose one.")
         if self.continuation_steps and self.counterfactual_credit:
             raise ValueError("`continuation_steps` and `counterfactual_credit=True` cannot be combined (a "
                              "continuation moves every sampled agent); choose one.")

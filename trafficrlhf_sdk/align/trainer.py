@@ -15,7 +15,9 @@ One epoch:
 2. **Advantages.** ``A = (r - mean_context) / (std_context + eps)`` over the samples of a context (of each agent
    of a context with ``credit="agent"``), clipped to ``+- advantage_clip``. With scene credit one advantage per
    (context, sample) is shared by every sampled agent; for per-step log-probabilities such as a diffusion
-   chain, by every denoising step (DDPO), or the first ``denoising_steps`` of them.
+   chain, by every denoising step (DDPO), or the first ``denoising_steps`` of them. With ``selection_credit``
+   ``r`` is first replaced by each sample's best-of-K return under the adapter's selection scores
+   (:mod:`trafficrlhf_sdk.align.selection`), for planners that execute the best of K samples.
 3. **Optimization.** ``ppo_epochs`` passes over minibatches of contexts: ``ratio = exp(log_prob - log_prob_old)``
    elementwise (per agent, per denoising step where the adapter returns ``(B, S, A, K)``), surrogate
    ``min(ratio * A, clip(ratio) * A)`` averaged over sampled agents (and steps), loss
@@ -50,6 +52,7 @@ from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
+from trafficrlhf_sdk.align.selection import best_of_k_returns
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
@@ -185,6 +188,10 @@ class AlignTrainer(TrainerCheckpoints):
         if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
+        if self.config.selection_credit and type(model).selection_scores is TrafficModelAdapter.selection_scores:
+            raise TrafficRLHFError(f"selection_credit=True needs an adapter whose `selection_scores` ranks its "
+                                   f"samples as its planner does; {type(model).__name__} executes what it samples. "
+                                   "Leave selection_credit off for it.")
         self.held_out = None
         if self.config.eval_every is not None:
             if eval_scenes is None and (scenes is not None or self.config.holdout_every is None):
@@ -359,7 +366,8 @@ class AlignTrainer(TrainerCheckpoints):
                 per_agent = self._mix_continuation(per_agent, contexts, out.futures, trace.agents, epoch, source)
             rewards = _mean_over_sampled(per_agent, trace.agents)
             speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
-            adv = self._normalize(per_agent, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
+            returns = self._selection_returns(contexts, out, per_agent) if self.config.selection_credit else per_agent
+            adv = self._normalize(returns, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
             ranked = per_agent
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
@@ -369,7 +377,8 @@ class AlignTrainer(TrainerCheckpoints):
             speed = None
             if self.config.speed_neutral_advantages:
                 speed = _mean_over_sampled(self._sample_speeds(out.futures), trace.agents)
-            adv = self._normalize(rewards, dim=1, covariate=speed)
+            returns = self._selection_returns(contexts, out, rewards) if self.config.selection_credit else rewards
+            adv = self._normalize(returns, dim=1, covariate=speed)
             ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
         winners = None
         if self.config.winner_coef > 0:
@@ -378,6 +387,19 @@ class AlignTrainer(TrainerCheckpoints):
         if self.config.imitation_contexts == "log" and self.config.imitation_coef > 0:
             imitation = self.context_sampler.log_contexts(b, _generator(self.config.seed, epoch, "imitation_log"))[1]
         return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation)
+
+    def _selection_returns(self, contexts: ScenarioTensor, out: Any, rewards: torch.Tensor) -> torch.Tensor:
+        """Best-of-K returns (:func:`best_of_k_returns`) of ``rewards`` ``(B, S, A)`` (agent credit) or ``(B, S)``
+        (scene credit: scores averaged over the sampled agents) under the adapter's selection scores."""
+        ranked = self.model.selection_scores(contexts, out, self.guidance)
+        if ranked is None:
+            raise TrafficRLHFError(f"{type(self.model).__name__}.selection_scores returned None for these contexts; "
+                                   "selection_credit needs its scores on every sample.")
+        scores, k = ranked
+        scores = scores.detach().to(rewards.dtype)
+        if rewards.dim() == 2:
+            scores = _mean_over_sampled(scores, out.trace.agents)
+        return best_of_k_returns(rewards, scores, k, dim=1)
 
     def winner_scenarios(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
                          rewards: torch.Tensor) -> ScenarioTensor:

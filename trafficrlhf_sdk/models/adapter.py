@@ -162,6 +162,15 @@ class TrafficModelAdapter(abc.ABC):
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
         """Trainable parameter groups by name (e.g. ``encoder``, ``decoder``); frozen parts are not offered."""
 
+    def selection_scores(self, context: ScenarioTensor, output: SampleOutput,
+                         guidance: GuidanceSet | None = None) -> tuple[torch.Tensor, int] | None:
+        """How :meth:`plan` would rank the samples of ``output`` (drawn from ``context``): ``(scores (B, S, A),
+        k)``, higher executed first, for a planner that draws ``k`` samples and executes the best scored (per
+        agent, or one index per scene when the scores are equal over a scene's agents). None (the default): the
+        planner executes what :meth:`sample` draws, with no selection to credit. Used by
+        ``AlignConfig.selection_credit``."""
+        return None
+
     # ------------------------------------------------------------ policy
     def reset(self, scenario: ScenarioTensor) -> None:
         """Fit the guidance heuristics on the logged scene at the rollout start."""

@@ -192,6 +192,31 @@ def test_train_on_selection_samples_what_plan_executes(adapter) -> None:  # type
     torch.testing.assert_close(again, planned)
 
 
+def test_selection_scores_rank_samples_as_plan_does(adapter) -> None:  # type: ignore[no-untyped-def]
+    """The scores of a draw pick exactly the goal BITS's selection executes, per agent and per scene."""
+    from trafficrlhf_bits import BITSAdapter
+    from trafficrlhf_sdk.guidance import GuidanceSet
+
+    scene = synthetic_scene()
+    for spec in (None, "no_collision"):
+        model = BITSAdapter(seed=0, plan_samples=6, guidance=spec)
+        guidance = None if spec is None else GuidanceSet.parse(spec)
+        if guidance is not None:
+            guidance.fit(scene)
+        out, choice = model._selection(scene, 1, guidance, torch.Generator().manual_seed(3))
+        scores, k = model.selection_scores(scene, out, guidance)
+        agents = out.trace.agents[0]
+        assert k == 6 and scores.shape == (1, 6, 4) and torch.isfinite(scores).all()
+        assert (scores[0][:, ~agents] == 0).all()
+        assert torch.equal(scores[0].argmax(0)[agents], choice[0, 0][agents])
+        if spec == "no_collision":  # scene-level: one score per sample, shared by the scene's agents
+            assert torch.equal(scores[0, :, 0], scores[0, :, 1])
+    selected = BITSAdapter(seed=0, train_on_selection=True)
+    out = selected.sample(scene, 2, None, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="train_on_selection"):
+        selected.selection_scores(scene, out)
+
+
 def test_guided_plan_runs_every_guidance(adapter) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_bits import BITSAdapter
 

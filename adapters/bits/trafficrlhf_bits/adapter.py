@@ -19,6 +19,9 @@
   goals while the planner keeps picking the most progressive one.
 * Only the goal network is offered for training (``goal_encoder``, ``goal_decoder``); the policy's parameters
   have ``requires_grad=False`` and are never offered.
+* :meth:`selection_scores` ranks the samples of ``sample`` as ``plan`` would (the same score, the other agents'
+  most likely goals as predictions, progress measured along the current heading in the scene frame), for
+  ``AlignConfig.selection_credit``: PPO then credits each goal with its best-of-``plan_samples`` return.
 * Stationary agents (|v| <= ``stationary_speed`` now) are held still, as the ``ctg`` adapter and upstream do;
   their goal is still sampled and scored, so ``log_prob`` stays exact.
 """
@@ -269,18 +272,15 @@ class BITSAdapter(TrafficModelAdapter):
         return loss
 
     # ------------------------------------------------------------ BITS planning
-    def selection_terms(self, context: ScenarioTensor, draw: _Draw, agents: torch.Tensor, others: torch.Tensor,
+    def selection_terms(self, context: ScenarioTensor, candidates: torch.Tensor, progress: torch.Tensor,
+                        agents: torch.Tensor, others: torch.Tensor,
                         other_futures: torch.Tensor) -> dict[str, torch.Tensor]:
-        """BITS's per-candidate terms ``(N, S)`` for the ``agents`` rows: progress (m along the current heading
-        at 2 s), collision (disk penetration against ``other_futures (B, A, H, 4)`` of the ``others (B, A)``
-        agents, self excluded) and drivable (share of box centre and corners off the drivable layer)."""
-        s = draw.index.shape[1]
-        candidates = draw.futures[:, :s]  # (N, S, H, 4)
-        n, _, h, _ = candidates.shape
+        """BITS's per-candidate terms ``(N, S)`` for the ``agents (B, A)`` rows with scene-frame ``candidates
+        (N, S, H, 4)``: ``progress`` (m along the current heading at 2 s, given), collision (disk penetration
+        against ``other_futures (B, A, H, 4)`` of the ``others (B, A)`` agents, self excluded) and drivable (share
+        of box centre and corners off the drivable layer)."""
+        n, s, h, _ = candidates.shape
         scene, slot = agents.nonzero(as_tuple=True)
-        progress = draw.local[:, :s, -1, 0]
-        progress = torch.where(draw.state_now[:, 2:3].abs() <= self.options.stationary_speed,
-                               torch.zeros_like(progress), progress)
         other_valid = others[scene].clone()  # (N, A)
         other_valid[torch.arange(n), slot] = False
         collision = disk_collision(candidates, other_futures[scene], context.extent[scene, slot],
@@ -292,6 +292,18 @@ class BITSAdapter(TrafficModelAdapter):
         on_road = context.map.lookup_points(point_scene, points.reshape(-1, 2))  # type: ignore[union-attr]
         drivable = 1.0 - on_road.reshape(n, s, h, 5).float().mean((-1, -2))
         return {"progress": progress, "collision": collision, "drivable": drivable}
+
+    def _selection_cost(self, context: ScenarioTensor, agents: torch.Tensor, terms: dict[str, torch.Tensor],
+                        futures: torch.Tensor, guidance: GuidanceSet | None) -> tuple[torch.Tensor, bool]:
+        """``(cost (B, S, A), scene_level)``: minus BITS's score of the ``agents`` rows' candidates, plus the
+        guidance loss of ``futures (B, S, A, H, 4)`` when a guidance is set (lower is executed first)."""
+        score = selection_score(terms["progress"], terms["collision"], terms["drivable"],
+                                tuple(self.options.selection_weights))  # (N, S)
+        b, a, s = context.num_scenes, context.num_agents, score.shape[1]
+        cost = self._scatter(-score, agents, torch.zeros(b, a, s, device=context.device))
+        if guidance is None:
+            return cost, False
+        return cost + guidance.loss(futures, context.current_index, context), guidance.scene_level
 
     @torch.no_grad()
     def _selection(self, context: ScenarioTensor, groups: int, guidance: GuidanceSet | None,
@@ -313,17 +325,42 @@ class BITSAdapter(TrafficModelAdapter):
         sub = agents[valid_now]  # which present agents are controlled
         draw_c = _Draw(*(t[sub] for t in draw))
         out = self._output(context, agents, draw_c, groups * k, guidance)
-        terms = self.selection_terms(context, draw_c, agents, valid_now, modes)
-        score = selection_score(terms["progress"], terms["collision"], terms["drivable"],
-                                tuple(self.options.selection_weights))  # (N, G*K)
-        cost = self._scatter(-score, agents, torch.zeros(b, a, groups * k, device=context.device))
-        scene_level = False
-        if guidance is not None:
-            cost = cost + guidance.loss(out.futures, now, context)
-            scene_level = guidance.scene_level
+        progress = draw_c.local[:, : groups * k, -1, 0]
+        progress = torch.where(draw_c.state_now[:, 2:3].abs() <= self.options.stationary_speed,
+                               torch.zeros_like(progress), progress)
+        terms = self.selection_terms(context, draw_c.futures[:, : groups * k], progress, agents, valid_now, modes)
+        cost, scene_level = self._selection_cost(context, agents, terms, out.futures, guidance)
         # every (scene, group) pair is one selection among K: fold the groups into the batch
         choice = select_samples(cost.reshape(b * groups, k, a), agents.repeat_interleave(groups, 0), scene_level)
         return out, choice.reshape(b, groups, a)
+
+    @torch.no_grad()
+    def selection_scores(self, context: ScenarioTensor, output: SampleOutput,
+                         guidance: GuidanceSet | None = None) -> tuple[torch.Tensor, int]:
+        """``(scores (B, S, A), plan_samples)``: how :meth:`plan` ranks the samples of ``output`` (minus its
+        selection cost; with a scene-level guidance the scene's total, the same for each of its agents; 0 for
+        agents not sampled). The other agents' predictions are their most likely goals, as in :meth:`plan`."""
+        if output.trace.info.get("selection"):
+            raise ValueError("these samples are already BITS's executed choices (train_on_selection=True); "
+                             "selection scores rank raw goal samples, so turn one of the two off.")
+        now, b, a, h = context.current_index, context.num_scenes, context.num_agents, self.horizon
+        valid_now = context.valid[:, :, now]
+        agents = output.trace.agents.to(context.device)
+        feats = select_rows(agent_features(context, self.cfg), valid_now)
+        out = self.model.goal_net(feats)
+        mask = feats["map"][:, 0].flatten(1) > 0
+        local = self.model.policy.rollout(feats, self.model.goal_net.goal_at(out, self.model.mode_goals(out, mask)))
+        modes = torch.zeros(b, a, h, 4, device=context.device)
+        modes[valid_now] = self._to_scene(local, context.states[:, :, now][valid_now])[:, 0]
+        candidates = output.futures.transpose(1, 2)[agents].to(modes.dtype)  # (N, S, H, 4)
+        state_now = context.states[:, :, now][agents]
+        heading = torch.stack([state_now[:, 3].cos(), state_now[:, 3].sin()], -1)  # (N, 2)
+        progress = ((candidates[:, :, -1, :2] - state_now[:, None, :2]) * heading[:, None]).sum(-1)
+        terms = self.selection_terms(context, candidates, progress, agents, valid_now, modes)
+        cost, scene_level = self._selection_cost(context, agents, terms, output.futures.detach(), guidance)
+        if scene_level:
+            cost = (cost * agents[:, None]).sum(-1, keepdim=True).expand_as(cost)
+        return -cost * agents[:, None], self.options.plan_samples
 
     @torch.no_grad()
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
