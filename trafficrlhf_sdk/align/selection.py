@@ -15,8 +15,9 @@ the first term to ``K R_c H^(K-1) + (R(y) - R_c) (H^K - G^K) / P(class)``).
 The first term is the sample's own reward, weighted by how likely it wins; the second is the value of drawing
 ``y`` as a competitor: it lowers the chance that better-scored samples win, which helps when they have low
 rewards. :func:`best_of_k_returns` is the plug-in estimate of ``A`` from the S samples of one group (H and G are
-the group's empirical CDFs). Shifting every reward by ``b`` shifts every ``A`` by ``-K b``, so the
-within-group normalization of the advantages is unaffected by the reward's offset. With ``K = 1``, ``A = R``.
+the group's empirical CDFs). Shifting every reward by ``b`` shifts every ``A`` by the same ``K b`` (the terms'
+weights sum to ``K``), so the reward's offset carries no credit; the function centres the rewards of each group
+first. With ``K = 1``, ``A = R``.
 """
 
 from __future__ import annotations
