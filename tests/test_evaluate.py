@@ -51,6 +51,20 @@ def test_evaluate_constant_velocity_writes_results(has_data, cli, tmp_path) -> N
     assert logged["realism_ctg"] == 0.0 and logged["realism_body"] == 0.0  # the log against itself
     assert metrics["realism_ctg"] > 0.0
     assert set(saved["histograms"]) == {"ctg", "body"}
+    # per scene, in scene_ids order; the reported rates are their means over scenes with a controlled agent
+    per_scene = saved["per_scene"]
+    assert len(per_scene["failure_rate"]) == 5 and sum(per_scene["controlled_agents"]) == saved["num_controlled_agents"]
+    for key in ("failure_rate", "collision_rate", "offroad_rate", "speed_ratio"):
+        values = [v for v in per_scene[key] if v is not None]
+        assert sum(values) / len(values) == pytest.approx(metrics[key], abs=1e-12), key
+    table = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--scenes", "5",
+                                     "--worst-scenes", "2"])
+    assert table.exit_code == 0, (table.output, table.exception)
+    failing = sum(1 for v in per_scene["failure_rate"] if v)
+    assert f"failure is spread over {failing} of 5 scenes" in table.output
+    assert "the 2 scenes with the largest failure share" in table.output.replace("\n", " ")
+    worst = max(range(5), key=lambda i: (per_scene["failure_rate"][i] or 0.0))
+    assert saved["metadata"]["scene_ids"][worst] in table.output
 
 
 def test_unknown_model_lists_the_registered_ones(has_data, cli) -> None:  # type: ignore[no-untyped-def]

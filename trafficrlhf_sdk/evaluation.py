@@ -47,6 +47,9 @@ class EvaluationReport:
     simulation_time_s: float
     metadata: dict[str, Any] = field(default_factory=dict)
     histograms: dict[str, dict[str, dict[str, list[float]]]] = field(default_factory=dict)
+    # per scene, in the order of ``metadata["scene_ids"]``: "controlled_agents" and every metric value that is a
+    # mean over scenes (failure, collision, off-road, speed...); None where a scene has no controlled agent
+    per_scene: dict[str, list[float | None]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serializable dict (NaN written as null)."""
@@ -60,6 +63,7 @@ class EvaluationReport:
             "simulation_time_s": self.simulation_time_s,
             "metadata": self.metadata,
             "histograms": self.histograms,
+            "per_scene": self.per_scene,
         }
 
     def save(self, directory: str, plot: bool = True) -> list[str]:
@@ -99,13 +103,19 @@ def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: Eval
     return rollout, reference
 
 
-def compute_metrics(rollout: Rollout, metrics: Sequence[Metric]) -> tuple[dict[str, float], dict[str, Any]]:
-    """All scalar values of ``metrics`` on ``rollout`` and the realism histograms (simulated and logged)."""
+def compute_metrics(rollout: Rollout, metrics: Sequence[Metric],
+                    per_scene: dict[str, list[float | None]] | None = None) -> tuple[dict[str, float], dict[str, Any]]:
+    """All scalar values of ``metrics`` on ``rollout`` and the realism histograms (simulated and logged).
+
+    ``per_scene``, if given, receives each metric's per-scene values ``(B,)`` as lists (NaN written as None)."""
     values: dict[str, float] = {}
     histograms: dict[str, Any] = {}
     for metric in metrics:
         result = metric.compute(rollout)
         values.update(result.values)
+        if per_scene is not None:
+            per_scene.update({k: [None if x != x else x for x in v.double().tolist()]
+                              for k, v in result.per_scene.items()})
         if isinstance(metric, RealismMetric):
             histograms[metric.preset] = {
                 q: {"simulated": result.extras["simulated"][q].tolist(), "logged": result.extras["logged"][q].tolist(),
@@ -139,7 +149,8 @@ def evaluate_policy(
     metrics = [get_metric(name) for name in config.metrics] + list(extra_metrics)
     began = time.perf_counter()
     rollout, reference = run_batched(policy, scenario, config, progress)
-    values, histograms = compute_metrics(rollout, metrics)
+    per_scene: dict[str, list[float | None]] = {"controlled_agents": rollout.controlled.sum(-1).tolist()}
+    values, histograms = compute_metrics(rollout, metrics, per_scene)
     logged_values, _ = compute_metrics(reference, metrics)
     info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed}
     info.update(metadata or {})
@@ -152,6 +163,7 @@ def evaluate_policy(
         simulation_time_s=rollout.wall_time_s,
         metadata=info,
         histograms=histograms,
+        per_scene=per_scene,
     )
 
 

@@ -10,7 +10,7 @@ import click
 from trafficrlhf_sdk.cli import cli
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["comparison_table"]
+__all__ = ["comparison_table", "scene_change_table"]
 
 ROWS = (
     ("failure_rate", "failure rate"),
@@ -99,8 +99,35 @@ def comparison_table(folders: list[str]) -> str:
     return "\n".join(lines)
 
 
+def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") -> str:
+    """Markdown table of the ``top`` scenes whose ``key`` changed most from the first policy's runs to the last
+    policy's (each pooled over its seeds, as in :func:`comparison_table`), plus how many scenes rose or fell."""
+    from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scene_changes
+
+    groups = _pool_seeds([(_label(result := _read(folder), folder), result) for folder in folders])
+    if len(groups) < 2:
+        raise DataFormatError(f"--scene-changes needs runs of two policies; got one ({groups[0][0]!r}). Pass the "
+                              "folders of a first and a second model.")
+    (first, before_runs), (last, after_runs) = groups[0], groups[-1]
+    before, after = pooled_per_scene(before_runs, key), pooled_per_scene(after_runs, key)
+    changes = scene_changes(before, after)
+    rose = sum(1 for row in changes if row.change > 0)
+    fell = sum(1 for row in changes if row.change < 0)
+    lines = [f"{key} per scene, {first} -> {last}: {fell} scenes lower, {rose} higher, "
+             f"{len(changes) - rose - fell} unchanged", "",
+             f"| scene | agents | {first} | {last} | change |", "|---|---|---|---|---|"]
+    lines += [f"| {row.scene_id} | {row.controlled_agents} | {row.before:.4f} | {row.after:.4f} | {row.change:+.4f} |"
+              for row in changes[:top]]
+    return "\n".join(lines)
+
+
 @cli.command("compare")
 @click.argument("folders", nargs=-1, required=True)
-def compare_command(folders: tuple[str, ...]) -> None:
+@click.option("--scene-changes", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Also list the N scenes whose failure rate changed most from the first model to the last.")
+def compare_command(folders: tuple[str, ...], scene_changes: int) -> None:
     """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json)."""
     click.echo(comparison_table(list(folders)))
+    if scene_changes:
+        click.echo("")
+        click.echo(scene_change_table(list(folders), scene_changes))

@@ -75,10 +75,13 @@ def _fmt(value: float | None) -> str:
 @click.option("--out", "out_dir", default=None, help="Directory for results.json and histograms.png.")
 @click.option("--reward-model", "reward_model_dir", default=None,
               help="Saved reward model (`trafficrlhf rm train`): adds the reward-cost metric.")
+@click.option("--worst-scenes", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Also list the N scenes that carry most of the failure rate (it is a mean over scenes of "
+                   "per-scene shares, so a few small scenes can dominate it).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int, guidance: str | None,
                      checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None,
-                     reward_model_dir: str | None, as_json: bool) -> None:
+                     reward_model_dir: str | None, worst_scenes: int, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -126,7 +129,34 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
             table.add_row(label, _fmt(report.values[key]), _fmt(report.logged_values.get(key)))
     console = Console()
     console.print(table)
+    _print_concentration(console, report.to_json(), worst_scenes)
     console.print(f"wall time {report.wall_time_s:.1f} s (closed loop {report.simulation_time_s:.1f} s) on "
                   f"{torch.get_num_threads()} threads")
     for path in paths:
         console.print(f"wrote {path}")
+
+
+def _print_concentration(console: object, result: dict, top: int) -> None:
+    """One line on how concentrated the failure rate is, and the ``top`` scenes carrying most of it."""
+    from rich.table import Table
+
+    from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scenes_carrying, worst_scenes
+
+    per_scene = pooled_per_scene([result])
+    failing = sum(1 for _, value in per_scene.values() if value > 0)
+    console.print(f"failure is spread over {failing} of {len(per_scene)} scenes; "  # type: ignore[attr-defined]
+                  f"{scenes_carrying(per_scene, 0.5)} carry half of it, {scenes_carrying(per_scene, 0.8)} carry 80 %")
+    if top == 0:
+        return
+    metrics = {key: dict(zip(result["metadata"]["scene_ids"], result["per_scene"][key]))
+               for key in ("collision_rate", "offroad_rate")}
+    rows = worst_scenes(per_scene, top)
+    table = Table(title=f"the {top} scenes with the largest failure share (share: of the sum over scenes)")
+    table.add_column("scene", no_wrap=True, min_width=max((len(row.scene_id) for row in rows), default=5))
+    for name in ("agents", "failure", "collision", "off-road", "share", "cumulative"):
+        table.add_column(name, justify="right")
+    for row in rows:
+        table.add_row(row.scene_id, str(row.controlled_agents), f"{row.value:.3f}",
+                      f"{metrics['collision_rate'][row.scene_id]:.3f}", f"{metrics['offroad_rate'][row.scene_id]:.3f}",
+                      f"{100 * row.share:.1f} %", f"{100 * row.cumulative_share:.1f} %")
+    console.print(table)  # type: ignore[attr-defined]

@@ -98,8 +98,9 @@ class FailureMetric(Metric):
             "offroad_rate": scene_mean(offroad, mask),
         }
         suffix = "" if self.offroad_mode == "center" else "_corners"
+        per_scene = {f"{k}{suffix}" if k != "collision_rate" else k: v for k, v in per_scene.items()}
         return MetricResult(
-            values={f"{k}{suffix}" if k != "collision_rate" else k: nanmean(v) for k, v in per_scene.items()},
+            values={k: nanmean(v) for k, v in per_scene.items()},
             per_scene=per_scene,
             extras={"collided": collided, "offroad": offroad},
         )

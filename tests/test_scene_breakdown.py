@@ -1,0 +1,94 @@
+"""Per-scene breakdowns: which scenes carry the failure rate, which changed between two models."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scene_changes, scenes_carrying, worst_scenes
+
+
+def _result(values, seed=0, ids=None, agents=None, model="m"):  # type: ignore[no-untyped-def]
+    ids = ids or [f"scene-{i:04d}" for i in range(len(values))]
+    return {"metrics": {"failure_rate": float(np.mean([v for v in values if v is not None]))},
+            "metadata": {"model": model, "seed": seed, "scene_ids": ids},
+            "per_scene": {"failure_rate": values, "collision_rate": values, "offroad_rate": [0.0] * len(values),
+                          "controlled_agents": agents or [2] * len(values)},
+            "simulation_time_s": 1.0, "num_scenes": len(values), "num_controlled_agents": 2 * len(values)}
+
+
+def test_pooling_averages_seeds_and_drops_scenes_without_agents() -> None:
+    pooled = pooled_per_scene([_result([0.5, None, 0.0]), _result([1.0, None, 0.5], seed=1)])
+    assert pooled == {"scene-0000": (2, 0.75), "scene-0002": (2, 0.25)}
+
+
+def test_pooling_refuses_other_scenes_and_old_results() -> None:
+    with pytest.raises(DataFormatError, match="different scenes"):
+        pooled_per_scene([_result([0.5, 0.0]), _result([0.5, 0.0], ids=["a", "b"])])
+    old = _result([0.5])
+    del old["per_scene"]
+    with pytest.raises(DataFormatError, match="re-run `trafficrlhf evaluate --out`"):
+        pooled_per_scene([old])
+
+
+def test_worst_scenes_match_a_numpy_reference() -> None:
+    rng = np.random.default_rng(0)
+    values = rng.random(40) * (rng.random(40) < 0.4)
+    pooled = pooled_per_scene([_result(values.tolist())])
+    rows = worst_scenes(pooled)
+    order = sorted(range(40), key=lambda i: (-values[i], f"scene-{i:04d}"))
+    assert [r.scene_id for r in rows] == [f"scene-{i:04d}" for i in order]
+    np.testing.assert_allclose([r.cumulative_share for r in rows], np.cumsum(values[order]) / values.sum())
+    # the fewest scenes reaching 80 %: the first index where the numpy running share reaches it, plus one
+    assert scenes_carrying(pooled, 0.8) == int(np.argmax(np.cumsum(values[order]) / values.sum() >= 0.8)) + 1
+    assert len(worst_scenes(pooled, 3)) == 3
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0, 1), min_size=1, max_size=30), st.randoms())
+def test_shares_are_a_distribution_whatever_the_scene_order(values, rand) -> None:  # type: ignore[no-untyped-def]
+    pooled = pooled_per_scene([_result(values)])
+    rows = worst_scenes(pooled)
+    if sum(values) > 0:
+        assert rows[-1].cumulative_share == pytest.approx(1.0)
+        assert all(a.value >= b.value for a, b in zip(rows, rows[1:]))
+        assert 1 <= scenes_carrying(pooled, 0.5) <= scenes_carrying(pooled, 0.8) <= len(values)
+    else:
+        assert scenes_carrying(pooled, 0.8) == 0
+    items = list(pooled.items())
+    rand.shuffle(items)
+    assert worst_scenes(dict(items)) == rows  # ties broken by scene id, not by input order
+
+
+def test_scene_changes_rank_by_absolute_change() -> None:
+    before = {"a": (1, 0.0), "b": (3, 0.5), "c": (2, 0.2), "only-before": (1, 1.0)}
+    after = {"a": (1, 1.0), "b": (3, 0.25), "c": (2, 0.2)}
+    rows = scene_changes(before, after)
+    assert [(r.scene_id, r.change) for r in rows] == [("a", 1.0), ("b", -0.25), ("c", 0.0)]
+    with pytest.raises(ValueError, match="fraction"):
+        scenes_carrying(before, 0.0)
+
+
+def test_compare_lists_the_scenes_that_changed_most(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import get_cli
+
+    runs = {"base_s0": _result([0.5, 0.0, 1.0], model="base"), "base_s1": _result([0.5, 0.0, 0.0], 1, model="base"),
+            "new_s0": _result([0.0, 0.5, 0.5], model="new")}
+    for name, result in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(result))
+    folders = [str(tmp_path / name) for name in runs]
+    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--scene-changes", "2"])
+    assert out.exit_code == 0, out.output
+    assert "failure_rate per scene, base -> new: 1 scenes lower, 1 higher, 1 unchanged" in out.output
+    assert "| scene-0000 | 2 | 0.5000 | 0.0000 | -0.5000 |" in out.output
+    assert "| scene-0001 | 2 | 0.0000 | 0.5000 | +0.5000 |" in out.output
+    assert "scene-0002" not in out.output  # unchanged (0.5 both), outside the top 2
+    single = CliRunner().invoke(get_cli(), ["compare", folders[0], "--scene-changes", "2"])
+    assert single.exit_code != 0 and "two policies" in str(single.exception)

@@ -1,0 +1,103 @@
+"""Which scenes carry a scene-averaged metric, and which scenes changed between two evaluations.
+
+The failure rate is a mean over scenes of per-scene shares of agents, so a scene with one controlled agent that
+fails weighs as much as a scene where all twenty fail; a few small scenes can carry most of it. These helpers
+read the ``per_scene`` part of ``trafficrlhf evaluate``'s ``results.json`` (lists in the order of
+``metadata["scene_ids"]``, None where a scene has no controlled agent).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from trafficrlhf_sdk.errors import DataFormatError
+
+__all__ = ["SceneChange", "SceneShare", "pooled_per_scene", "scene_changes", "scenes_carrying", "worst_scenes"]
+
+
+@dataclass(frozen=True)
+class SceneShare:
+    """One scene's value of a scene-averaged metric and its share of the sum over scenes (0-1)."""
+
+    scene_id: str
+    controlled_agents: int
+    value: float
+    share: float
+    cumulative_share: float
+
+
+@dataclass(frozen=True)
+class SceneChange:
+    """One scene's value in a first and a second evaluation (each a mean over its seeds)."""
+
+    scene_id: str
+    controlled_agents: int
+    before: float
+    after: float
+
+    @property
+    def change(self) -> float:
+        """``after - before`` (same unit as the metric)."""
+        return self.after - self.before
+
+
+def pooled_per_scene(results: Sequence[dict[str, Any]], key: str = "failure_rate") -> dict[str, tuple[int, float]]:
+    """``{scene_id: (controlled agents, mean of key over the runs)}`` from one or more ``results.json`` dicts of
+    the same scenes (e.g. evaluation seeds); scenes without a value (no controlled agent) are left out."""
+    if not results:
+        raise ValueError("results is empty; pass at least one results.json dict.")
+    ids = results[0].get("metadata", {}).get("scene_ids")
+    columns = []
+    for result in results:
+        per_scene = result.get("per_scene") or {}
+        if key not in per_scene:
+            raise DataFormatError(f"results have no per-scene {key!r} (found: {sorted(per_scene) or 'none'}); "
+                                  "re-run `trafficrlhf evaluate --out` with this version to write them.")
+        if result.get("metadata", {}).get("scene_ids") != ids or ids is None or len(per_scene[key]) != len(ids):
+            raise DataFormatError("per-scene results cover different scenes; pool only runs of the same "
+                                  "--split/--scenes.")
+        columns.append(per_scene[key])
+    agents = results[0]["per_scene"].get("controlled_agents") or [0] * len(ids)
+    pooled = {}
+    for i, scene_id in enumerate(ids):
+        values = [column[i] for column in columns]
+        if all(v is not None for v in values):
+            pooled[scene_id] = (int(agents[i]), math.fsum(values) / len(values))
+    return pooled
+
+
+def worst_scenes(per_scene: dict[str, tuple[int, float]], top: int | None = None) -> list[SceneShare]:
+    """Scenes by decreasing value, each with its share of the total and the running share; the first ``top``
+    (all if None). ``per_scene``: as returned by :func:`pooled_per_scene`."""
+    total = math.fsum(value for _, value in per_scene.values())
+    ranked = sorted(per_scene.items(), key=lambda item: (-item[1][1], item[0]))
+    rows, running = [], 0.0
+    for scene_id, (agents, value) in ranked[: len(ranked) if top is None else top]:
+        running += value
+        rows.append(SceneShare(scene_id, agents, value, value / total if total > 0 else 0.0,
+                               running / total if total > 0 else 0.0))
+    return rows
+
+
+def scenes_carrying(per_scene: dict[str, tuple[int, float]], fraction: float) -> int:
+    """The fewest scenes whose values sum to at least ``fraction`` (0-1] of the total (0 if the total is 0)."""
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction!r}.")
+    total = math.fsum(value for _, value in per_scene.values())
+    if total <= 0:
+        return 0
+    for count, row in enumerate(worst_scenes(per_scene), start=1):
+        if row.cumulative_share >= fraction - 1e-12:
+            return count
+    return len(per_scene)
+
+
+def scene_changes(before: dict[str, tuple[int, float]], after: dict[str, tuple[int, float]],
+                  top: int | None = None) -> list[SceneChange]:
+    """Scenes present in both, by decreasing ``|after - before|`` (ties by scene id); the first ``top``."""
+    rows = [SceneChange(s, before[s][0], before[s][1], after[s][1]) for s in before if s in after]
+    rows.sort(key=lambda row: (-abs(row.change), row.scene_id))
+    return rows[: len(rows) if top is None else top]
