@@ -58,13 +58,21 @@ def test_evaluate_constant_velocity_writes_results(has_data, cli, tmp_path) -> N
         values = [v for v in per_scene[key] if v is not None]
         assert sum(values) / len(values) == pytest.approx(metrics[key], abs=1e-12), key
     table = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--scenes", "5",
-                                     "--worst-scenes", "2"])
+                                     "--worst-scenes", "2", "--render-worst", "2", "--out", str(tmp_path / "r")])
     assert table.exit_code == 0, (table.output, table.exception)
     failing = sum(1 for v in per_scene["failure_rate"] if v)
     assert f"failure is spread over {failing} of 5 scenes" in table.output
     assert "the 2 scenes with the largest failure share" in table.output.replace("\n", " ")
     worst = max(range(5), key=lambda i: (per_scene["failure_rate"][i] or 0.0))
     assert saved["metadata"]["scene_ids"][worst] in table.output
+    pngs = sorted(p.name for p in (tmp_path / "r" / "worst_scenes").iterdir())
+    assert len(pngs) == min(2, failing) and pngs[0].startswith("01_scene-")
+
+
+def test_render_worst_needs_out(cli) -> None:  # type: ignore[no-untyped-def]
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--render-worst", "3"])
+    assert result.exit_code != 0
+    assert "--render-worst 3" in str(result.exception) and "--out" in str(result.exception)
 
 
 def test_unknown_model_lists_the_registered_ones(has_data, cli) -> None:  # type: ignore[no-untyped-def]

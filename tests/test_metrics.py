@@ -512,3 +512,38 @@ def test_speed_metric_on_log_replay_and_a_slowed_copy(synthetic_rollout) -> None
     expected = states[0, :, window, 2].double().sum() / synthetic_rollout.logged.states[0, :, window, 2].double().sum()
     assert values["speed_ratio"] == pytest.approx(float(expected))
     assert values["stopped_share"] == 0.5 and values["stopped_share_logged"] == 0.0
+
+
+def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore[no-untyped-def]
+    """The first failing step per controlled agent, from the slow per-step references (shapely, pixel lookup)."""
+    from trafficrlhf_sdk.render_failures import first_failures
+
+    found = first_failures(case.rollout)
+    collision, offroad = case.failure["collision_steps"], case.failure["offroad_steps"]
+    controlled = case.rollout.controlled.numpy()
+    first = case.rollout.start_index + 1
+    for b, a in np.ndindex(*controlled.shape):
+        failing = np.flatnonzero(collision[b, a] | offroad[b, a]) if controlled[b, a] else []
+        if len(failing) == 0:
+            assert int(found.step[b, a]) == -1 and not found.collision[b, a] and not found.offroad[b, a]
+            continue
+        t = int(failing[0])
+        assert int(found.step[b, a]) == first + t, (b, a)
+        assert bool(found.collision[b, a]) == bool(collision[b, a, t])
+        assert bool(found.offroad[b, a]) == bool(offroad[b, a, t])
+
+
+def test_failure_figure_names_who_failed_and_when(case, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.render_failures import first_failures, render_failures, save_failure_png
+
+    found = first_failures(case.rollout)
+    index = int((found.step >= 0).sum(-1).argmax())
+    failing = int((found.step[index] >= 0).sum())
+    title = render_failures(case.rollout, index, found).axes[0].get_title()
+    assert f"{failing} of {int(case.rollout.controlled[index].sum())} controlled agents fail" in title
+    if failing:  # shown at the first failure, each failing agent named with its kind
+        first = int(found.step[index][found.step[index] >= 0].min())
+        assert f"shown at +{(first - case.rollout.start_index) * case.rollout.logged.dt:.1f} s" in title
+        assert ("collision at" in title) or ("off-road at" in title)
+    path = save_failure_png(case.rollout, index, tmp_path / "x.png", failures=found)
+    assert open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n"

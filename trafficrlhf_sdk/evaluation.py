@@ -50,6 +50,8 @@ class EvaluationReport:
     # per scene, in the order of ``metadata["scene_ids"]``: "controlled_agents" and every metric value that is a
     # mean over scenes (failure, collision, off-road, speed...); None where a scene has no controlled agent
     per_scene: dict[str, list[float | None]] = field(default_factory=dict)
+    # the closed-loop rollout itself (not saved): for drawing scenes, e.g. with render_failures.save_failure_png
+    rollout: Rollout | None = field(default=None, repr=False, compare=False)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serializable dict (NaN written as null)."""
@@ -164,6 +166,7 @@ def evaluate_policy(
         metadata=info,
         histograms=histograms,
         per_scene=per_scene,
+        rollout=rollout,
     )
 
 

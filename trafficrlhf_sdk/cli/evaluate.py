@@ -78,10 +78,13 @@ def _fmt(value: float | None) -> str:
 @click.option("--worst-scenes", type=click.IntRange(min=0), default=0, show_default=True,
               help="Also list the N scenes that carry most of the failure rate (it is a mean over scenes of "
                    "per-scene shares, so a few small scenes can dominate it).")
+@click.option("--render-worst", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Draw the N scenes with the largest failure share as PNGs in --out/worst_scenes/: the simulated "
+                   "run over the log at its first failure.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int, guidance: str | None,
                      checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None,
-                     reward_model_dir: str | None, worst_scenes: int, as_json: bool) -> None:
+                     reward_model_dir: str | None, worst_scenes: int, render_worst: int, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -91,6 +94,9 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     from trafficrlhf_sdk import get_scenario_source
     from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
+    if render_worst and not out_dir:
+        raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
+                               "--out DIR (or drop --render-worst).")
     extra_metrics = []
     if reward_model_dir is not None:  # load before simulating: a bad folder fails at once
         from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric
@@ -113,6 +119,8 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
                   "reward_model": reward_model_dir, "scene_ids": list(scene_ids)},
     )
     paths = report.save(out_dir) if out_dir else []
+    if render_worst and out_dir:
+        paths += _render_worst(report, render_worst, out_dir)
     if as_json:
         click.echo(json.dumps(report.to_json(), indent=2))
         return
@@ -160,3 +168,20 @@ def _print_concentration(console: object, result: dict, top: int) -> None:
                       f"{metrics['collision_rate'][row.scene_id]:.3f}", f"{metrics['offroad_rate'][row.scene_id]:.3f}",
                       f"{100 * row.share:.1f} %", f"{100 * row.cumulative_share:.1f} %")
     console.print(table)  # type: ignore[attr-defined]
+
+
+def _render_worst(report: object, top: int, out_dir: str) -> list[str]:
+    """PNGs of the ``top`` scenes carrying most of the failure rate, named ``<rank>_<scene>.png``."""
+    import os
+
+    from trafficrlhf_sdk.render_failures import first_failures, save_failure_png
+    from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, worst_scenes
+
+    result = report.to_json()  # type: ignore[attr-defined]
+    rollout = report.rollout  # type: ignore[attr-defined]
+    scene_ids = result["metadata"]["scene_ids"]
+    failures = first_failures(rollout)
+    rows = [row for row in worst_scenes(pooled_per_scene([result]), top) if row.value > 0]
+    return [save_failure_png(rollout, scene_ids.index(row.scene_id),
+                             os.path.join(out_dir, "worst_scenes", f"{rank:02d}_{row.scene_id}.png"), failures=failures)
+            for rank, row in enumerate(rows, start=1)]
