@@ -46,10 +46,12 @@ $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_mo
 $T evaluate --model bits --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
   --out "$OUT/bits_no_collision"
 $T evaluate --model bits --guidance no_collision --checkpoint reference_models/aligned/bits --source nuscenes_pred \
-  --split val --scenes 100 --out "$OUT/bits_aligned_no_collision"
+  --split val --scenes 100 --out "$OUT/bits_aligned_no_collision" --worst-scenes 5 --render-worst 3
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
   "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/trafficgen_no_collision" \
   "$OUT/trafficgen_x2_no_collision" "$OUT/trafficgen4s_no_collision" \
   "$OUT/trafficgen4s_aligned_no_collision" "$OUT/trafficgen4s_pace_no_collision" \
   "$OUT/bits_no_collision" "$OUT/bits_aligned_no_collision" | tee "$OUT/comparison.md"
+# where the aligned BITS gains and loses, scene by scene (drawings of its worst scenes: bits_aligned_no_collision/worst_scenes/)
+$T compare "$OUT/bits_no_collision" "$OUT/bits_aligned_no_collision" --scene-changes 10 > "$OUT/bits_scene_changes.md"
 echo "main job done: results in $OUT/"
