@@ -110,3 +110,16 @@ def test_evaluate_help_mentions_the_protocol(cli) -> None:  # type: ignore[no-un
     assert result.exit_code == 0
     for option in ("--model", "--scenes", "--out", "--json", "--guidance"):
         assert option in result.output
+
+
+def test_scene_id_picks_scenes_and_names_a_wrong_one(has_data, cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk import get_scenario_source
+
+    ids = get_scenario_source("nuscenes_pred").scene_ids("val")
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--scene-id", ids[7],
+                                      "--scene-id", ids[3], "--json"])
+    assert result.exit_code == 0, (result.output, result.exception)
+    assert json.loads(result.stdout)["metadata"]["scene_ids"] == [ids[7], ids[3]]
+    wrong = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--scene-id", ids[3] + "x"])
+    assert wrong.exit_code != 0
+    assert f"--scene-id '{ids[3]}x'" in str(wrong.exception) and ids[3] in str(wrong.exception)

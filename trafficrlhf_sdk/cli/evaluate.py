@@ -55,6 +55,20 @@ def build_policy(model: str, options: dict[str, object]) -> object:
     return factory(**kwargs)
 
 
+def _chosen_scenes(available: list[str], wanted: tuple[str, ...], split: str) -> list[str]:
+    """``wanted`` in the order given, each checked against the split's long-enough scenes."""
+    import difflib
+
+    known = set(available)
+    for name in wanted:
+        if name not in known:
+            close = difflib.get_close_matches(name, available, n=3)
+            hint = f" Did you mean {', '.join(close)}?" if close else ""
+            raise TrafficRLHFError(f"--scene-id {name!r} is not a long-enough scene of split {split!r} "
+                                   f"({len(available)} are; `trafficrlhf inspect` lists them).{hint}")
+    return list(dict.fromkeys(wanted))
+
+
 def _fmt(value: float | None) -> str:
     return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4f}"
 
@@ -67,6 +81,8 @@ def _fmt(value: float | None) -> str:
 @click.option("--root", default=None, help="Data directory of the source (default: ../shared/data/...).")
 @click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=100, show_default=True,
               help="First N long-enough scenes of the split, sorted by name.")
+@click.option("--scene-id", "scene_id", multiple=True,
+              help="Evaluate only this scene (repeatable), e.g. one that `--worst-scenes` listed; overrides --scenes.")
 @click.option("--guidance", default=None, help="Guidance name(s), comma separated, for models that support it.")
 @click.option("--checkpoint", default=None, help="Weights directory for models that load one.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
@@ -82,7 +98,8 @@ def _fmt(value: float | None) -> str:
               help="Draw the N scenes with the largest failure share as PNGs in --out/worst_scenes/: the simulated "
                    "run over the log at its first failure.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
-def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int, guidance: str | None,
+def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int,
+                     scene_id: tuple[str, ...], guidance: str | None,
                      checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None,
                      reward_model_dir: str | None, worst_scenes: int, render_worst: int, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
@@ -108,7 +125,8 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     options = {"root": root} if root else {}
     scenario_source = get_scenario_source(source, **options)
-    scene_ids = scenario_source.scene_ids(split)[:num_scenes]
+    scene_ids = _chosen_scenes(scenario_source.scene_ids(split), scene_id, split) if scene_id else \
+        scenario_source.scene_ids(split)[:num_scenes]
     if not scene_ids:
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
