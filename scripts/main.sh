@@ -42,7 +42,7 @@ $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_mo
 # (reference_models/aligned/trafficgen_4s_pace/README.md)
 $T evaluate --model trafficgen --guidance no_collision --checkpoint reference_models/aligned/trafficgen_4s_pace \
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/trafficgen4s_pace_no_collision"
-# BITS and its aligned version, three training stages (reference_models/aligned/bits/README.md)
+# BITS and its aligned version: three training stages, eight stage-3 runs averaged (reference_models/aligned/bits/README.md)
 $T evaluate --model bits --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
   --out "$OUT/bits_no_collision"
 $T evaluate --model bits --guidance no_collision --checkpoint reference_models/aligned/bits --source nuscenes_pred \
