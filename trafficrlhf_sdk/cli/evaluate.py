@@ -5,11 +5,17 @@ from __future__ import annotations
 import inspect
 import json
 import math
+from typing import TYPE_CHECKING
 
 import click
 
 from trafficrlhf_sdk.cli import cli
 from trafficrlhf_sdk.errors import TrafficRLHFError
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from trafficrlhf_sdk.evaluation import EvaluationReport
 
 ROWS = (
     ("failure_rate", "failure rate (any)"),
@@ -162,7 +168,7 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
         console.print(f"wrote {path}")
 
 
-def _print_concentration(console: object, result: dict, top: int) -> None:
+def _print_concentration(console: Console, result: dict, top: int) -> None:
     """One line on how concentrated the failure rate is, and the ``top`` scenes carrying most of it."""
     from rich.table import Table
 
@@ -170,7 +176,7 @@ def _print_concentration(console: object, result: dict, top: int) -> None:
 
     per_scene = pooled_per_scene([result])
     failing = sum(1 for _, value in per_scene.values() if value > 0)
-    console.print(f"failure is spread over {failing} of {len(per_scene)} scenes; "  # type: ignore[attr-defined]
+    console.print(f"failure is spread over {failing} of {len(per_scene)} scenes; "
                   f"{scenes_carrying(per_scene, 0.5)} carry half of it, {scenes_carrying(per_scene, 0.8)} carry 80 %")
     if top == 0:
         return
@@ -185,18 +191,19 @@ def _print_concentration(console: object, result: dict, top: int) -> None:
         table.add_row(row.scene_id, str(row.controlled_agents), f"{row.value:.3f}",
                       f"{metrics['collision_rate'][row.scene_id]:.3f}", f"{metrics['offroad_rate'][row.scene_id]:.3f}",
                       f"{100 * row.share:.1f} %", f"{100 * row.cumulative_share:.1f} %")
-    console.print(table)  # type: ignore[attr-defined]
+    console.print(table)
 
 
-def _render_worst(report: object, top: int, out_dir: str) -> list[str]:
+def _render_worst(report: EvaluationReport, top: int, out_dir: str) -> list[str]:
     """PNGs of the ``top`` scenes carrying most of the failure rate, named ``<rank>_<scene>.png``."""
     import os
 
     from trafficrlhf_sdk.render_failures import first_failures, save_failure_png
     from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, worst_scenes
 
-    result = report.to_json()  # type: ignore[attr-defined]
-    rollout = report.rollout  # type: ignore[attr-defined]
+    result, rollout = report.to_json(), report.rollout
+    if rollout is None:
+        raise ValueError("the report holds no rollout to draw; make it with evaluate_policy.")
     scene_ids = result["metadata"]["scene_ids"]
     failures = first_failures(rollout)
     rows = [row for row in worst_scenes(pooled_per_scene([result]), top) if row.value > 0]
