@@ -123,3 +123,27 @@ def test_scene_id_picks_scenes_and_names_a_wrong_one(has_data, cli, tmp_path) ->
     wrong = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", "--scene-id", ids[3] + "x"])
     assert wrong.exit_code != 0
     assert f"--scene-id '{ids[3]}x'" in str(wrong.exception) and ids[3] in str(wrong.exception)
+
+
+@pytest.mark.slow
+def test_seeds_write_one_run_each_and_pool_them(has_data, cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    out = tmp_path / "runs"
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "noisy_log", "--scenes", "3", "--seeds", "0,1",
+                                      "--out", str(out), "--worst-scenes", "2"])
+    assert result.exit_code == 0, (result.output, result.exception)
+    runs = [json.loads((out / f"seed_{s}" / "results.json").read_text()) for s in (0, 1)]
+    assert [r["metadata"]["seed"] for r in runs] == [0, 1]
+    rates = [r["metrics"]["failure_rate"] for r in runs]
+    mean = sum(rates) / 2
+    assert f"| failure rate | {mean:.4f} ({rates[0]:.4f} / {rates[1]:.4f}) |" in result.output
+    assert "failure (mean of 2 runs) is spread over" in result.output
+
+
+def test_seeds_errors_come_before_any_work(cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    for args, expected in ((["--seeds", "0,x", "--out", str(tmp_path)], "distinct comma-separated integers"),
+                           (["--seeds", "1,1", "--out", str(tmp_path)], "distinct comma-separated integers"),
+                           (["--seeds", "0,1"], "add --out DIR"),
+                           (["--seeds", "0,1", "--out", str(tmp_path), "--json"], "do not combine")):
+        result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", *args])
+        assert result.exit_code != 0 and expected in str(result.exception), (args, result.exception)
+    assert not any(tmp_path.iterdir())

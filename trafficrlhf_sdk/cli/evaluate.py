@@ -92,6 +92,9 @@ def _fmt(value: float | None) -> str:
 @click.option("--guidance", default=None, help="Guidance name(s), comma separated, for models that support it.")
 @click.option("--checkpoint", default=None, help="Weights directory for models that load one.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--seeds", "seed_list", default=None,
+              help="Comma-separated seeds, e.g. 0,1,2,3,4,5: one run per seed (in --out/seed_S), then their mean "
+                   "and each seed's value (one seed moves a failure rate by several hundredths). Overrides --seed.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=50, show_default=True,
               help="Scenes per simulated batch.")
 @click.option("--out", "out_dir", default=None, help="Directory for results.json and histograms.png.")
@@ -106,7 +109,7 @@ def _fmt(value: float | None) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,
-                     checkpoint: str | None, seed: int, batch_size: int, out_dir: str | None,
+                     checkpoint: str | None, seed: int, seed_list: str | None, batch_size: int, out_dir: str | None,
                      reward_model_dir: str | None, worst_scenes: int, render_worst: int, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
@@ -120,12 +123,15 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     if render_worst and not out_dir:
         raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
                                "--out DIR (or drop --render-worst).")
+    seeds = _parse_seeds(seed_list, out_dir, as_json) if seed_list is not None else None
     extra_metrics = []
     if reward_model_dir is not None:  # load before simulating: a bad folder fails at once
         from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric
         from trafficrlhf_sdk.reward import RewardModel
 
         extra_metrics.append(RewardCostMetric(RewardModel.from_pretrained(reward_model_dir).step_rewards))
+    if seeds:
+        seed = seeds[0]
     torch.manual_seed(seed)
     # build the model first: a bad --model/--guidance fails before any data is read
     policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
@@ -136,12 +142,26 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     if not scene_ids:
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
+    metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
+                "reward_model": reward_model_dir, "scene_ids": list(scene_ids)}
+    if seeds:
+        import os
+
+        folders = []
+        for index, run_seed in enumerate(seeds):
+            if index:
+                torch.manual_seed(run_seed)
+                policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": run_seed})
+            run = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=batch_size, seed=run_seed),
+                                  extra_metrics=extra_metrics, progress=True, metadata=metadata)
+            folders.append(os.path.join(str(out_dir), f"seed_{run_seed}"))
+            run.save(folders[-1])
+            if render_worst:
+                _render_worst(run, render_worst, folders[-1])
+        _print_seeds(folders, worst_scenes)
+        return
     config = EvaluationConfig(batch_size=batch_size, seed=seed)
-    report = evaluate_policy(
-        policy, scenario, config, extra_metrics=extra_metrics, progress=True,
-        metadata={"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
-                  "reward_model": reward_model_dir, "scene_ids": list(scene_ids)},
-    )
+    report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata)
     paths = report.save(out_dir) if out_dir else []
     if render_worst and out_dir:
         paths += _render_worst(report, render_worst, out_dir)
@@ -161,26 +181,56 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
             table.add_row(label, _fmt(report.values[key]), _fmt(report.logged_values.get(key)))
     console = Console()
     console.print(table)
-    _print_concentration(console, report.to_json(), worst_scenes)
+    _print_concentration(console, [report.to_json()], worst_scenes)
     console.print(f"wall time {report.wall_time_s:.1f} s (closed loop {report.simulation_time_s:.1f} s) on "
                   f"{torch.get_num_threads()} threads")
     for path in paths:
         console.print(f"wrote {path}")
 
 
-def _print_concentration(console: Console, result: dict, top: int) -> None:
-    """One line on how concentrated the failure rate is, and the ``top`` scenes carrying most of it."""
+def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
+    """``--seeds`` as a list of distinct ints; it needs ``--out`` and excludes ``--json``."""
+    try:
+        seeds = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        seeds = []
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise TrafficRLHFError(f"--seeds {text!r}: give distinct comma-separated integers, e.g. --seeds 0,1,2.")
+    if not out_dir:
+        raise TrafficRLHFError(f"--seeds {text} writes one folder per seed under --out, which is not set; "
+                               "add --out DIR.")
+    if as_json:
+        raise TrafficRLHFError("--seeds and --json do not combine: each seed's results.json is written under --out; "
+                               "read those, or run one --seed with --json.")
+    return seeds
+
+
+def _print_seeds(folders: list[str], worst_scenes: int) -> None:
+    """The runs' mean and per-seed values (``trafficrlhf compare``), then where their pooled failures are."""
+    from rich.console import Console
+
+    from trafficrlhf_sdk.cli.compare import _read, comparison_table
+
+    click.echo(comparison_table(folders))
+    _print_concentration(Console(), [_read(folder) for folder in folders], worst_scenes)
+    click.echo(f"wrote {len(folders)} runs: {', '.join(folders)}")
+
+
+def _print_concentration(console: Console, results: list[dict], top: int) -> None:
+    """One line on how concentrated the failure rate is (pooled over ``results``, runs of the same scenes), and
+    the ``top`` scenes carrying most of it."""
     from rich.table import Table
 
     from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scenes_carrying, worst_scenes
 
-    per_scene = pooled_per_scene([result])
+    per_scene = pooled_per_scene(results)
     failing = sum(1 for _, value in per_scene.values() if value > 0)
-    console.print(f"failure is spread over {failing} of {len(per_scene)} scenes; "
+    pooled = f" (mean of {len(results)} runs)" if len(results) > 1 else ""
+    console.print(f"failure{pooled} is spread over {failing} of {len(per_scene)} scenes; "
                   f"{scenes_carrying(per_scene, 0.5)} carry half of it, {scenes_carrying(per_scene, 0.8)} carry 80 %")
     if top == 0:
         return
-    metrics = {key: dict(zip(result["metadata"]["scene_ids"], result["per_scene"][key]))
+    metrics = {key: {scene: value for scene, (_, value) in pooled_per_scene(results, key).items()}
                for key in ("collision_rate", "offroad_rate")}
     rows = worst_scenes(per_scene, top)
     table = Table(title=f"the {top} scenes with the largest failure share (share: of the sum over scenes)")
