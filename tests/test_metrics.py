@@ -128,6 +128,8 @@ def test_failure_metric_matches_reference(case) -> None:  # type: ignore[no-unty
         assert [v for v in got if v == v] == [v for v in ref["per_scene"][key] if v == v], key
     assert torch.equal(result.extras["collided"], torch.from_numpy(ref["collided"]))
     assert torch.equal(result.extras["offroad"], torch.from_numpy(ref["offroad"]))
+    assert np.array_equal(result.extras["collision_steps"].numpy(), ref["collision_steps"])  # per step
+    assert np.array_equal(result.extras["offroad_steps"].numpy(), ref["offroad_steps"])
 
 
 def test_realism_ctg_matches_reference(case) -> None:  # type: ignore[no-untyped-def]

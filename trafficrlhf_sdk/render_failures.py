@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.metrics.failure import FailureMetric
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
 if TYPE_CHECKING:
@@ -31,12 +31,11 @@ class FirstFailures:
 
 
 def first_failures(rollout: Rollout) -> FirstFailures:
-    """First failure of every controlled agent of ``rollout`` over steps ``start_index+1 .. end_index``, with the
-    failure metric's tests (box overlap, centre off the drivable layer)."""
+    """First failure of every controlled agent of ``rollout`` over steps ``start_index+1 .. end_index``, by the
+    failure metric's own per-step flags (box overlap, centre off the drivable layer)."""
     first = rollout.start_index + 1
-    window = rollout.simulated.time_slice(first, rollout.end_index + 1)
-    collided = collisions_per_step(window) & window.valid
-    offroad = offroad_per_step(window, "center")
+    extras = FailureMetric().compute(rollout).extras
+    collided, offroad = extras["collision_steps"], extras["offroad_steps"]
     failing = (collided | offroad) & rollout.controlled[..., None]  # (B, A, T)
     ever = failing.any(-1)
     index = failing.int().argmax(-1)  # first True (0 where none; masked below)

@@ -89,8 +89,9 @@ class FailureMetric(Metric):
     def compute(self, rollout: Rollout) -> MetricResult:
         """failure_rate, collision_rate, offroad_rate (fractions of agents, mean over scenes)."""
         window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
-        collided = (collisions_per_step(window) & window.valid).any(-1)
-        offroad = offroad_per_step(window, self.offroad_mode).any(-1)
+        collision_steps = collisions_per_step(window) & window.valid
+        offroad_steps = offroad_per_step(window, self.offroad_mode)
+        collided, offroad = collision_steps.any(-1), offroad_steps.any(-1)
         mask = rollout.controlled
         per_scene = {
             "failure_rate": scene_mean(collided | offroad, mask),
@@ -102,5 +103,7 @@ class FailureMetric(Metric):
         return MetricResult(
             values={k: nanmean(v) for k, v in per_scene.items()},
             per_scene=per_scene,
-            extras={"collided": collided, "offroad": offroad},
+            # (B, A) "ever" flags, and the (B, A, T) flags per simulated step start_index+1 .. end_index
+            extras={"collided": collided, "offroad": offroad, "collision_steps": collision_steps,
+                    "offroad_steps": offroad_steps},
         )
