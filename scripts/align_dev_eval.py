@@ -9,7 +9,7 @@ Two kinds of development scenes:
 * the *val tail* (`--split val`): the long-enough val scenes after the first `--first` (default 100), those that
   `trafficrlhf evaluate --scenes 100` reports on excluded (60 scenes, 240 controlled agents). Unseen by every
   model and disjoint from the reported scenes, but other roads: the 4 s CTG fails 0.031 there against 0.138 on
-  the reported 100, and collisions, not off-road, dominate (docs/explanation/alignment-results.md, session 12).
+  the reported 100, and collisions, not off-road, dominate (docs/explanation/alignment-log.md, session 12).
   A check that a setting carries to other roads more than a place to tune failure rates.
 
     python scripts/align_dev_eval.py --model ctg --guidance no_collision [--checkpoint DIR] [--first 400]

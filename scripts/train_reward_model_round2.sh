@@ -2,7 +2,7 @@
 # Second RLHF round of the reward model, in one seeded command (about 25 min on 2 CPU cores), after
 # `bash scripts/train_reward_model.sh` has built the round-1 database:
 #   1. align the compact CTG against the round-1 reward model (30 epochs, alpha 3, no KL: the run whose agents
-#      learned to speed, docs/explanation/alignment-results.md);
+#      learned to speed, docs/explanation/alignment-log.md);
 #   2. feedback campaigns on *train* scenes whose candidates come from that reward-hacking CTG (250 scenes) and
 #      from the committed aligned CTG (150 scenes): the states a policy reaches under optimization;
 #   3. the same synthetic annotators as round 1 label them;

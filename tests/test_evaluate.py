@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -137,13 +138,35 @@ def test_seeds_write_one_run_each_and_pool_them(has_data, cli, tmp_path) -> None
     mean = sum(rates) / 2
     assert f"| failure rate | {mean:.4f} ({rates[0]:.4f} / {rates[1]:.4f}) |" in result.output
     assert "failure (mean of 2 runs) is spread over" in result.output
+    # --json prints the same runs as one object and needs no --out
+    printed = CliRunner().invoke(cli, ["evaluate", "--model", "noisy_log", "--scenes", "3", "--seeds", "0,1", "--json"])
+    assert printed.exit_code == 0, (printed.output, printed.exception)
+    summary = json.loads(printed.output[printed.output.index("{"):])
+    assert summary["seeds"] == [0, 1] and [run["metrics"]["failure_rate"] for run in summary["runs"]] == rates
+    assert summary["mean"]["failure_rate"] == pytest.approx(mean)
+    assert summary["num_scenes"] == 3 and summary["metadata"]["model"] == "noisy_log"
+
+
+def test_seeds_summary_matches_numpy() -> None:
+    from trafficrlhf_sdk.cli.evaluate import seeds_summary
+
+    rates, realism = [0.1, 0.25, 0.16], [0.05, 0.07, 0.06]
+    results = [{"metrics": {"failure_rate": rate, "realism_ctg": value, "reward_cost": None},
+                "logged": {"failure_rate": 0.01}, "metadata": {"seed": seed, "model": "m"},
+                "num_scenes": 4, "num_controlled_agents": 9}
+               for seed, rate, value in zip((3, 5, 7), rates, realism)]
+    summary = seeds_summary(results)
+    assert summary["seeds"] == [3, 5, 7] and summary["logged"] == {"failure_rate": 0.01}
+    assert set(summary["mean"]) == {"failure_rate", "realism_ctg"}  # a metric some run lacks is left out
+    assert summary["mean"]["failure_rate"] == pytest.approx(np.mean(rates))
+    assert summary["std"]["realism_ctg"] == pytest.approx(np.std(realism))
+    assert summary["metadata"] == {"model": "m"} and json.dumps(summary)
 
 
 def test_seeds_errors_come_before_any_work(cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
     for args, expected in ((["--seeds", "0,x", "--out", str(tmp_path)], "distinct comma-separated integers"),
                            (["--seeds", "1,1", "--out", str(tmp_path)], "distinct comma-separated integers"),
-                           (["--seeds", "0,1"], "add --out DIR"),
-                           (["--seeds", "0,1", "--out", str(tmp_path), "--json"], "do not combine")):
+                           (["--seeds", "0,1"], "add --out DIR")):
         result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", *args])
         assert result.exit_code != 0 and expected in str(result.exception), (args, result.exception)
     assert not any(tmp_path.iterdir())

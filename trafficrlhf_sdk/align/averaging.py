@@ -4,7 +4,7 @@ Runs fine-tuned from the same starting weights with different seeds often end cl
 and then their elementwise mean scores at least as well as the average run and varies less: on nuScenes val,
 CTG seeds at 0.1292 / 0.1425 / 0.1273 averaged to 0.1190. Not always: for TrafficGen, whose six modes are trained
 winner-takes-all, one average of two seeds (0.2035) was worse than either seed (0.1795 / 0.1793), so evaluate
-an average on held-out scenes before using it (docs/explanation/alignment-results.md).
+an average on held-out scenes before using it (docs/explanation/alignment-log.md).
 
 :func:`extrapolate_checkpoint` moves further along the direction alignment took: base + factor x (aligned - base),
 optionally plus weighted changes of later fine-tuning stages (``directions``).

@@ -1,7 +1,7 @@
 """Hand-written per-step rewards with the reward-model protocol (``step_rewards(scenario) -> (B, T)``).
 
 They need no training and serve as stand-ins for a learned r_HF: tests, the Gymnasium environment's default,
-and the committed aligned models (docs/explanation/alignment-results.md says which reward each used and what a
+and the committed aligned models (docs/explanation/alignment-log.md says which reward each used and what a
 learned reward model did under the same optimization).
 """
 
@@ -188,7 +188,7 @@ class RealismReward(FailureReward):
       whose accelerations the model produces more often than the log lose, rarer ones gain, so the policy is
       pushed towards the logged histograms the realism metric compares with. The failure terms alone narrow
       them (the aligned 4 s CTG brakes and accelerates less hard than the log: realism (body) 0.102 -> 0.127).
-      Measured on the 4 s CTG (docs/explanation/alignment-results.md, session 11): it brings the paper-style
+      Measured on the 4 s CTG (docs/explanation/alignment-log.md, session 11): it brings the paper-style
       realism deviation below the base's, and takes most of the failure gain with it.
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,

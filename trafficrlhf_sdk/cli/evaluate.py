@@ -147,18 +147,23 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     if seeds:
         import os
 
-        folders = []
+        folders, results = [], []
         for index, run_seed in enumerate(seeds):
             if index:
                 torch.manual_seed(run_seed)
                 policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": run_seed})
             run = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=batch_size, seed=run_seed),
                                   extra_metrics=extra_metrics, progress=True, metadata=metadata)
-            folders.append(os.path.join(str(out_dir), f"seed_{run_seed}"))
-            run.save(folders[-1])
-            if render_worst:
-                _render_worst(run, render_worst, folders[-1])
-        _print_seeds(folders, worst_scenes)
+            results.append(run.to_json())
+            if out_dir:
+                folders.append(os.path.join(str(out_dir), f"seed_{run_seed}"))
+                run.save(folders[-1])
+                if render_worst:
+                    _render_worst(run, render_worst, folders[-1])
+        if as_json:
+            click.echo(json.dumps(seeds_summary(results), indent=2))
+        else:
+            _print_seeds(folders, worst_scenes)
         return
     config = EvaluationConfig(batch_size=batch_size, seed=seed)
     report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata)
@@ -189,20 +194,38 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
 
 
 def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
-    """``--seeds`` as a list of distinct ints; it needs ``--out`` and excludes ``--json``."""
+    """``--seeds`` as a list of distinct ints; without ``--json`` it needs ``--out`` (the table reads the folders)."""
     try:
         seeds = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
         seeds = []
     if not seeds or len(set(seeds)) != len(seeds):
         raise TrafficRLHFError(f"--seeds {text!r}: give distinct comma-separated integers, e.g. --seeds 0,1,2.")
-    if not out_dir:
+    if not out_dir and not as_json:
         raise TrafficRLHFError(f"--seeds {text} writes one folder per seed under --out, which is not set; "
-                               "add --out DIR.")
-    if as_json:
-        raise TrafficRLHFError("--seeds and --json do not combine: each seed's results.json is written under --out; "
-                               "read those, or run one --seed with --json.")
+                               "add --out DIR (or --json to print the runs instead).")
     return seeds
+
+
+def seeds_summary(results: list[dict]) -> dict:
+    """Runs of one policy on the same scenes at several seeds, as one JSON object.
+
+    ``results``: each run's ``EvaluationReport.to_json()``. Returns ``seeds``; ``mean`` and ``std`` (population,
+    over the runs) of every metric that all runs report as a number; ``logged`` (the logged data's values, the
+    same for every seed); ``runs``: each seed's metrics; and the scene count and controlled agents.
+    """
+    def numbers(result: dict) -> dict[str, float]:
+        return {key: float(value) for key, value in result["metrics"].items() if isinstance(value, (int, float))}
+
+    per_run = [numbers(result) for result in results]
+    keys = [key for key in per_run[0] if all(key in values for values in per_run)]
+    mean = {key: sum(values[key] for values in per_run) / len(per_run) for key in keys}
+    std = {key: (sum((values[key] - mean[key]) ** 2 for values in per_run) / len(per_run)) ** 0.5 for key in keys}
+    seeds = [result["metadata"].get("seed") for result in results]
+    return {"seeds": seeds, "mean": mean, "std": std, "logged": results[0]["logged"],
+            "runs": [{"seed": seed, "metrics": result["metrics"]} for seed, result in zip(seeds, results)],
+            "num_scenes": results[0]["num_scenes"], "num_controlled_agents": results[0]["num_controlled_agents"],
+            "metadata": {key: value for key, value in results[0]["metadata"].items() if key != "seed"}}
 
 
 def _print_seeds(folders: list[str], worst_scenes: int) -> None:
