@@ -59,23 +59,20 @@ class RewardSelectedPlanner:
         valid = agents[:, None, :, None].expand(b, s, a, steps)
         now = context.current_index
         history = context[torch.arange(b).repeat_interleave(s)].time_slice(max(0, now - self.reward_history), now + 1)
-        scenarios = history.replace_unchecked(
-            states=torch.cat([history.states, (scored * valid[..., None]).reshape(b * s, a, steps, 4)], 2),
-            valid=torch.cat([history.valid, valid.reshape(b * s, a, steps)], 2))
-        with torch.no_grad():
-            scores = self.reward.agent_scores(scenarios).reshape(b, s, a)
+
+        def score(states: torch.Tensor) -> torch.Tensor:  # candidate scenes (B, S, A, steps, 4) -> (B, S, A)
+            scene = history.replace_unchecked(
+                states=torch.cat([history.states, (states * valid[..., None]).reshape(b * s, a, steps, 4)], 2),
+                valid=torch.cat([history.valid, valid.reshape(b * s, a, steps)], 2))
+            with torch.no_grad():
+                return self.reward.agent_scores(scene).reshape(b, s, a)
+
+        scores = score(scored)  # agent i's sample k beside the other agents' sample k
         if adapter.guidance is not None:  # among equal rewards, the lowest guidance loss (the adapter's own rule)
             loss = adapter.guidance.loss(futures, now, context).detach()
             scores = scores - 1e-4 * loss / (loss.abs().amax(1, keepdim=True) + 1e-9)
         choice = scores.argmax(1)
         if self.best_response_rounds:
-            def score(states: torch.Tensor) -> torch.Tensor:  # (B, S, A, steps, 4) -> (B, S, A)
-                scene = history.replace_unchecked(
-                    states=torch.cat([history.states, (states * valid[..., None]).reshape(b * s, a, steps, 4)], 2),
-                    valid=torch.cat([history.valid, valid.reshape(b * s, a, steps)], 2))
-                with torch.no_grad():
-                    return self.reward.agent_scores(scene).reshape(b, s, a)
-
             choice = best_responses(scored, agents, choice, score, self.best_response_rounds)
         index = choice[:, None, :, None, None].expand(-1, 1, -1, futures.shape[-2], 4)
         best = futures.gather(1, index)[:, 0]
