@@ -165,3 +165,28 @@ def test_finer_map_crop_covers_the_same_ground(scenes) -> None:  # type: ignore[
     share_fine = fine[:, :, 0].mean((-1, -2))[agents]
     assert share_coarse.min() > 0.05  # controlled agents stand on roads
     assert (share_fine - share_coarse).abs().max() < 0.03
+
+
+def test_model_size_knobs_reach_the_layers_and_old_configs_keep_their_layout() -> None:
+    """``cnn_width`` / ``unet_dims`` / ``cond_dim`` / ``map_dim`` size the layers; a config.json written before
+    ``cnn_width`` existed loads with the original 8-16-32-64 map CNN (so committed checkpoints still load)."""
+    import json
+
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    old = json.loads((REPO / "reference_models/ctg/checkpoints/ctg_small_4s/config.json").read_text())["config"]
+    assert "cnn_width" not in old
+    convs = [m for m in CTGModel(CTGConfig.from_dict(old)).encoder.cnn if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [8, 16, 32, 64]
+
+    cfg = CTGConfig(horizon=40, unet_dims=(48, 96), cond_dim=256, map_dim=256, cnn_width=24)
+    model = CTGModel(CTGConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))))
+    assert model.cfg == cfg
+    convs = [m for m in model.encoder.cnn if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [24, 48, 96, 192]
+    assert model.encoder.map_head[0].out_features == 256
+    assert model.denoiser.mid1.conv1.out_channels == 96 and model.denoiser.down1.conv1.out_channels == 48
+    features = {"map": torch.zeros(3, 3, 48, 48), "history": torch.zeros(3, 10, 5),
+                "history_valid": torch.ones(3, 10, dtype=torch.bool), "extent": torch.ones(3, 2),
+                "neighbours": torch.zeros(3, 8, 7), "neighbour_valid": torch.zeros(3, 8, dtype=torch.bool)}
+    assert model.encode(features).shape == (3, 256)

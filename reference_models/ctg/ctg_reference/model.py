@@ -50,6 +50,7 @@ class CTGConfig:
     num_neighbours: int = 8
     cond_dim: int = 128
     map_dim: int = 128
+    cnn_width: int = 8  # channels of the map CNN's first layer; each of its 4 layers doubles them
     unet_dims: tuple[int, int] = (32, 64)
     kernel_size: int = 3
     groups: int = 8
@@ -126,12 +127,12 @@ class ContextEncoder(nn.Module):
 
     def __init__(self, cfg: CTGConfig) -> None:
         super().__init__()
-        c = cfg.map_channels
+        c, w = cfg.map_channels, cfg.cnn_width
         self.cnn = nn.Sequential(
-            nn.Conv2d(c, 8, 3, stride=2, padding=1), nn.GroupNorm(4, 8), nn.Mish(),
-            nn.Conv2d(8, 16, 3, stride=2, padding=1), nn.GroupNorm(4, 16), nn.Mish(),
-            nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.GroupNorm(8, 32), nn.Mish(),
-            nn.Conv2d(32, 64, 3, stride=2, padding=1), nn.GroupNorm(8, 64), nn.Mish(),
+            nn.Conv2d(c, w, 3, stride=2, padding=1), nn.GroupNorm(4, w), nn.Mish(),
+            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.GroupNorm(4, 2 * w), nn.Mish(),
+            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 4 * w), nn.Mish(),
+            nn.Conv2d(4 * w, 8 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 8 * w), nn.Mish(),
             nn.Flatten(),
         )
         with torch.no_grad():

@@ -139,6 +139,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--map-size", type=int, default=48, help="Map crop side in cells (default 48).")
     parser.add_argument("--map-resolution", type=float, default=1.0,
                         help="Metres per map crop cell (default 1.0; the source raster has 3 px/m).")
+    parser.add_argument("--unet-dims", type=int, nargs=2, default=(32, 64), metavar=("D1", "D2"),
+                        help="Channels of the denoiser U-Net's two levels (default 32 64).")
+    parser.add_argument("--cond-dim", type=int, default=128, help="Conditioning vector size (default 128).")
+    parser.add_argument("--map-dim", type=int, default=128, help="Map feature size (default 128).")
+    parser.add_argument("--cnn-width", type=int, default=8,
+                        help="First map-CNN layer's channels, doubled per layer (default 8; a multiple of 8).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -152,7 +158,12 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--horizon must be an even number of steps >= 2; got {args.horizon}.")
     if args.map_size < 16 or args.map_resolution <= 0:
         parser.error(f"--map-size must be >= 16 and --map-resolution > 0; got {args.map_size}, {args.map_resolution}.")
-    cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution)
+    if min(args.unet_dims) < 8 or any(d % 8 for d in args.unet_dims) or args.cnn_width % 8:
+        parser.error(f"--unet-dims and --cnn-width must be multiples of 8 (GroupNorm groups); got "
+                     f"{args.unet_dims}, {args.cnn_width}.")
+    cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution,
+                    unet_dims=tuple(args.unet_dims), cond_dim=args.cond_dim, map_dim=args.map_dim,
+                    cnn_width=args.cnn_width)
     # history_s=0: windows start at the first logged step; we pick "now" ourselves; every scene with one horizon
     source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
