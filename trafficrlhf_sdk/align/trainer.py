@@ -34,13 +34,11 @@ by ``(seed, e)``, which makes a resumed run match an uninterrupted one.
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import math
 import os
 import sys
 import time
-from dataclasses import dataclass
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -52,17 +50,16 @@ from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
 from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
+from trafficrlhf_sdk.align.ppo_update import PPOUpdate, Rollout, derived_generator, derived_seed, mean_over_sampled
 from trafficrlhf_sdk.align.sample_scenarios import SampleScenarios
 from trafficrlhf_sdk.align.selection import best_of_k_returns
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
-from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter
+from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
-
-MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
 
 
 class AlignResult(NamedTuple):
@@ -73,62 +70,7 @@ class AlignResult(NamedTuple):
     history: list[dict[str, float]]
 
 
-@dataclass
-class _Rollout:
-    contexts: ScenarioTensor
-    logged: ScenarioTensor  # the same windows of the log (imitation loss)
-    trace: PolicyTrace
-    rewards: torch.Tensor  # (B, S) scene rewards; with credit="agent" the mean over the sampled agents
-    advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
-    sample_log_prob: torch.Tensor  # as returned by adapter.sample
-    winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
-    imitation: ScenarioTensor | None = None  # windows the imitation loss learns from; None: ``logged``
-
-
-def _seed(*parts: Any) -> int:
-    """A 62-bit seed that is a pure function of ``parts``."""
-    return int(hashlib.sha256(repr(parts).encode()).hexdigest()[:15], 16)
-
-
-def _generator(*parts: Any) -> torch.Generator:
-    return torch.Generator().manual_seed(_seed(*parts))
-
-
-def _select_trace(trace: PolicyTrace, index: torch.Tensor) -> PolicyTrace:
-    return PolicyTrace({k: v[index] for k, v in trace.tensors.items()}, trace.agents[index], trace.now,
-                       dict(trace.info))
-
-
-def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    mask = mask.to(values.dtype)
-    return (values * mask).sum() / mask.sum().clamp_min(1)
-
-
-def _entry_mask(log_prob: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
-    """bool mask shaped like ``log_prob (B, S, A[, K])`` of the sampled agents."""
-    mask = agents[:, None, :].expand(log_prob.shape[:3])
-    if log_prob.dim() == 4:
-        mask = mask[..., None].expand(log_prob.shape)
-    return mask
-
-
-def _mean_over_sampled(values: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
-    """``(B, S)`` mean of per-agent ``values (B, S, A)`` over each context's sampled ``agents (B, A)``."""
-    picked = agents[:, None, :].to(values.dtype)
-    return (values * picked).sum(-1) / picked.sum(-1).clamp_min(1)
-
-
-def _broadcast(adv: torch.Tensor, log_prob: torch.Tensor) -> torch.Tensor:
-    """Per-(context, sample) advantages ``(B, S)`` or per-(context, sample, agent) ``(B, S, A)`` broadcast to
-    ``log_prob``'s shape."""
-    if adv.dim() == 2:
-        adv = adv[:, :, None]
-    if log_prob.dim() == 4:
-        adv = adv[..., None]
-    return adv.to(log_prob.dtype).expand(log_prob.shape)
-
-
-class AlignTrainer(TrainerCheckpoints, SampleScenarios):
+class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
     """PPO fine-tuner of a traffic-model adapter against a reward model (see the module docstring).
 
     Args:
@@ -239,7 +181,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
     def _contexts(self, epoch: int) -> tuple[ScenarioTensor, ScenarioTensor]:
         """The epoch's contexts and the same windows of the log (see :class:`ContextSampler`); every draw comes
         from a generator seeded by ``(seed, epoch)``."""
-        return self.context_sampler.draw(_generator(self.config.seed, epoch, "contexts"), epoch)
+        return self.context_sampler.draw(derived_generator(self.config.seed, epoch, "contexts"), epoch)
 
     # ------------------------------------------------------------------ rollout
     def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
@@ -261,7 +203,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
         b, s, a = futures.shape[:3]
         states, valid = self._future_states(contexts, futures, agents)
         scenes = continuation_scenarios(self.model, contexts, states, valid, agents, cfg.continuation_executed_steps,
-                                        cfg.continuation_steps, _seed(cfg.seed, epoch, "continuation"),
+                                        cfg.continuation_steps, derived_seed(cfg.seed, epoch, "continuation"),
                                         self.guidance)
         now = contexts.current_index
         window = (max(0, now - cfg.reward_history_steps), now + 1 + cfg.continuation_executed_steps
@@ -275,9 +217,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
         w = cfg.continuation_weight
         return w * closed + (1 - w) * open_loop
 
-    def _rollout(self, epoch: int) -> _Rollout:
+    def _rollout(self, epoch: int) -> Rollout:
         contexts, logged = self._contexts(epoch)
-        gen = _generator(self.config.seed, epoch, "sample")
+        gen = derived_generator(self.config.seed, epoch, "sample")
         out = self._sample(contexts, gen)
         trace = out.trace.detach()
         b = contexts.num_scenes
@@ -298,7 +240,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
                 per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             if self.config.continuation_steps:
                 per_agent = self._mix_continuation(per_agent, contexts, out.futures, trace.agents, epoch, source)
-            rewards = _mean_over_sampled(per_agent, trace.agents)
+            rewards = mean_over_sampled(per_agent, trace.agents)
             speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
             returns = self._selection_returns(contexts, out, per_agent) if self.config.selection_credit else per_agent
             adv = self._normalize(returns, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
@@ -310,7 +252,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
                 rewards = self._mix_continuation(rewards, contexts, out.futures, trace.agents, epoch, None)
             speed = None
             if self.config.speed_neutral_advantages:
-                speed = _mean_over_sampled(self._sample_speeds(out.futures), trace.agents)
+                speed = mean_over_sampled(self._sample_speeds(out.futures), trace.agents)
             returns = self._selection_returns(contexts, out, rewards) if self.config.selection_credit else rewards
             adv = self._normalize(returns, dim=1, covariate=speed)
             ranked = rewards[:, :, None].expand(-1, -1, contexts.num_agents)
@@ -319,8 +261,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
             winners = self.winner_scenarios(contexts, out.futures, trace.agents, ranked)
         imitation = None
         if self.config.imitation_contexts == "log" and self.config.imitation_coef > 0:
-            imitation = self.context_sampler.log_contexts(b, _generator(self.config.seed, epoch, "imitation_log"))[1]
-        return _Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation)
+            gen = derived_generator(self.config.seed, epoch, "imitation_log")
+            imitation = self.context_sampler.log_contexts(b, gen)[1]
+        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation)
 
     def _selection_returns(self, contexts: ScenarioTensor, out: Any, rewards: torch.Tensor) -> torch.Tensor:
         """Best-of-K returns (:func:`best_of_k_returns`) of ``rewards`` ``(B, S, A)`` (agent credit) or ``(B, S)``
@@ -332,7 +275,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
         scores, k = ranked
         scores = scores.detach().to(rewards.dtype)
         if rewards.dim() == 2:
-            scores = _mean_over_sampled(scores, out.trace.agents)
+            scores = mean_over_sampled(scores, out.trace.agents)
         return best_of_k_returns(rewards, scores, k, dim=1)
 
     def _sample_speeds(self, futures: torch.Tensor) -> torch.Tensor:
@@ -366,104 +309,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios):
         if cfg.lr_schedule == "linear":
             return cfg.learning_rate * (1.0 - epoch / cfg.epochs)
         return cfg.learning_rate
-
-    def _minibatches(self, epoch: int, ppo_epoch: int, n: int) -> list[torch.Tensor]:
-        perm = torch.randperm(n, generator=_generator(self.config.seed, epoch, "order", ppo_epoch))
-        size = self.config.minibatch_contexts
-        return [perm[i:i + size] for i in range(0, n, size)]
-
-    def _steps(self, log_prob: torch.Tensor) -> torch.Tensor:
-        """``log_prob`` cut to the first ``denoising_steps`` per-step entries (unchanged for ``(B, S, A)``)."""
-        n = self.config.denoising_steps
-        return log_prob[..., :n] if n is not None and log_prob.dim() == 4 else log_prob
-
-    @torch.no_grad()
-    def _log_probs(self, model: TrafficModelAdapter, rollout: _Rollout, batches: list[torch.Tensor]) -> torch.Tensor:
-        result: torch.Tensor | None = None
-        for idx in batches:
-            lp = self._steps(model.log_prob(rollout.contexts[idx], _select_trace(rollout.trace, idx)).detach())
-            if result is None:
-                result = torch.zeros(rollout.contexts.num_scenes, *lp.shape[1:], dtype=lp.dtype)
-            result[idx] = lp
-        assert result is not None
-        return result
-
-    def _optimize(self, epoch: int, rollout: _Rollout) -> dict[str, float]:
-        cfg = self.config
-        n = rollout.contexts.num_scenes
-        first = self._minibatches(epoch, 0, n)
-        old = self._log_probs(self.model, rollout, first)
-        ref = self._log_probs(self.reference, rollout, first) if self.reference is not None else None
-        stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
-                                                         "clip_fraction", "kl_ref", "grad_norm",
-                                                         "winner_loss")}
-        first_dev = float("nan")
-        stopped = 0.0
-        updates = skipped = 0
-        for p in range(cfg.ppo_epochs):
-            batches = first if p == 0 else self._minibatches(epoch, p, n)
-            for j, idx in enumerate(batches):
-                ctx, trace = rollout.contexts[idx], _select_trace(rollout.trace, idx)
-                new = self._steps(self.model.log_prob(ctx, trace))
-                mask = _entry_mask(new, trace.agents)
-                logr = new - old[idx]
-                ratio = torch.exp(logr)
-                adv = _broadcast(rollout.advantages[idx], new)
-                clipped = torch.clamp(ratio, 1 - cfg.clip_range, 1 + cfg.clip_range)
-                surrogate = _masked_mean(torch.minimum(ratio * adv, clipped * adv), mask)
-                loss = -cfg.alpha * surrogate
-                if cfg.imitation_coef > 0:
-                    torch.manual_seed(_seed(cfg.seed, epoch, "imitation", p, j))
-                    windows = rollout.logged if rollout.imitation is None else rollout.imitation
-                    imitation = self.model.imitation_loss(windows[idx])
-                    loss = loss + cfg.imitation_coef * imitation
-                    stats["imitation_loss"].append(float(imitation.detach()))
-                if rollout.winners is not None and cfg.winner_coef > 0:
-                    torch.manual_seed(_seed(cfg.seed, epoch, "winners", p, j))
-                    winner_loss = self.model.imitation_loss(rollout.winners[idx])
-                    loss = loss + cfg.winner_coef * winner_loss
-                    stats["winner_loss"].append(float(winner_loss.detach()))
-                if ref is not None:
-                    # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
-                    # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
-                    d = (ref[idx] - new).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
-                    kl_ref = _masked_mean(torch.exp(d) - 1 - d, mask)
-                    loss = loss + cfg.kl_coef * kl_ref
-                    stats["kl_ref"].append(float(kl_ref.detach()))
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                grads = [p.grad for p in self.trainable if p.grad is not None]
-                if not torch.isfinite(loss) or not all(torch.isfinite(g).all() for g in grads):
-                    skipped += 1  # one bad minibatch must not turn every weight into NaN
-                    self.optimizer.zero_grad(set_to_none=True)
-                    continue
-                if cfg.max_grad_norm is not None:
-                    norm = torch.nn.utils.clip_grad_norm_(self.trainable, cfg.max_grad_norm)
-                    stats["grad_norm"].append(float(norm))
-                self.optimizer.step()
-                updates += 1
-                with torch.no_grad():
-                    approx_kl = float(_masked_mean((ratio - 1) - logr, mask))
-                    clip_fraction = float(_masked_mean(((ratio - 1).abs() > cfg.clip_range).float(), mask))
-                    if p == 0 and j == 0:
-                        first_dev = float(((ratio - 1).abs() * mask).max()) if mask.any() else 0.0
-                stats["loss"].append(float(loss.detach()))
-                stats["surrogate"].append(float(surrogate.detach()))
-                stats["approx_kl"].append(approx_kl)
-                stats["clip_fraction"].append(clip_fraction)
-                if cfg.target_kl is not None and approx_kl > 1.5 * cfg.target_kl:
-                    stopped = 1.0
-                    break
-            if stopped:
-                break
-        result = {k: (sum(v) / len(v) if v else float("nan")) for k, v in stats.items()}
-        result.update(first_ratio_max_dev=first_dev, early_stop=stopped, updates=float(updates),
-                      skipped_updates=float(skipped))
-        mask = _entry_mask(old, rollout.trace.agents)
-        sampled = self._steps(rollout.sample_log_prob)
-        gap = ((old - sampled).abs() * mask).max() if mask.any() else torch.zeros(())
-        result["sample_log_prob_gap"] = float(gap)
-        return result
 
     # ------------------------------------------------------------------ logging
     def _configure_logger(self) -> Any:
