@@ -27,6 +27,7 @@ from trafficrlhf_sdk.metrics import (  # noqa: E402
     SpeedMetric,
     box_corners,
     boxes_overlap,
+    colliding_pairs,
     collisions_per_step,
     histogram_distance,
     kinematics,
@@ -315,6 +316,21 @@ def test_pairwise_collisions_matches_shapely(scene) -> None:  # type: ignore[no-
                     assume(not _touch_ambiguous(boxes[i], boxes[j]))
     expected = reference_collisions(xy, yaw, extent, valid)
     assert np.array_equal(pairwise_collisions(xy, yaw, extent, valid).numpy(), expected)
+    # the pair list behind the flags: each overlapping pair once (i < j), both valid, and shapely agrees per pair
+    scene_idx, i, j, step = colliding_pairs(xy, yaw, extent, valid)
+    pairs = set(zip(scene_idx.tolist(), i.tolist(), j.tolist(), step.tolist()))
+    assert len(pairs) == len(scene_idx) and all(p < q for _, p, q, _ in pairs)
+    expected_pairs = set()
+    for s in range(b):
+        for step_ in range(t):
+            for p in range(a):
+                for q in range(p + 1, a):
+                    if valid[s, p, step_] and valid[s, q, step_]:
+                        box_p = _polygon(*xy[s, p, step_].tolist(), float(yaw[s, p, step_]), *extent[s, p].tolist())
+                        box_q = _polygon(*xy[s, q, step_].tolist(), float(yaw[s, q, step_]), *extent[s, q].tolist())
+                        if box_p.intersects(box_q):
+                            expected_pairs.add((s, p, q, step_))
+    assert pairs == expected_pairs
 
 
 # ------------------------------------------------------------------------------------ off-road lookup

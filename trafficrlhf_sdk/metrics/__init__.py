@@ -4,7 +4,7 @@ reward cost."""
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_corner_share, offroad_per_step
 from trafficrlhf_sdk.metrics.guidance_objectives import GuidanceObjectivesMetric
-from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, pairwise_collisions
+from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, colliding_pairs, pairwise_collisions
 from trafficrlhf_sdk.metrics.realism import (
     HistogramSpec,
     RealismMetric,
@@ -27,6 +27,7 @@ __all__ = [
     "SpeedMetric",
     "box_corners",
     "boxes_overlap",
+    "colliding_pairs",
     "collisions_per_step",
     "histogram_distance",
     "kinematics",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["box_corners", "boxes_overlap", "pairwise_collisions"]
+__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "pairwise_collisions"]
 
 
 def box_corners(xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
@@ -34,25 +34,25 @@ def boxes_overlap(corners_a: torch.Tensor, corners_b: torch.Tensor) -> torch.Ten
     return ~separated.any(-1)
 
 
-def pairwise_collisions(
+def colliding_pairs(
     xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor, valid: torch.Tensor
-) -> torch.Tensor:
-    """Which agents overlap another valid agent of the same scene at each step.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every pair of valid agents of one scene whose boxes overlap, and when.
 
     Args:
         xy: ``(B, A, T, 2)`` centres (m); yaw: ``(B, A, T)`` (rad); extent: ``(B, A, 2)`` length, width (m);
         valid: ``(B, A, T)`` bool.
 
     Returns:
-        bool ``(B, A, T)``: agent overlaps at least one other valid agent at that step.
+        ``(scene, i, j, step)``, each int64 ``(P,)``: agents ``i < j`` of ``scene`` overlap at ``step``.
 
     A circumscribed-circle test prunes pairs first, so only nearby pairs reach the exact box test, which runs
     in float64.
     """
-    b, a, t = valid.shape
-    hit = torch.zeros(b, a, t, dtype=torch.bool, device=xy.device)
+    a = valid.shape[1]
+    empty = torch.zeros(0, dtype=torch.long, device=xy.device)
     if a < 2:
-        return hit
+        return empty, empty, empty, empty
     first, second = torch.triu_indices(a, a, 1, device=xy.device)  # each unordered pair once, (P,)
     # most agent slots are padding or absent: list the pairs valid together first, then prune those by distance
     scene, pair, step = (valid[:, first] & valid[:, second]).nonzero(as_tuple=True)
@@ -63,15 +63,29 @@ def pairwise_collisions(
     reach = (radius[scene, i] + radius[scene, j]) * (1 + 1e-5)
     gap = xy[scene, i, step] - xy[scene, j, step]
     near = ((gap * gap).sum(-1) <= reach * reach).nonzero().squeeze(-1)
-    if near.numel() == 0:
-        return hit
     scene, i, j, step = scene[near], i[near], j[near], step[near]
+    if near.numel() == 0:
+        return scene, i, j, step
     # the exact test runs in float64 whatever the input dtype: float32 corners at scene-frame coordinates of a
     # few hundred metres are off by tens of micrometres, enough to flip a near-touching pair
     corners_i = box_corners(xy[scene, i, step].double(), yaw[scene, i, step].double(), extent[scene, i].double())
     corners_j = box_corners(xy[scene, j, step].double(), yaw[scene, j, step].double(), extent[scene, j].double())
     overlap = boxes_overlap(corners_i, corners_j).nonzero().squeeze(-1)
-    scene, i, j, step = scene[overlap], i[overlap], j[overlap], step[overlap]
+    return scene[overlap], i[overlap], j[overlap], step[overlap]
+
+
+def pairwise_collisions(
+    xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor, valid: torch.Tensor
+) -> torch.Tensor:
+    """Which agents overlap another valid agent of the same scene at each step.
+
+    Args: as :func:`colliding_pairs`.
+
+    Returns:
+        bool ``(B, A, T)``: agent overlaps at least one other valid agent at that step.
+    """
+    hit = torch.zeros(valid.shape, dtype=torch.bool, device=xy.device)
+    scene, i, j, step = colliding_pairs(xy, yaw, extent, valid)
     hit[scene, i, step] = True
     hit[scene, j, step] = True
     return hit

@@ -1,0 +1,121 @@
+"""Whom do a model's closed-loop collisions involve? A diagnostic beside ``trafficrlhf evaluate``.
+
+Runs the standard evaluation (same scenes, seed and batching as ``trafficrlhf evaluate``), then, for every
+controlled agent that collides, looks at its first contact: is the other box an agent the model drives
+(``controlled``) or one replayed from the log (``replayed``, which cannot react), what type it is, where it is seen
+from the colliding agent (``front`` within 45 degrees of its heading, ``rear`` within 45 degrees of its back,
+``side`` otherwise) and whether it stands (below 0.5 m/s). Each agent is weighted as in the failure rate (one
+over its scene's controlled agents, scenes averaged), so the shares of one grouping sum to the collision rate.
+
+    python scripts/collision_partners.py --model ctg --checkpoint reference_models/aligned/ctg_4s --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from typing import Any
+
+import torch
+
+from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.metrics.geometry import colliding_pairs
+from trafficrlhf_sdk.scenario.agents import AgentType
+from trafficrlhf_sdk.simulation.simulator import Rollout
+
+STANDING_SPEED = 0.5  # m/s: below this the partner counts as standing
+
+
+def first_contacts(rollout: Rollout) -> list[dict[str, Any]]:
+    """One record per controlled agent that collides within the simulated window: scene, agent, step (0-based
+    within the window), partner index, whether the partner is controlled, its type name, the partner's bearing
+    seen from the agent (rad, 0 = straight ahead), both speeds (m/s) and the agent's weight in the scene average."""
+    window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
+    scene, i, j, step = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
+    controlled = rollout.controlled
+    counts = controlled.sum(-1)
+    scenes_with_agents = int((counts > 0).sum())
+    # both orientations of each pair, then the earliest contact per (scene, agent); ties: lowest partner index
+    me = torch.cat([i, j])
+    other = torch.cat([j, i])
+    scene, step = torch.cat([scene, scene]), torch.cat([step, step])
+    keep = controlled[scene, me]
+    scene, me, other, step = scene[keep], me[keep], other[keep], step[keep]
+    order = torch.argsort(step * (other.max() + 1 if other.numel() else 1) + other, stable=True)
+    records, seen = [], set()
+    for k in order.tolist():
+        key = (int(scene[k]), int(me[k]))
+        if key in seen:
+            continue
+        seen.add(key)
+        b, a, o, t = key[0], key[1], int(other[k]), int(step[k])
+        offset = window.xy[b, o, t] - window.xy[b, a, t]
+        bearing = float(wrap_angle(torch.atan2(offset[1], offset[0]) - window.yaw[b, a, t]))
+        records.append({
+            "scene": b, "agent": a, "step": t, "partner": o, "partner_controlled": bool(controlled[b, o]),
+            "partner_type": AgentType(int(window.agent_type[b, o])).name.lower(), "bearing": bearing,
+            "speed": float(window.states[b, a, t, 2]), "partner_speed": float(window.states[b, o, t, 2]),
+            "weight": 1.0 / (int(counts[b]) * scenes_with_agents),
+        })
+    return records
+
+
+def group(record: dict[str, Any]) -> dict[str, str]:
+    """The categories one first contact falls in."""
+    side = "front" if abs(record["bearing"]) <= math.pi / 4 else ("rear" if abs(record["bearing"]) >= 3 * math.pi / 4
+                                                                  else "side")
+    return {
+        "partner": "controlled" if record["partner_controlled"] else "replayed",
+        "partner_type": record["partner_type"],
+        "where": side,
+        "partner_standing": "standing" if abs(record["partner_speed"]) < STANDING_SPEED else "moving",
+        "partner_and_where": ("controlled" if record["partner_controlled"] else "replayed") + "/" + side,
+    }
+
+
+def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per grouping, each category's share of the collision rate (weights summed) and its agent count."""
+    shares: dict[str, dict[str, float]] = defaultdict(lambda: defaultdict(float))
+    counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    for record in records:
+        for key, value in group(record).items():
+            shares[key][value] += record["weight"]
+            counts[key][value] += 1
+    return {
+        "collision_rate": round(math.fsum(r["weight"] for r in records), 4),
+        "colliding_agents": len(records),
+        "groups": {key: {value: {"rate": round(shares[key][value], 4), "agents": counts[key][value]}
+                         for value in sorted(shares[key], key=lambda v: -shares[key][v])} for key in shares},
+    }
+
+
+def main() -> None:
+    """Command-line entry point."""
+    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--guidance", default="no_collision", help="Guidance preset (default no_collision).")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--scenes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.manual_seed(args.seed)
+    policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint, "seed": args.seed})
+    source = get_scenario_source("nuscenes_pred")
+    ids = source.scene_ids(args.split)[: args.scenes]
+    report = evaluate_policy(policy, source.load_batch(args.split, scene_ids=ids),
+                             EvaluationConfig(batch_size=50, seed=args.seed))
+    summary = summarize(first_contacts(report.rollout))
+    print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "seed": args.seed,
+                      "failure_rate": round(report.values["failure_rate"], 4),
+                      "collision_rate_metric": round(report.values["collision_rate"], 4), **summary}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
