@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features, to_agent_frame
 from trafficrlhf_sdk.scenario.agents import AgentType
+from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 from ctg_reference.model import CTGConfig, CTGModel
 
@@ -82,15 +83,17 @@ def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor]
 
 
 def build_samples(source, split: str, scene_ids: list[str], cfg: CTGConfig, stride: int,
-                  desc: str = "") -> dict[str, torch.Tensor]:
-    """Featurize every usable (scene, vehicle, t) window of ``scene_ids``; map crops stored as uint8."""
+                  desc: str = "", mirror: bool = False) -> dict[str, torch.Tensor]:
+    """Featurize every usable (scene, vehicle, t) window of ``scene_ids``; map crops stored as uint8. With
+    ``mirror``, each scene's mirror image (``y -> -y``, its map reflected alike) adds its windows too."""
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in STORE_KEYS}
     scenes = source.iter_scenes(split, scene_ids)
     for scene in tqdm(scenes, total=len(scene_ids), desc=desc or f"featurizing {split}", unit="scene"):
-        samples = scene_samples(scene, cfg, stride)
-        if samples is not None:
-            for k in STORE_KEYS:
-                parts[k].append(samples[k])
+        for variant in (scene, mirror_scenario(scene)) if mirror else (scene,):
+            samples = scene_samples(variant, cfg, stride)
+            if samples is not None:
+                for k in STORE_KEYS:
+                    parts[k].append(samples[k])
     return {k: torch.cat(v) for k, v in parts.items()}
 
 
@@ -145,6 +148,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--map-dim", type=int, default=128, help="Map feature size (default 128).")
     parser.add_argument("--cnn-width", type=int, default=8,
                         help="First map-CNN layer's channels, doubled per layer (default 8; a multiple of 8).")
+    parser.add_argument("--mirror", action="store_true",
+                        help="Also train on each train scene's mirror image (twice the windows; nuScenes has both "
+                             "right-hand Boston and left-hand Singapore traffic).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -167,7 +173,7 @@ def main(argv: list[str] | None = None) -> None:
     # history_s=0: windows start at the first logged step; we pick "now" ourselves; every scene with one horizon
     source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
-    train = build_samples(source, "train", train_ids, cfg, args.stride)
+    train = build_samples(source, "train", train_ids, cfg, args.stride, mirror=args.mirror)
     # validation: val scenes outside the first 100 long-enough ones (those are the evaluation scenes)
     eval_source = get_scenario_source("nuscenes_pred", **options)
     held_out = set(eval_source.scene_ids("val")[:100])
