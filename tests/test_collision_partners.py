@@ -5,26 +5,18 @@ from __future__ import annotations
 import math
 
 import pytest
-import torch
 
 from trafficrlhf_sdk.metrics import FailureMetric, collisions_per_step
 from trafficrlhf_sdk.simulation import ConstantVelocityPolicy, SimulationConfig, simulate
+from trafficrlhf_sdk.testing.reference_metrics import box_polygon
 
-shapely_geometry = pytest.importorskip("shapely.geometry")
+pytest.importorskip("shapely")
 
 
 @pytest.fixture(scope="module")
 def rollout(val_scenes):  # type: ignore[no-untyped-def]
     """Constant-velocity driving over the 10 s protocol on the shared val scenes: about a quarter collide."""
     return simulate(ConstantVelocityPolicy(), val_scenes, SimulationConfig())
-
-
-def _box(xy: torch.Tensor, yaw: float, extent: torch.Tensor):  # type: ignore[no-untyped-def]
-    length, width = extent.tolist()
-    c, s = math.cos(yaw), math.sin(yaw)
-    corners = [(length / 2, width / 2), (-length / 2, width / 2), (-length / 2, -width / 2), (length / 2, -width / 2)]
-    x, y = xy.tolist()
-    return shapely_geometry.Polygon([(x + c * u - s * v, y + s * u + c * v) for u, v in corners])
 
 
 def test_weights_sum_to_the_collision_rate_and_contacts_are_first(rollout, load_script) -> None:  # type: ignore[no-untyped-def]
@@ -41,8 +33,8 @@ def test_weights_sum_to_the_collision_rate_and_contacts_are_first(rollout, load_
         b, a, o, t = r["scene"], r["agent"], r["partner"], r["step"]
         assert int(steps[b, a].nonzero()[0]) == t  # the first colliding step
         assert r["partner_controlled"] == bool(rollout.controlled[b, o])
-        box_a = _box(window.xy[b, a, t], float(window.yaw[b, a, t]), window.extent[b, a])
-        box_o = _box(window.xy[b, o, t], float(window.yaw[b, o, t]), window.extent[b, o])
+        box_a = box_polygon(*window.xy[b, a, t].tolist(), float(window.yaw[b, a, t]), *window.extent[b, a].tolist())
+        box_o = box_polygon(*window.xy[b, o, t].tolist(), float(window.yaw[b, o, t]), *window.extent[b, o].tolist())
         assert box_a.intersects(box_o)
     summary = script.summarize(records)
     for grouping in summary["groups"].values():

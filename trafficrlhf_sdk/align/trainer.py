@@ -49,8 +49,8 @@ from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
-from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.align.ppo_update import PPOUpdate, Rollout, derived_generator, derived_seed, mean_over_sampled
+from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.align.sample_scenarios import SampleScenarios
 from trafficrlhf_sdk.align.selection import best_of_k_returns
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError

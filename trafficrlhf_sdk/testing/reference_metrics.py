@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["reference_collisions", "reference_failure", "reference_offroad", "reference_realism_ctg"]
+__all__ = ["box_polygon", "reference_collisions", "reference_failure", "reference_offroad", "reference_realism_ctg"]
 
 CTG_STAT_DT = 0.5  # s
 CTG_BINS = {"speed": (0.0, 4.0), "lon_acc": (-2.0, 2.0), "lat_acc": (-2.0, 2.0), "jerk": (-1.0, 1.0)}
@@ -64,6 +64,12 @@ def _box_polygon(polygon_cls: Any, x: float, y: float, yaw: float, length: float
     for dx, dy in ((hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw)):
         corners.append((x + dx * c - dy * s, y + dx * s + dy * c))
     return polygon_cls(corners)
+
+
+def box_polygon(x: float, y: float, yaw: float, length: float, width: float) -> Any:
+    """The shapely polygon of a box centred at (x, y) m with heading ``yaw`` (rad) and size ``length`` x ``width``
+    (m), built without the SDK's geometry (an independent reference for tests)."""
+    return _box_polygon(_require("shapely.geometry").Polygon, x, y, yaw, length, width)
 
 
 def reference_collisions(xy: Any, yaw: Any, extent: Any, valid: Any) -> np.ndarray:
