@@ -292,3 +292,42 @@ def test_sweep_over_a_second_direction_evaluates_the_grid(three: list[str], tmp_
     assert all(torch.equal(v, base[k]) for k, v in _weights(str(out / "x0_d0")).items())
     assert (out / "sweep.png").stat().st_size > 1000
     assert "direction weight" in capsys.readouterr().out
+
+
+def test_held_out_soup_averages_the_runs_with_the_lowest_held_out_failure(three: list[str], tmp_path, data_root,
+                                                                          capsys, load_script) -> None:  # type: ignore[no-untyped-def]
+    soup = load_script("held_out_soup")
+    pytest.importorskip("trafficrlhf_nuscenes_pred")
+    out = tmp_path / "best2"
+    code = soup.main(["--model", "example_gru", "--runs", *three, "--keep", "2", "--seeds", "0,1",
+                      "--max-scenes", "2", "--out", str(out)])
+    assert code == 0
+    result = json.loads((out / "selection.json").read_text())
+    assert result["scenes"] == 2 and result["seeds"] == [0, 1] and sorted(result["ranking"]) == sorted(three)
+    for run in three:  # the mean is over the seeds' reports
+        reports = result["per_seed"][run]
+        assert len(reports) == 2
+        assert result["mean"][run]["failure_rate"] == pytest.approx(sum(r["failure_rate"] for r in reports) / 2)
+    failures = [result["mean"][run]["failure_rate"] for run in result["ranking"]]
+    assert failures == sorted(failures) and result["kept"] == result["ranking"][:2]
+    kept = [_weights(d) for d in result["kept"]]
+    for name, value in _weights(str(out)).items():
+        torch.testing.assert_close(value.double(), (kept[0][name].double() + kept[1][name].double()) / 2,
+                                   atol=1e-6, rtol=0)
+    assert json.loads((out / "averaged_from.json").read_text())["sources"] == result["kept"]
+    assert "| rank | run |" in capsys.readouterr().out
+
+
+def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(three: list[str], tmp_path, capsys,
+                                                                            load_script) -> None:  # type: ignore[no-untyped-def]
+    soup = load_script("held_out_soup")
+    assert soup.rank_runs({"a": 0.2, "b": 0.1, "c": 0.2, "d": 0.0}) == ["d", "b", "a", "c"]
+    for runs, keep, message in ((three, 4, "keep between 2 and 3"), (three, 1, "keep between 2 and 3"),
+                                ([three[0], three[0], three[1]], 2, "twice"),
+                                ([three[0], str(tmp_path / "missing")], 2, "does not exist")):
+        code = soup.main(["--model", "example_gru", "--runs", *runs, "--keep", str(keep), "--out",
+                          str(tmp_path / "never")])
+        assert code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("Error:") and message in err
+    assert not (tmp_path / "never").exists()

@@ -1,0 +1,115 @@
+r"""Average the best K of several alignment runs, chosen by their failure rate on held-out train scenes.
+
+Single PPO runs of one recipe differ widely: eight training seeds of the 4 s CTG recipe on a mirror-trained base
+changed its val failure rate by -58 % to +29 %, and the average of all eight (0.0682) was no better than the
+average run. Each run's held-out failure rate ranked the runs as val did (Spearman 0.71), and the four best on held out,
+averaged, failed 0.0482 on val (docs/explanation/alignment-log.md, session 30). The choice uses only the scenes
+``trafficrlhf align --holdout-every K`` kept out of training, never the reported val scenes.
+
+For each run folder, drives the held-out scenes in closed loop with every seed, ranks the runs by mean held-out
+failure rate (ties keep the given order), writes the elementwise mean of the best ``--keep`` to OUT
+(``trafficrlhf average``) with ``selection.json`` (every run's per-seed figures and the choice), and prints a table.
+
+    python scripts/held_out_soup.py --model ctg --guidance no_collision --keep 4 --holdout-every 10 \
+        --runs out/ctg_s0 out/ctg_s1 out/ctg_s2 out/ctg_s3 out/ctg_s4 out/ctg_s5 out/ctg_s6 out/ctg_s7 \
+        --out out/ctg_best4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+import torch
+from align_dev_eval import KEYS, held_out_report, held_out_scenes
+from extrapolation_sweep import _numbers
+from tqdm import tqdm
+
+from trafficrlhf_sdk.align import average_checkpoints
+from trafficrlhf_sdk.errors import TrafficRLHFError
+
+SELECTION_FILE = "selection.json"
+
+
+def rank_runs(mean_failure: dict[str, float]) -> list[str]:
+    """Run folders from the lowest mean held-out failure rate to the highest (stable: ties keep input order)."""
+    return sorted(mean_failure, key=mean_failure.__getitem__)
+
+
+def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int], out_dir: str,
+                       guidance: str | None, holdout_every: int, max_scenes: int | None = None) -> dict:  # type: ignore[type-arg]
+    """Drive every run in ``runs`` on the held-out train scenes (every ``holdout_every``-th) with each seed, then
+    average the ``keep`` runs of lowest mean failure rate into ``out_dir``.
+
+    Returns {"runs": [...], "per_seed": {run: [report per seed]}, "mean": {run: {metric: mean}}, "ranking":
+    [runs, best first], "kept": [...]}; rates are shares of controlled agents, realism deviations Wasserstein
+    distances (m/s^2, m/s^3).
+    """
+    if len(set(runs)) != len(runs):
+        raise TrafficRLHFError(f"`runs` names a folder twice ({runs}); give each run once.")
+    if not 2 <= keep <= len(runs):
+        raise TrafficRLHFError(f"`keep` is {keep} with {len(runs)} runs; keep between 2 and {len(runs)} of them.")
+    with tempfile.TemporaryDirectory() as scratch:  # every input checked (files, same architecture) before driving
+        average_checkpoints(runs, os.path.join(scratch, "check"))
+    ids, scenario = held_out_scenes(holdout_every, None, "train")
+    if max_scenes is not None:
+        ids, scenario = ids[:max_scenes], scenario[:max_scenes]
+    per_seed: dict[str, list[dict[str, float]]] = {run: [] for run in runs}
+    progress = tqdm(total=len(runs) * len(seeds), desc="run x seed", unit="run")
+    for run in runs:
+        for seed in seeds:
+            per_seed[run].append(held_out_report(model, run, guidance, scenario, seed))
+            progress.update()
+    progress.close()
+    mean = {run: {k: sum(r[k] for r in reports) / len(reports) for k in KEYS} for run, reports in per_seed.items()}
+    ranking = rank_runs({run: m["failure_rate"] for run, m in mean.items()})
+    kept = ranking[:keep]
+    average_checkpoints(kept, out_dir)
+    return {"model": model, "runs": runs, "keep": keep, "holdout_every": holdout_every, "scenes": len(ids),
+            "seeds": seeds, "per_seed": per_seed, "mean": mean, "ranking": ranking, "kept": kept}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", required=True, help="Registered traffic model, e.g. ctg / trafficgen / bits.")
+    parser.add_argument("--runs", nargs="+", required=True,
+                        help="Aligned checkpoint folders of one recipe (same base, different training seeds).")
+    parser.add_argument("--keep", type=int, required=True, help="How many of the best runs to average (>= 2).")
+    parser.add_argument("--seeds", default="0,1,2", type=lambda t: _numbers(t, int, "--seeds"),
+                        help="Evaluation seeds (comma-separated) [default: 0,1,2].")
+    parser.add_argument("--guidance", default=None, help="Guidance while driving, e.g. no_collision.")
+    parser.add_argument("--holdout-every", type=int, default=10,
+                        help="The scenes `align --holdout-every K` kept out [default: 10].")
+    parser.add_argument("--max-scenes", type=int, default=None, help="Only the first N held-out scenes (smoke runs).")
+    parser.add_argument("--out", required=True, help="Folder for the averaged checkpoint and selection.json.")
+    args = parser.parse_args(argv)
+    if args.holdout_every < 2:
+        parser.error(f"--holdout-every is {args.holdout_every}; give the K the runs were aligned with (>= 2).")
+    torch.set_num_threads(1)
+    try:
+        result = select_and_average(args.model, args.runs, args.keep, args.seeds, args.out, args.guidance,
+                                    args.holdout_every, args.max_scenes)
+    except TrafficRLHFError as exc:
+        print(f"Error: {exc}", file=sys.stderr)
+        return 2
+    with open(os.path.join(args.out, SELECTION_FILE), "w", encoding="utf-8") as handle:
+        json.dump(result, handle, indent=2)
+    print(f"held out: {result['scenes']} scenes, seeds {args.seeds}")
+    print("| rank | run | failure (per seed) | collision | off-road | realism ctg | realism body | speed / log "
+          "| kept |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for rank, run in enumerate(result["ranking"], start=1):
+        mean = result["mean"][run]
+        seeds = " / ".join(f"{r['failure_rate']:.4f}" for r in result["per_seed"][run])
+        print(f"| {rank} | {run} | {mean['failure_rate']:.4f} ({seeds}) | {mean['collision_rate']:.4f} | "
+              f"{mean['offroad_rate']:.4f} | {mean['realism_ctg']:.4f} | {mean['realism_body']:.4f} | "
+              f"{mean['speed_ratio']:.3f} | {'yes' if run in result['kept'] else ''} |")
+    print(f"averaged the best {args.keep} into {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
