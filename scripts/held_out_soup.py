@@ -40,9 +40,12 @@ def rank_runs(mean_failure: dict[str, float]) -> list[str]:
 
 
 def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int], out_dir: str,
-                       guidance: str | None, holdout_every: int, max_scenes: int | None = None) -> dict:  # type: ignore[type-arg]
+                       guidance: str | None, holdout_every: int, max_scenes: int | None = None,
+                       min_speed_ratio: float | None = None) -> dict:  # type: ignore[type-arg]
     """Drive every run in ``runs`` on the held-out train scenes (every ``holdout_every``-th) with each seed, then
-    average the ``keep`` runs of lowest mean failure rate into ``out_dir``.
+    average the ``keep`` runs of lowest mean failure rate into ``out_dir``. With ``min_speed_ratio``, runs whose
+    mean held-out speed / logged speed is below it are ranked last and never kept (failures avoided by stopping
+    do not count); an error if fewer than ``keep`` qualify.
 
     Returns {"runs": [...], "per_seed": {run: [report per seed]}, "mean": {run: {metric: mean}}, "ranking":
     [runs, best first], "kept": [...]}; rates are shares of controlled agents, realism deviations Wasserstein
@@ -65,11 +68,17 @@ def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int],
             progress.update()
     progress.close()
     mean = {run: {k: sum(r[k] for r in reports) / len(reports) for k in KEYS} for run, reports in per_seed.items()}
-    ranking = rank_runs({run: m["failure_rate"] for run, m in mean.items()})
+    fast_enough = [run for run in runs if min_speed_ratio is None or mean[run]["speed_ratio"] >= min_speed_ratio]
+    if len(fast_enough) < keep:
+        raise TrafficRLHFError(f"only {len(fast_enough)} of {len(runs)} runs reach `min_speed_ratio` "
+                               f"{min_speed_ratio} on held out; lower it or `keep` ({keep}).")
+    ranking = rank_runs({run: mean[run]["failure_rate"] for run in fast_enough})
+    ranking += rank_runs({run: mean[run]["failure_rate"] for run in runs if run not in fast_enough})
     kept = ranking[:keep]
     average_checkpoints(kept, out_dir)
     return {"model": model, "runs": runs, "keep": keep, "holdout_every": holdout_every, "scenes": len(ids),
-            "seeds": seeds, "per_seed": per_seed, "mean": mean, "ranking": ranking, "kept": kept}
+            "seeds": seeds, "min_speed_ratio": min_speed_ratio, "per_seed": per_seed, "mean": mean,
+            "ranking": ranking, "kept": kept}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--holdout-every", type=int, default=10,
                         help="The scenes `align --holdout-every K` kept out [default: 10].")
     parser.add_argument("--max-scenes", type=int, default=None, help="Only the first N held-out scenes (smoke runs).")
+    parser.add_argument("--min-speed-ratio", type=float, default=None,
+                        help="Keep only runs whose held-out speed / logged speed is at least this, e.g. 0.9.")
     parser.add_argument("--out", required=True, help="Folder for the averaged checkpoint and selection.json.")
     args = parser.parse_args(argv)
     if args.holdout_every < 2:
@@ -91,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         result = select_and_average(args.model, args.runs, args.keep, args.seeds, args.out, args.guidance,
-                                    args.holdout_every, args.max_scenes)
+                                    args.holdout_every, args.max_scenes, args.min_speed_ratio)
     except TrafficRLHFError as exc:
         print(f"Error: {exc}", file=sys.stderr)
         return 2

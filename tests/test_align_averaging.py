@@ -321,6 +321,27 @@ def test_held_out_soup_averages_the_runs_with_the_lowest_held_out_failure(three:
 def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(three: list[str], tmp_path, capsys,
                                                                             load_script) -> None:  # type: ignore[no-untyped-def]
     soup = load_script("held_out_soup")
+    # the speed guard, on canned held-out figures: the run that avoids failures by crawling is ranked last and
+    # never kept; with none fast enough nothing is written
+    figures = {three[0]: (0.01, 0.5), three[1]: (0.05, 1.0), three[2]: (0.03, 0.95)}  # (failure, speed / log)
+
+    def canned(model, run, guidance, scenario, seed):  # type: ignore[no-untyped-def]
+        failure, speed = figures[run]
+        return {key: 0.0 for key in soup.KEYS} | {"failure_rate": failure + 0.001 * seed, "speed_ratio": speed}
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(soup, "held_out_scenes", lambda every, first, split: (["s"], None))
+        patch.setattr(soup, "held_out_report", canned)
+        plain = soup.select_and_average("example_gru", three, 2, [0, 1], str(tmp_path / "plain"), None, 10)
+        guarded = soup.select_and_average("example_gru", three, 2, [0, 1], str(tmp_path / "guarded"), None, 10,
+                                          min_speed_ratio=0.9)
+        with pytest.raises(TrafficRLHFError, match="min_speed_ratio"):
+            soup.select_and_average("example_gru", three, 2, [0], str(tmp_path / "none"), None, 10,
+                                    min_speed_ratio=0.97)
+    assert plain["kept"] == [three[0], three[2]] and plain["mean"][three[0]]["failure_rate"] == pytest.approx(0.0105)
+    assert guarded["ranking"] == [three[2], three[1], three[0]] and guarded["kept"] == [three[2], three[1]]
+    assert not (tmp_path / "none").exists()
+    capsys.readouterr()  # the progress bars
     assert soup.rank_runs({"a": 0.2, "b": 0.1, "c": 0.2, "d": 0.0}) == ["d", "b", "a", "c"]
     for runs, keep, message in ((three, 4, "keep between 2 and 3"), (three, 1, "keep between 2 and 3"),
                                 ([three[0], three[0], three[1]], 2, "twice"),
