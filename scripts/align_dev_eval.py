@@ -23,6 +23,7 @@ import argparse
 import json
 
 import torch
+from tqdm import tqdm
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.align.contexts import held_out_scene_ids
@@ -64,6 +65,19 @@ def held_out_report(model: str, checkpoint: str | None, guidance: str | None, sc
     policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=seed))
     return {"wall_s": round(report.wall_time_s, 1), **{k: round(report.values[k], 4) for k in KEYS}}
+
+
+def held_out_reports(model: str, checkpoints: dict[str, str], guidance: str | None, scenario: ScenarioTensor,
+                     seeds: list[int], desc: str = "checkpoint x seed") -> dict[str, list[dict[str, float]]]:
+    """``{key: [held_out_report per seed]}`` for every ``key: checkpoint`` in ``checkpoints``, with a progress bar."""
+    reports: dict[str, list[dict[str, float]]] = {key: [] for key in checkpoints}
+    progress = tqdm(total=len(checkpoints) * len(seeds), desc=desc, unit="run")
+    for key, checkpoint in checkpoints.items():
+        for seed in seeds:
+            reports[key].append(held_out_report(model, checkpoint, guidance, scenario, seed))
+            progress.update()
+    progress.close()
+    return reports
 
 
 def main() -> None:

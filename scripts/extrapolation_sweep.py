@@ -27,8 +27,7 @@ import os
 import sys
 
 import torch
-from align_dev_eval import KEYS, held_out_report, held_out_scenes
-from tqdm import tqdm
+from align_dev_eval import KEYS, held_out_reports, held_out_scenes
 
 from trafficrlhf_sdk.align import extrapolate_checkpoint
 from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -75,14 +74,7 @@ def sweep(model: str, base: str, aligned: str, factors: list[float], seeds: list
         folder = f"x{factor:g}" if weight is None else f"x{factor:g}_d{weight:g}"
         extra = [] if weight is None or direction is None else [(direction[0], direction[1], weight)]
         checkpoints[key] = extrapolate_checkpoint(base, aligned, os.path.join(out_dir, folder), factor, extra)
-    per_seed: dict[str, list[dict[str, float]]] = {}
-    progress = tqdm(total=len(checkpoints) * len(seeds), desc="setting x seed", unit="run")
-    for key, checkpoint in checkpoints.items():
-        per_seed[key] = []
-        for seed in seeds:
-            per_seed[key].append(held_out_report(model, checkpoint, guidance, scenario, seed))
-            progress.update()
-    progress.close()
+    per_seed = held_out_reports(model, checkpoints, guidance, scenario, seeds, "setting x seed")
     mean = {f: {k: sum(r[k] for r in runs) / len(runs) for k in KEYS} for f, runs in per_seed.items()}
     fast_enough = [f for f in mean if min_speed_ratio is None or mean[f]["speed_ratio"] >= min_speed_ratio]
 

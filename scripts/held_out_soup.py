@@ -24,9 +24,8 @@ import sys
 import tempfile
 
 import torch
-from align_dev_eval import KEYS, held_out_report, held_out_scenes
+from align_dev_eval import KEYS, held_out_reports, held_out_scenes
 from extrapolation_sweep import _numbers
-from tqdm import tqdm
 
 from trafficrlhf_sdk.align import average_checkpoints
 from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -60,13 +59,7 @@ def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int],
     ids, scenario = held_out_scenes(holdout_every, None, "train")
     if max_scenes is not None:
         ids, scenario = ids[:max_scenes], scenario[:max_scenes]
-    per_seed: dict[str, list[dict[str, float]]] = {run: [] for run in runs}
-    progress = tqdm(total=len(runs) * len(seeds), desc="run x seed", unit="run")
-    for run in runs:
-        for seed in seeds:
-            per_seed[run].append(held_out_report(model, run, guidance, scenario, seed))
-            progress.update()
-    progress.close()
+    per_seed = held_out_reports(model, {run: run for run in runs}, guidance, scenario, seeds, "run x seed")
     mean = {run: {k: sum(r[k] for r in reports) / len(reports) for k in KEYS} for run, reports in per_seed.items()}
     fast_enough = [run for run in runs if min_speed_ratio is None or mean[run]["speed_ratio"] >= min_speed_ratio]
     if len(fast_enough) < keep:

@@ -325,13 +325,14 @@ def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(thre
     # never kept; with none fast enough nothing is written
     figures = {three[0]: (0.01, 0.5), three[1]: (0.05, 1.0), three[2]: (0.03, 0.95)}  # (failure, speed / log)
 
-    def canned(model, run, guidance, scenario, seed):  # type: ignore[no-untyped-def]
-        failure, speed = figures[run]
-        return {key: 0.0 for key in soup.KEYS} | {"failure_rate": failure + 0.001 * seed, "speed_ratio": speed}
+    def canned(model, checkpoints, guidance, scenario, seeds, desc):  # type: ignore[no-untyped-def]
+        return {key: [{k: 0.0 for k in soup.KEYS} | {"failure_rate": figures[run][0] + 0.001 * seed,
+                                                     "speed_ratio": figures[run][1]} for seed in seeds]
+                for key, run in checkpoints.items()}
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(soup, "held_out_scenes", lambda every, first, split: (["s"], None))
-        patch.setattr(soup, "held_out_report", canned)
+        patch.setattr(soup, "held_out_reports", canned)
         plain = soup.select_and_average("example_gru", three, 2, [0, 1], str(tmp_path / "plain"), None, 10)
         guarded = soup.select_and_average("example_gru", three, 2, [0, 1], str(tmp_path / "guarded"), None, 10,
                                           min_speed_ratio=0.9)
@@ -341,7 +342,6 @@ def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(thre
     assert plain["kept"] == [three[0], three[2]] and plain["mean"][three[0]]["failure_rate"] == pytest.approx(0.0105)
     assert guarded["ranking"] == [three[2], three[1], three[0]] and guarded["kept"] == [three[2], three[1]]
     assert not (tmp_path / "none").exists()
-    capsys.readouterr()  # the progress bars
     assert soup.rank_runs({"a": 0.2, "b": 0.1, "c": 0.2, "d": 0.0}) == ["d", "b", "a", "c"]
     for runs, keep, message in ((three, 4, "keep between 2 and 3"), (three, 1, "keep between 2 and 3"),
                                 ([three[0], three[0], three[1]], 2, "twice"),
