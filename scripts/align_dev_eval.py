@@ -67,6 +67,18 @@ def held_out_report(model: str, checkpoint: str | None, guidance: str | None, sc
     return {"wall_s": round(report.wall_time_s, 1), **{k: round(report.values[k], 4) for k in KEYS}}
 
 
+def comma_numbers(text: str, kind: type, option: str) -> list:  # type: ignore[type-arg]
+    """``"1,1.5,2"`` -> ``[1.0, 1.5, 2.0]`` (``kind`` float) for an argparse ``type=``; ``option`` names the flag
+    in the error."""
+    try:
+        values = [kind(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = []
+    if not values:
+        raise argparse.ArgumentTypeError(f"{option} is {text!r}; give comma-separated numbers such as 1,1.5,2.")
+    return values
+
+
 def held_out_reports(model: str, checkpoints: dict[str, str], guidance: str | None, scenario: ScenarioTensor,
                      seeds: list[int], desc: str = "checkpoint x seed") -> dict[str, list[dict[str, float]]]:
     """``{key: [held_out_report per seed]}`` for every ``key: checkpoint`` in ``checkpoints``, with a progress bar."""

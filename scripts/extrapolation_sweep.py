@@ -27,22 +27,12 @@ import os
 import sys
 
 import torch
-from align_dev_eval import KEYS, held_out_reports, held_out_scenes
+from align_dev_eval import KEYS, comma_numbers, held_out_reports, held_out_scenes
 
 from trafficrlhf_sdk.align import extrapolate_checkpoint
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 REALISM = ("realism_ctg", "realism_body")  # both deviations count for "realism not worse"
-
-
-def _numbers(text: str, kind: type, option: str) -> list:  # type: ignore[type-arg]
-    try:
-        values = [kind(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        values = []
-    if not values:
-        raise argparse.ArgumentTypeError(f"{option} is {text!r}; give comma-separated numbers such as 1,1.5,2.")
-    return values
 
 
 def _key(factor: float, weight: float | None) -> str:
@@ -141,8 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--base", required=True, help="Checkpoint folder alignment started from.")
     parser.add_argument("--aligned", required=True, help="Aligned checkpoint folder (one run or a seed average).")
     parser.add_argument("--factors", default="0,1,1.5,2,2.5,3",
-                        type=lambda t: _numbers(t, float, "--factors"), help="Comma-separated factors >= 0.")
-    parser.add_argument("--seeds", default="0,1,2", type=lambda t: _numbers(t, int, "--seeds"),
+                        type=lambda t: comma_numbers(t, float, "--factors"), help="Comma-separated factors >= 0.")
+    parser.add_argument("--seeds", default="0,1,2", type=lambda t: comma_numbers(t, int, "--seeds"),
                         help="Evaluation seeds (comma-separated).")
     parser.add_argument("--guidance", default=None, help="Guidance while driving, e.g. no_collision.")
     parser.add_argument("--holdout-every", type=int, default=10,
@@ -157,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--direction", nargs=2, metavar=("FROM", "TO"), default=None,
                         help="Also add w x (TO - FROM) for every w in --direction-weights (a grid).")
     parser.add_argument("--direction-weights", default="0,1",
-                        type=lambda t: _numbers(t, float, "--direction-weights"),
+                        type=lambda t: comma_numbers(t, float, "--direction-weights"),
                         help="Weights of --direction, comma-separated [default: 0,1].")
     parser.add_argument("--out", required=True, help="Folder for the checkpoints, sweep.json and sweep.png.")
     args = parser.parse_args(argv)

@@ -1,14 +1,15 @@
 r"""Average the best K of several alignment runs, chosen by their failure rate on held-out train scenes.
 
 Single PPO runs of one recipe differ widely: eight training seeds of the 4 s CTG recipe on a mirror-trained base
-changed its val failure rate by -58 % to +29 %, and the average of all eight (0.0682) was no better than the
-average run. Each run's held-out failure rate ranked the runs as val did (Spearman 0.71), and the four best on held out,
-averaged, failed 0.0482 on val (docs/explanation/alignment-log.md, session 30). The choice uses only the scenes
-``trafficrlhf align --holdout-every K`` kept out of training, never the reported val scenes.
+changed its val failure rate by -58 % to +29 %, and the average of all eight weights failed 0.0682 against 0.0784
+for the mean single run. Each run's held-out failure rate ranked the runs as val did (Spearman 0.71), and the four
+best on held out, averaged, failed 0.0482 on val (docs/explanation/alignment-log.md, session 30). The choice uses
+only the scenes ``trafficrlhf align --holdout-every K`` kept out of training, never the reported val scenes.
 
 For each run folder, drives the held-out scenes in closed loop with every seed, ranks the runs by mean held-out
-failure rate (ties keep the given order), writes the elementwise mean of the best ``--keep`` to OUT
-(``trafficrlhf average``) with ``selection.json`` (every run's per-seed figures and the choice), and prints a table.
+failure rate (ties keep the given order; runs below ``--min-speed-ratio`` last), writes the elementwise mean of
+the best ``--keep`` to OUT (``trafficrlhf average``) with ``selection.json`` (every run's per-seed figures and the
+choice), and prints a table.
 
     python scripts/held_out_soup.py --model ctg --guidance no_collision --keep 4 --holdout-every 10 \
         --runs out/ctg_s0 out/ctg_s1 out/ctg_s2 out/ctg_s3 out/ctg_s4 out/ctg_s5 out/ctg_s6 out/ctg_s7 \
@@ -24,18 +25,12 @@ import sys
 import tempfile
 
 import torch
-from align_dev_eval import KEYS, held_out_reports, held_out_scenes
-from extrapolation_sweep import _numbers
+from align_dev_eval import KEYS, comma_numbers, held_out_reports, held_out_scenes
 
 from trafficrlhf_sdk.align import average_checkpoints
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 SELECTION_FILE = "selection.json"
-
-
-def rank_runs(mean_failure: dict[str, float]) -> list[str]:
-    """Run folders from the lowest mean held-out failure rate to the highest (stable: ties keep input order)."""
-    return sorted(mean_failure, key=mean_failure.__getitem__)
 
 
 def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int], out_dir: str,
@@ -65,8 +60,8 @@ def select_and_average(model: str, runs: list[str], keep: int, seeds: list[int],
     if len(fast_enough) < keep:
         raise TrafficRLHFError(f"only {len(fast_enough)} of {len(runs)} runs reach `min_speed_ratio` "
                                f"{min_speed_ratio} on held out; lower it or `keep` ({keep}).")
-    ranking = rank_runs({run: mean[run]["failure_rate"] for run in fast_enough})
-    ranking += rank_runs({run: mean[run]["failure_rate"] for run in runs if run not in fast_enough})
+    # too slow runs go last: ranked by (too slow, failure rate)
+    ranking = sorted(runs, key=lambda run: (run not in fast_enough, mean[run]["failure_rate"]))
     kept = ranking[:keep]
     average_checkpoints(kept, out_dir)
     return {"model": model, "runs": runs, "keep": keep, "holdout_every": holdout_every, "scenes": len(ids),
@@ -80,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", nargs="+", required=True,
                         help="Aligned checkpoint folders of one recipe (same base, different training seeds).")
     parser.add_argument("--keep", type=int, required=True, help="How many of the best runs to average (>= 2).")
-    parser.add_argument("--seeds", default="0,1,2", type=lambda t: _numbers(t, int, "--seeds"),
+    parser.add_argument("--seeds", default="0,1,2", type=lambda t: comma_numbers(t, int, "--seeds"),
                         help="Evaluation seeds (comma-separated) [default: 0,1,2].")
     parser.add_argument("--guidance", default=None, help="Guidance while driving, e.g. no_collision.")
     parser.add_argument("--holdout-every", type=int, default=10,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import pytest
 import torch
@@ -318,12 +319,14 @@ def test_held_out_soup_averages_the_runs_with_the_lowest_held_out_failure(three:
     assert "| rank | run |" in capsys.readouterr().out
 
 
-def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(three: list[str], tmp_path, capsys,
+def test_held_out_soup_speed_guard_and_bad_requests_refused_before_driving(three: list[str], tmp_path, capsys,
                                                                             load_script) -> None:  # type: ignore[no-untyped-def]
     soup = load_script("held_out_soup")
     # the speed guard, on canned held-out figures: the run that avoids failures by crawling is ranked last and
     # never kept; with none fast enough nothing is written
-    figures = {three[0]: (0.01, 0.5), three[1]: (0.05, 1.0), three[2]: (0.03, 0.95)}  # (failure, speed / log)
+    # (failure, speed / log); three[1] and three[3] tie, so the given order decides between them
+    three = [*three, shutil.copytree(three[1], three[1] + "_copy")]
+    figures = {three[0]: (0.01, 0.5), three[1]: (0.05, 1.0), three[2]: (0.03, 0.95), three[3]: (0.05, 1.0)}
 
     def canned(model, checkpoints, guidance, scenario, seeds, desc):  # type: ignore[no-untyped-def]
         return {key: [{k: 0.0 for k in soup.KEYS} | {"failure_rate": figures[run][0] + 0.001 * seed,
@@ -338,11 +341,12 @@ def test_held_out_soup_ranks_stably_and_rejects_bad_requests_before_driving(thre
                                           min_speed_ratio=0.9)
         with pytest.raises(TrafficRLHFError, match="min_speed_ratio"):
             soup.select_and_average("example_gru", three, 2, [0], str(tmp_path / "none"), None, 10,
-                                    min_speed_ratio=0.97)
-    assert plain["kept"] == [three[0], three[2]] and plain["mean"][three[0]]["failure_rate"] == pytest.approx(0.0105)
-    assert guarded["ranking"] == [three[2], three[1], three[0]] and guarded["kept"] == [three[2], three[1]]
+                                    min_speed_ratio=1.01)
+    assert plain["ranking"] == [three[0], three[2], three[1], three[3]] and plain["kept"] == [three[0], three[2]]
+    assert plain["mean"][three[0]]["failure_rate"] == pytest.approx(0.0105)
+    assert guarded["ranking"] == [three[2], three[1], three[3], three[0]] and guarded["kept"] == [three[2], three[1]]
+    three = three[:3]
     assert not (tmp_path / "none").exists()
-    assert soup.rank_runs({"a": 0.2, "b": 0.1, "c": 0.2, "d": 0.0}) == ["d", "b", "a", "c"]
     for runs, keep, message in ((three, 4, "keep between 2 and 3"), (three, 1, "keep between 2 and 3"),
                                 ([three[0], three[0], three[1]], 2, "twice"),
                                 ([three[0], str(tmp_path / "missing")], 2, "does not exist")):
