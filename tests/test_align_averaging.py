@@ -356,3 +356,50 @@ def test_held_out_soup_speed_guard_and_bad_requests_refused_before_driving(three
         err = capsys.readouterr().err
         assert err.startswith("Error:") and message in err
     assert not (tmp_path / "never").exists()
+
+
+def test_greedy_soup_adds_a_run_only_when_the_held_out_failure_does_not_rise(three: list[str], tmp_path,
+                                                                             capsys, load_script) -> None:  # type: ignore[no-untyped-def]
+    soup = load_script("held_out_soup")
+    runs = [*three, _saved(tmp_path, "run3", seed=3)]
+    a, b, c, d = runs[2], runs[0], runs[3], runs[1]  # the held-out ranking the canned figures below give
+    single = {a: 0.02, b: 0.03, c: 0.04, d: 0.05}
+    # held-out failure of each trial soup: {a,b} improves, adding c would not, adding d does
+    soups = {frozenset({a, b}): 0.015, frozenset({a, b, c}): 0.018, frozenset({a, b, d}): 0.012}
+    driven = []
+
+    def canned(model, checkpoints, guidance, scenario, seeds, desc):  # type: ignore[no-untyped-def]
+        figures = {}
+        for key, folder in checkpoints.items():
+            if folder in single:
+                failure = single[folder]
+            else:
+                with open(os.path.join(folder, "averaged_from.json"), encoding="utf-8") as handle:
+                    failure = soups.get(frozenset(json.load(handle)["sources"]), 0.5)  # others: worse
+            driven.append(folder)
+            figures[key] = [{k: 0.0 for k in soup.KEYS} | {"failure_rate": failure, "speed_ratio": 1.0}
+                            for _ in seeds]
+        return figures
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(soup, "held_out_scenes", lambda every, first, split: (["s"], None))
+        patch.setattr(soup, "held_out_reports", canned)
+        result = soup.select_and_average("example_gru", runs, None, [0, 1], str(tmp_path / "greedy"), None, 10)
+        # when no trial improves on the best run, the soup is that run, copied
+        single[a] = 0.001
+        alone = soup.select_and_average("example_gru", runs, None, [0], str(tmp_path / "alone"), None, 10)
+    assert result["ranking"] == [a, b, c, d] and result["kept"] == [a, b, d]
+    assert [(t["run"], t["soup_size"], t["accepted"]) for t in result["greedy"]] == [
+        (b, 2, True), (c, 3, False), (d, 3, True)]
+    assert [t["mean"]["failure_rate"] for t in result["greedy"]] == pytest.approx([0.015, 0.018, 0.012])
+    assert len(driven) == 4 + 3 + 4 + 3  # every run once, then one drive per trial (both calls)
+    kept = [_weights(folder) for folder in (a, b, d)]
+    for name, value in _weights(str(tmp_path / "greedy")).items():
+        torch.testing.assert_close(value.double(), sum(w[name].double() for w in kept) / 3, atol=1e-6, rtol=0)
+    assert alone["kept"] == [a] and not any(t["accepted"] for t in alone["greedy"])
+    assert all(torch.equal(v, _weights(a)[k]) for k, v in _weights(str(tmp_path / "alone")).items())
+    # --greedy and --keep exclude each other; one of them is required
+    for extra in ([], ["--greedy", "--keep", "2"]):
+        with pytest.raises(SystemExit):
+            soup.main(["--model", "example_gru", "--runs", *runs, *extra, "--out", str(tmp_path / "never")])
+    assert "--keep" in capsys.readouterr().err and not (tmp_path / "never").exists()
