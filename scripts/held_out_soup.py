@@ -98,7 +98,7 @@ def select_and_average(model: str, runs: list[str], keep: int | None, seeds: lis
     fast_enough = [run for run in runs if min_speed_ratio is None or mean[run]["speed_ratio"] >= min_speed_ratio]
     if len(fast_enough) < (keep or 1):
         raise TrafficRLHFError(f"only {len(fast_enough)} of {len(runs)} runs reach `min_speed_ratio` "
-                               f"{min_speed_ratio} on held out; lower it or `keep` ({keep}).")
+                               f"{min_speed_ratio} on held out; lower it" + (f" or `keep` ({keep})." if keep else "."))
     # too slow runs go last: ranked by (too slow, failure rate)
     ranking = sorted(runs, key=lambda run: (run not in fast_enough, mean[run]["failure_rate"]))
     trials = None
