@@ -62,13 +62,14 @@ def history_features(context: ScenarioTensor, num_steps: int) -> tuple[torch.Ten
     return features * valid[..., None], valid
 
 
-def neighbour_features(context: ScenarioTensor, num_neighbours: int,
-                       radius_m: float = 50.0) -> tuple[torch.Tensor, torch.Tensor]:
+def neighbour_features(context: ScenarioTensor, num_neighbours: int, radius_m: float = 50.0,
+                       return_index: bool = False) -> tuple[torch.Tensor, ...]:
     """The nearest ``num_neighbours`` other agents valid now, in each agent's frame.
 
     Returns:
         features ``(B, A, K, 7)``: x, y (m), cos and sin of relative yaw, speed (m/s), length, width (m);
-        valid ``(B, A, K)`` (False for missing neighbours and those beyond ``radius_m``).
+        valid ``(B, A, K)`` (False for missing neighbours and those beyond ``radius_m``); with ``return_index``
+        also the neighbours' agent slots ``(B, A, K)`` long (arbitrary where not valid).
     """
     now = context.states[:, :, context.current_index]
     valid_now = context.valid[:, :, context.current_index]
@@ -99,6 +100,9 @@ def neighbour_features(context: ScenarioTensor, num_neighbours: int,
     if k < num_neighbours:
         features = torch.nn.functional.pad(features, (0, 0, 0, num_neighbours - k))
         picked_valid = torch.nn.functional.pad(picked_valid, (0, num_neighbours - k))
+        order = torch.nn.functional.pad(order, (0, num_neighbours - k))
+    if return_index:
+        return features * picked_valid[..., None], picked_valid, order
     return features * picked_valid[..., None], picked_valid
 
 

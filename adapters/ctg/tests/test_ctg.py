@@ -190,3 +190,113 @@ def test_model_size_knobs_reach_the_layers_and_old_configs_keep_their_layout() -
                 "history_valid": torch.ones(3, 10, dtype=torch.bool), "extent": torch.ones(3, 2),
                 "neighbours": torch.zeros(3, 8, 7), "neighbour_valid": torch.zeros(3, 8, dtype=torch.bool)}
     assert model.encode(features).shape == (3, 256)
+
+
+# ------------------------------------------------------------ interaction: neighbours' plans
+def _plan_adapter():  # type: ignore[no-untyped-def]
+    """A fresh (untrained) 4 s CTG that conditions on its neighbours' plans at 1, 2, 3 and 4 s."""
+    from ctg_reference.model import CTGConfig
+    from trafficrlhf_ctg import CTGAdapter
+
+    cfg = CTGConfig(horizon=40, neighbour_plan_steps=[10, 20, 30, 40])
+    return CTGAdapter(config=cfg.to_dict(), seed=0)
+
+
+@needs_data
+def test_neighbour_plans_are_in_the_agent_frame_and_only_for_neighbours_ahead(scenes) -> None:  # type: ignore[no-untyped-def]
+    """Each shown plan is the neighbour's scene-frame position rotated into the agent's frame (checked point by
+    point with an independent rotation); neighbours behind the agent or without a plan are hidden."""
+    import math
+
+    from ctg_reference.data import agent_features, neighbour_plan_features
+    from ctg_reference.model import CTGConfig
+
+    cfg = CTGConfig(horizon=40, neighbour_plan_steps=[10, 20, 30, 40])
+    features = agent_features(scenes, cfg)
+    b, a = scenes.num_scenes, scenes.num_agents
+    positions = torch.randn(b, 2, a, 4, 2, generator=torch.Generator().manual_seed(0)) * 30
+    known = torch.ones(b, 2, a, 4, dtype=torch.bool)
+    known[:, :, 0] = False  # agent slot 0 has no plan
+    plan, valid = neighbour_plan_features(scenes, features["neighbours"], features["neighbour_valid"],
+                                          features["neighbour_index"], positions, known)
+    assert plan.shape == (b, 2, a, cfg.num_neighbours, 4, 2) and valid.shape == plan.shape[:-1]
+    now = scenes.current_index
+    checked = 0
+    for scene, sample, agent, k, step in valid.nonzero().tolist():
+        j = int(features["neighbour_index"][scene, agent, k])
+        assert j != 0 and features["neighbours"][scene, agent, k, 0] > 0
+        x0, y0, _, yaw = scenes.states[scene, agent, now].tolist()
+        dx, dy = (positions[scene, sample, j, step] - torch.tensor([x0, y0])).tolist()
+        expected = (math.cos(yaw) * dx + math.sin(yaw) * dy, -math.sin(yaw) * dx + math.cos(yaw) * dy)
+        assert plan[scene, sample, agent, k, step].tolist() == pytest.approx(expected, abs=1e-3)
+        checked += 1
+    assert checked > 0
+    behind = features["neighbour_valid"] & (features["neighbours"][..., 0] <= 0)
+    assert behind.any() and not (valid & behind[:, None, :, :, None]).any()
+    assert (plan[~valid] == 0).all()
+
+
+def test_per_sample_plans_encode_like_one_row_per_sample() -> None:
+    """The encoder's sample axis is a batch axis: conditioning on S plans at once equals conditioning row by
+    row; with every plan hidden it equals the encoding without plans."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=40, neighbour_plan_steps=[10, 20, 30, 40])).eval()
+    n, s, k = 3, 4, 8
+    features = {"map": (torch.rand(n, 3, 48, 48) > 0.5).float(), "history": torch.randn(n, 10, 5),
+                "history_valid": torch.ones(n, 10, dtype=torch.bool), "extent": torch.ones(n, 2),
+                "neighbours": torch.randn(n, k, 7), "neighbour_valid": torch.rand(n, k) > 0.3}
+    plan, plan_valid = torch.randn(n, s, k, 4, 2) * 10, torch.rand(n, s, k, 4) > 0.4
+    with torch.no_grad():
+        joint = model.encode({**features, "neighbour_plan": plan, "neighbour_plan_valid": plan_valid})
+        assert joint.shape == (n, s, model.cfg.cond_dim)
+        for i in range(s):
+            single = model.encode({**features, "neighbour_plan": plan[:, i], "neighbour_plan_valid": plan_valid[:, i]})
+            assert torch.allclose(joint[:, i], single, atol=1e-5)
+        nobody = torch.zeros_like(plan_valid[:, 0])
+        hidden = model.encode({**features, "neighbour_plan": plan[:, 0], "neighbour_plan_valid": nobody})
+        assert torch.allclose(hidden, model.encode(features), atol=1e-6)
+        other = model.encode({**features, "neighbour_plan": plan[:, 0] + 5, "neighbour_plan_valid": plan_valid[:, 0]})
+        assert not torch.allclose(other, joint[:, 0])  # the plans are read
+
+
+@needs_data
+def test_two_pass_sampler_keeps_the_contract_and_exact_log_prob(scenes) -> None:  # type: ignore[no-untyped-def]
+    """The proposal pass is part of the context: check_adapter passes, the trace carries the proposals, and the
+    guided chain's log-probability recomputed from the trace equals the sampling-time value."""
+    from trafficrlhf_sdk.testing.check_adapter import check_adapter
+
+    adapter = _plan_adapter()
+    check_adapter(adapter, scenes)
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    out = adapter.sample(scenes, 3, guidance, torch.Generator().manual_seed(1))
+    assert out.trace.tensors["plan_positions"].shape == (scenes.num_scenes, 3, scenes.num_agents, 4, 2)
+    assert torch.allclose(adapter.log_prob(scenes, out.trace), out.log_prob, atol=1e-3, rtol=1e-5)
+    # a different proposal changes the density: the trace's proposals are really used
+    moved = out.trace.tensors["plan_positions"] + 3.0
+    trace = type(out.trace)({**out.trace.tensors, "plan_positions": moved}, out.trace.agents, out.trace.now)
+    assert not torch.allclose(adapter.log_prob(scenes, trace), out.log_prob, atol=1e-3)
+
+
+@needs_data
+def test_training_windows_see_the_same_logged_plans_as_imitation_loss(scenes) -> None:  # type: ignore[no-untyped-def]
+    """The training script's batched featurization and the adapter's per-step path (used by imitation_loss)
+    give the same neighbour plans for the same window."""
+    from ctg_reference.data import agent_features, logged_neighbour_plans, window_mask
+    from ctg_reference.model import CTGConfig
+    from ctg_reference.train import scene_samples
+
+    cfg = CTGConfig(horizon=40, neighbour_plan_steps=[10, 20, 30, 40])
+    first = ("states", "valid", "extent", "agent_type", "controlled")  # the first scene alone
+    scene = scenes.replace_unchecked(**{k: getattr(scenes, k)[:1] for k in first})
+    samples = scene_samples(scene, cfg, stride=1000)  # one window: now = history_steps
+    t = cfg.history_steps
+    at_t = scene.replace_unchecked(current_index=t)
+    features = agent_features(at_t, cfg)
+    plan, valid = logged_neighbour_plans(at_t, cfg, features)
+    mask = window_mask(scene, t, cfg.horizon, cfg.history_steps)
+    assert samples is not None and samples["neighbour_plan"].shape[0] == int(mask.sum())
+    assert torch.equal(samples["neighbour_plan_valid"], valid[mask])
+    assert torch.allclose(samples["neighbour_plan"], plan[mask], atol=1e-4)
+    assert valid[mask].any()

@@ -9,6 +9,11 @@
   was actually drawn from.
 * Trace: ``chain (B, S, A, K+1, 20, 2)`` (normalized x_K .. x_0) and ``guide_delta (B, S, A, K, 20, 2)``;
   log-probabilities are per denoising step, ``(B, S, A, K)`` with K = 5.
+* Interaction (checkpoints trained with ``--neighbour-plan-steps``): ``sample`` first draws an unguided proposal
+  for every sampled agent, then the plans themselves, each agent's sample s conditioned on the proposals s of
+  its sampled neighbours ahead of it. The proposals' positions at the plan steps are stored in the trace
+  (``plan_positions (B, S, A, F, 2)``): they are part of the context of the second pass, whose chain alone is
+  scored by ``log_prob``.
 * Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
   kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
   ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
@@ -23,7 +28,15 @@ import torch
 from pydantic import Field
 
 import ctg_reference
-from ctg_reference.data import agent_features, future_targets, select_rows, window_mask
+from ctg_reference.data import (
+    agent_features,
+    drop_neighbour_plans,
+    future_targets,
+    logged_neighbour_plans,
+    neighbour_plan_features,
+    select_rows,
+    window_mask,
+)
 from ctg_reference.model import CTGConfig, CTGModel
 from trafficrlhf_sdk.dynamics import unicycle_rollout
 from trafficrlhf_sdk.guidance import GuidanceSet
@@ -85,10 +98,25 @@ class CTGAdapter(TrafficModelAdapter):
             raise ValueError(f"the CTG model runs at dt={self.cfg.dt} s; the scenario has dt={context.dt} s. Load "
                              "the scenes with dt=0.1.")
 
-    def _encode(self, context: ScenarioTensor, agents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Conditioning ``(N, D)`` and current scene-frame states ``(N, 4)`` of the ``agents (B, A)`` rows."""
-        rows = select_rows(agent_features(context, self.cfg), agents)
+    def _encode(self, context: ScenarioTensor, agents: torch.Tensor, plan_positions: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Conditioning ``(N, D)`` and current scene-frame states ``(N, 4)`` of the ``agents (B, A)`` rows; with
+        the sampled agents' ``plan_positions (B, S, A, F, 2)`` the conditioning is per sample, ``(N, S, D)``."""
+        features = agent_features(context, self.cfg)
+        rows = select_rows(features, agents)
+        if plan_positions is not None:
+            b, s, a, f, _ = plan_positions.shape
+            known = agents[:, None, :, None].expand(b, s, a, f)
+            plan, valid = neighbour_plan_features(context, features["neighbours"], features["neighbour_valid"],
+                                                  features["neighbour_index"], plan_positions, known)
+            rows["neighbour_plan"] = plan.transpose(1, 2)[agents]  # (N, S, K, F, 2)
+            rows["neighbour_plan_valid"] = valid.transpose(1, 2)[agents]
         return self.model.encode(rows), context.states[:, :, context.current_index][agents]
+
+    def _plan_positions(self, futures: torch.Tensor) -> torch.Tensor:
+        """Positions ``(B, S, A, F, 2)`` of scene-frame ``futures (B, S, A, H, 4)`` at the plan steps."""
+        steps = torch.tensor(self.cfg.neighbour_plan_steps, device=futures.device) - 1
+        return futures[..., steps, :2]
 
     def _rollout(self, x: torch.Tensor, state_now: torch.Tensor) -> torch.Tensor:
         """Scene-frame futures ``(N, S, H, 4)`` of normalized actions ``x (N, S, H, 2)``; stationary agents held."""
@@ -120,8 +148,15 @@ class CTGAdapter(TrafficModelAdapter):
         current = context.states[:, :, now]  # (B, A, 4)
         hold = torch.stack([current[..., 0], current[..., 1], torch.zeros_like(current[..., 0]), current[..., 3]], -1)
         base_futures = hold[:, :, None, None].expand(b, a, s, h, 4)
+        plan_positions = None
         with torch.no_grad():
             cond, state_now = self._encode(context, agents)
+            if self.cfg.neighbour_plan_steps and cond.shape[0] > 0:  # the proposal pass, then the plans
+                proposal, _, _, _ = self.model.sample(cond, s, generator)
+                proposed = self._scatter(self._rollout(self.model.normalize(proposal), state_now), agents,
+                                         base_futures)
+                plan_positions = self._plan_positions(proposed)
+                cond, _ = self._encode(context, agents, plan_positions)
             guidance_fn = None
             if guidance is not None and cond.shape[0] > 0:
                 def guidance_fn(mean: torch.Tensor, step: int) -> torch.Tensor:
@@ -132,11 +167,14 @@ class CTGAdapter(TrafficModelAdapter):
             actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn)
             futures = self._rollout(self.model.normalize(actions), state_now)
         dev = context.device
+        tensors = {
+            "chain": self._scatter(chain, agents, torch.zeros(b, a, s, k + 1, h, 2, device=dev)),
+            "guide_delta": self._scatter(delta, agents, torch.zeros(b, a, s, k, h, 2, device=dev)),
+        }
+        if plan_positions is not None:
+            tensors["plan_positions"] = plan_positions
         trace = PolicyTrace(
-            tensors={
-                "chain": self._scatter(chain, agents, torch.zeros(b, a, s, k + 1, h, 2, device=dev)),
-                "guide_delta": self._scatter(delta, agents, torch.zeros(b, a, s, k, h, 2, device=dev)),
-            },
+            tensors=tensors,
             agents=agents,
             now=now,
             info={"guidance": None if guidance is None else guidance.names},
@@ -157,7 +195,7 @@ class CTGAdapter(TrafficModelAdapter):
         delta = trace.tensors["guide_delta"].transpose(1, 2)[agents]
         b, s, a = trace.tensors["chain"].shape[:3]
         k = chain.shape[2] - 1
-        cond, _ = self._encode(context, agents)
+        cond, _ = self._encode(context, agents, trace.tensors.get("plan_positions"))
         log_prob = self.model.chain_log_prob(cond, chain, delta)  # (N, S, K)
         return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
 
@@ -177,7 +215,13 @@ class CTGAdapter(TrafficModelAdapter):
             mask = window_mask(batch, t, h, th)
             if not mask.any():
                 continue
-            rows = select_rows(agent_features(batch.replace_unchecked(current_index=t), self.cfg), mask)
+            at_t = batch.replace_unchecked(current_index=t)
+            features = agent_features(at_t, self.cfg)
+            rows = select_rows(features, mask)
+            if self.cfg.neighbour_plan_steps:  # as in training: logged plans, randomly hidden
+                plan, valid = logged_neighbour_plans(at_t, self.cfg, features)
+                rows["neighbour_plan"] = plan[mask]
+                rows["neighbour_plan_valid"] = drop_neighbour_plans(valid[mask], self.cfg)
             acts, states = future_targets(batch, t, h, actions_all)
             rows["actions"], rows["states"] = acts[mask], states[mask]
             for key, value in rows.items():

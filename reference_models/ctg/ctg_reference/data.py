@@ -16,9 +16,11 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 from ctg_reference.model import CTGConfig
 
-__all__ = ["FEATURE_KEYS", "agent_features", "future_targets", "select_rows", "window_mask"]
+__all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "drop_neighbour_plans", "future_targets",
+           "logged_neighbour_plans", "neighbour_plan_features", "select_rows", "window_mask"]
 
 FEATURE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0")
+PLAN_KEYS = ("neighbour_plan", "neighbour_plan_valid")
 
 
 def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dtype = torch.float32
@@ -27,12 +29,15 @@ def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dty
 
     map ``(B, A, C, S, S)`` (``cfg.map_resolution`` m per cell, a quarter of the crop behind the agent),
     history ``(B, A, Th, 5)`` and history_valid, extent ``(B, A, 2)``,
-    neighbours ``(B, A, K, 7)`` and neighbour_valid, v0 ``(B, A)``.
+    neighbours ``(B, A, K, 7)`` and neighbour_valid, neighbour_index ``(B, A, K)`` (their agent slots),
+    v0 ``(B, A)``.
     """
     crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.map_resolution, behind_fraction=0.25)
     history, history_valid = history_features(context, cfg.history_steps)
-    neighbours, neighbour_valid = neighbour_features(context, cfg.num_neighbours)
+    neighbours, neighbour_valid, neighbour_index = neighbour_features(context, cfg.num_neighbours,
+                                                                      return_index=True)
     return {
+        "neighbour_index": neighbour_index,
         "map": crops.to(map_dtype),
         "history": history,
         "history_valid": history_valid,
@@ -68,3 +73,55 @@ def future_targets(scenario: ScenarioTensor, now: int, horizon: int, actions: to
     local = to_agent_frame(future[..., :2], pose)
     yaw = wrap_angle(future[..., 3] - pose[..., 2:3])
     return acts, torch.cat([local, future[..., 2:3], yaw[..., None]], -1)
+
+
+def neighbour_plan_features(context: ScenarioTensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
+                            neighbour_index: torch.Tensor, positions: torch.Tensor, known: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each agent's nearest neighbours plan to be, in its frame at ``context.current_index``.
+
+    Args:
+        neighbours, neighbour_valid, neighbour_index: from :func:`agent_features` (``(B, A, K, 7)``, ``(B, A, K)``).
+        positions: ``(B, S, A, F, 2)`` every agent slot's planned scene-frame position (m) at the F plan steps,
+            per sample S; known: ``(B, S, A, F)`` bool, where a plan exists.
+
+    Returns:
+        plan ``(B, S, A, K, F, 2)`` (m, agent frame) and plan_valid ``(B, S, A, K, F)``: known, a picked
+        neighbour, and ahead of the agent now (x > 0). Only neighbours ahead are shown: a follower's plan mostly
+        reacts to its leader, so the model must not learn to read its own future from the agents behind it.
+    """
+    b, s = positions.shape[:2]
+    scene = torch.arange(b, device=positions.device)[:, None, None, None]
+    sample = torch.arange(s, device=positions.device)[None, :, None, None]
+    slot = neighbour_index[:, None]  # (B, 1, A, K)
+    picked = positions[scene, sample, slot]  # (B, S, A, K, F, 2)
+    plan_known = known[scene, sample, slot]  # (B, S, A, K, F)
+    local = to_agent_frame(picked.transpose(1, 2), agent_poses(context)).transpose(1, 2)
+    shown = neighbour_valid & (neighbours[..., 0] > 0)  # (B, A, K)
+    valid = plan_known & shown[:, None, :, :, None]
+    return local * valid[..., None], valid
+
+
+def logged_neighbour_plans(scenario: ScenarioTensor, cfg: CTGConfig, features: dict[str, torch.Tensor]
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The logged future as the neighbours' plans (training): ``(B, A, K, F, 2)`` and valid ``(B, A, K, F)``
+    at ``scenario.current_index``, from the :func:`agent_features` of the same context."""
+    steps = torch.tensor(cfg.neighbour_plan_steps, device=scenario.device) + scenario.current_index
+    inside = steps < scenario.num_steps
+    steps = steps.clamp_max(scenario.num_steps - 1)
+    positions = scenario.xy[:, :, steps][:, None]  # (B, 1, A, F, 2)
+    known = (scenario.valid[:, :, steps] & inside)[:, None]  # (B, 1, A, F)
+    plan, valid = neighbour_plan_features(scenario, features["neighbours"], features["neighbour_valid"],
+                                          features["neighbour_index"], positions, known)
+    return plan[:, 0], valid[:, 0]
+
+
+def drop_neighbour_plans(valid: torch.Tensor, cfg: CTGConfig, generator: torch.Generator | None = None
+                         ) -> torch.Tensor:
+    """Training dropout of ``valid (N, K, F)``: a share ``cfg.plan_dropout_all`` of the rows sees no plan (as
+    the proposal pass does), the others lose each neighbour's plan with probability ``cfg.plan_dropout_each``
+    (as for neighbours that are not sampled)."""
+    n, k = valid.shape[:2]
+    rows = torch.rand(n, 1, generator=generator, device=valid.device) >= cfg.plan_dropout_all
+    each = torch.rand(n, k, generator=generator, device=valid.device) >= cfg.plan_dropout_each
+    return valid & (rows & each)[..., None]

@@ -61,6 +61,12 @@ class CTGConfig:
     guidance_step: float = 0.3
     x0_clip: float = 6.0
     state_loss_weight: float = 1.0
+    # interaction: steps after now at which the neighbours' planned positions are an input (empty: none). The
+    # sampler then draws twice: a proposal for every agent without them, and the plans conditioned on the
+    # proposals of the sampled neighbours ahead (see :meth:`CTGModel.sample` callers).
+    neighbour_plan_steps: list[int] = field(default_factory=list)
+    plan_dropout_all: float = 0.5  # training: share of windows that see no neighbour plan (the proposal pass)
+    plan_dropout_each: float = 0.2  # training: share of the other windows' neighbour plans hidden one by one
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -122,7 +128,9 @@ class ContextEncoder(nn.Module):
     Inputs (all in the agent frame):
         map ``(N, C, S, S)`` in {0, 1}; history ``(N, Th, 5)`` (x, y, speed, cos, sin of relative yaw) with
         ``history_valid (N, Th)``; extent ``(N, 2)`` (length, width); neighbours ``(N, K, 7)`` (x, y, cos, sin,
-        speed, length, width) with ``neighbour_valid (N, K)``.
+        speed, length, width) with ``neighbour_valid (N, K)``; optionally the neighbours' planned positions
+        ``neighbour_plan (N, [S,] K, F, 2)`` (m) with ``neighbour_plan_valid (N, [S,] K, F)``, F =
+        ``len(cfg.neighbour_plan_steps)``; with the sample axis S the output is ``(N, S, cond_dim)``.
     """
 
     def __init__(self, cfg: CTGConfig) -> None:
@@ -139,7 +147,8 @@ class ContextEncoder(nn.Module):
             flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
         self.map_head = nn.Sequential(nn.Linear(flat, cfg.map_dim), nn.Mish())
         self.history = _mlp([cfg.history_steps * 6 + 2, 128, 64])
-        self.neighbour = _mlp([8, 64, 64])
+        self.num_plan_steps = len(cfg.neighbour_plan_steps)
+        self.neighbour = _mlp([8 + 3 * self.num_plan_steps, 64, 64])
         self.fuse = _mlp([cfg.map_dim + 64 + 64, 256, cfg.cond_dim])
         # fixed input scales (m, m/s): keep inputs O(1)
         self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
@@ -147,17 +156,35 @@ class ContextEncoder(nn.Module):
                              persistent=False)
 
     def forward(self, map_crop: torch.Tensor, history: torch.Tensor, history_valid: torch.Tensor,
-                extent: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor) -> torch.Tensor:
-        """Conditioning ``(N, cond_dim)``."""
+                extent: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
+                neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """Conditioning ``(N, cond_dim)``, or ``(N, S, cond_dim)`` for a plan with a sample axis."""
         m = self.map_head(self.cnn(map_crop.float()))
         hv = history_valid.float()
         h = torch.cat([history / self.history_scale * hv[..., None], hv[..., None]], -1).flatten(1)
         h = self.history(torch.cat([h, extent / 5.0], -1))
         nv = neighbour_valid.float()
-        n = self.neighbour(torch.cat([neighbours / self.neighbour_scale, nv[..., None]], -1))  # (N, K, 64)
-        n = torch.where(neighbour_valid[..., None], n, torch.full_like(n, -1e4)).amax(1)
-        n = torch.where(neighbour_valid.any(1, keepdim=True), n, torch.zeros_like(n))
-        return self.fuse(torch.cat([m, h, n], -1))
+        n_in = torch.cat([neighbours / self.neighbour_scale, nv[..., None]], -1)  # (N, K, 8)
+        valid = neighbour_valid
+        per_sample = neighbour_plan is not None and neighbour_plan.dim() == 5
+        if self.num_plan_steps:
+            n, k, f = neighbours.shape[0], neighbours.shape[1], self.num_plan_steps
+            if neighbour_plan is None or neighbour_plan_valid is None:  # nobody's plan known
+                neighbour_plan = neighbours.new_zeros(n, k, f, 2)
+                neighbour_plan_valid = torch.zeros(n, k, f, dtype=torch.bool, device=neighbours.device)
+            pv = neighbour_plan_valid.float()
+            plan = torch.cat([neighbour_plan / 20.0 * pv[..., None], pv[..., None]], -1).flatten(-2)  # (.., K, 3F)
+            if per_sample:
+                n_in = n_in[:, None].expand(n, plan.shape[1], k, n_in.shape[-1])
+                valid = valid[:, None].expand(n, plan.shape[1], k)
+            n_in = torch.cat([n_in, plan], -1)
+        nb = self.neighbour(n_in)  # (N, [S,] K, 64)
+        nb = torch.where(valid[..., None], nb, torch.full_like(nb, -1e4)).amax(-2)
+        nb = torch.where(valid.any(-1, keepdim=True), nb, torch.zeros_like(nb))
+        if per_sample:
+            m, h = (t[:, None].expand(t.shape[0], nb.shape[1], t.shape[-1]) for t in (m, h))
+        return self.fuse(torch.cat([m, h, nb], -1))
 
 
 # --------------------------------------------------------------------------------------------- denoiser
@@ -281,7 +308,8 @@ class CTGModel(nn.Module):
         """Conditioning ``(N, cond_dim)`` from a feature dict (keys: map, history, history_valid, extent,
         neighbours, neighbour_valid)."""
         return self.encoder(features["map"], features["history"], features["history_valid"], features["extent"],
-                            features["neighbours"], features["neighbour_valid"])
+                            features["neighbours"], features["neighbour_valid"], features.get("neighbour_plan"),
+                            features.get("neighbour_plan_valid"))
 
     def predict_x0(self, x: torch.Tensor, k: torch.Tensor | int, cond: torch.Tensor) -> torch.Tensor:
         """Denoiser output (clean normalized actions) for noisy ``x (N, H, 2)`` at step ``k``."""
@@ -341,7 +369,7 @@ class CTGModel(nn.Module):
         """Draw ``num_samples`` normalized action sequences per conditioning row.
 
         Args:
-            cond: ``(N, cond_dim)``.
+            cond: ``(N, cond_dim)``, or ``(N, S, cond_dim)`` for one conditioning per sample.
             num_samples: S.
             generator: source of all the randomness.
             guidance_fn: optional ``f(mean (N, S, H, 2) normalized, step index) -> scalar`` objective to lower;
@@ -353,7 +381,7 @@ class CTGModel(nn.Module):
         """
         n, s = cond.shape[0], num_samples
         h = self.cfg.horizon
-        c = cond[:, None].expand(n, s, cond.shape[-1]).reshape(n * s, -1)
+        c = (cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])).reshape(n * s, -1)
         x = torch.randn((n * s, h, 2), generator=generator, device=cond.device)
         schedule = self.sample_schedule
         chain, deltas, log_probs = [x], [], []
@@ -382,11 +410,13 @@ class CTGModel(nn.Module):
     def chain_log_prob(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None
                        ) -> torch.Tensor:
         """Per-step log-probabilities ``(N, S, K)`` of a stored chain ``(N, S, K+1, H, 2)`` under the current
-        parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims."""
+        parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims.
+        ``cond`` is ``(N, cond_dim)`` or ``(N, S, cond_dim)``."""
         n, s, steps1, h, _ = chain.shape
         k_steps = steps1 - 1
         schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
-        c = cond[:, None, None].expand(n, s, k_steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
+        per_sample = cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])
+        c = per_sample[:, :, None].expand(n, s, k_steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
         k = schedule[:, 0].repeat(n * s)
         k_prev = schedule[:, 1].repeat(n * s)
         x = chain[:, :, :-1].reshape(-1, h, 2)

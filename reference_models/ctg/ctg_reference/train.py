@@ -31,6 +31,7 @@ from trafficrlhf_sdk.models.features import history_features, map_crops, neighbo
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
+from ctg_reference.data import PLAN_KEYS, drop_neighbour_plans, neighbour_plan_features
 from ctg_reference.model import CTGConfig, CTGModel
 
 STORE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0", "actions",
@@ -60,7 +61,8 @@ def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor]
         controlled=scene.controlled.expand(n, a), map=None, origin=None, current_index=th - 1,
     )
     history, history_valid = history_features(stacked, th)
-    neighbours, neighbour_valid = neighbour_features(stacked, cfg.num_neighbours)
+    neighbours, neighbour_valid, neighbour_index = neighbour_features(stacked, cfg.num_neighbours,
+                                                                      return_index=True)
     now = stacked.states[:, :, -1]  # (n, A, 4)
     rows = now[mask]  # (N, 4)
     single = scene.replace_unchecked(
@@ -75,24 +77,33 @@ def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor]
     pose = torch.stack([rows[:, 0], rows[:, 1], rows[:, 3]], -1)[None]  # (1, N, 3)
     local = to_agent_frame(future[None, :, :, :2], pose)[0]
     yaw = wrap_angle(future[..., 3] - rows[:, 3:4])
-    return {
+    out = {
         "map": crops.to(torch.uint8), "history": history[mask], "history_valid": history_valid[mask],
         "extent": stacked.extent[mask], "neighbours": neighbours[mask], "neighbour_valid": neighbour_valid[mask],
         "v0": rows[:, 2], "actions": actions, "states": torch.cat([local, future[..., 2:3], yaw[..., None]], -1),
     }
+    if cfg.neighbour_plan_steps:  # the neighbours' logged positions at the plan steps, as their "plans"
+        plan_idx = (steps[:, None] + torch.tensor(cfg.neighbour_plan_steps)).clamp_max(scene.num_steps - 1)
+        positions = scene.xy[0][:, plan_idx].permute(1, 0, 2, 3)[:, None]  # (n, 1, A, F, 2)
+        known = scene.valid[0][:, plan_idx].permute(1, 0, 2)[:, None]  # (n, 1, A, F)
+        plan, plan_valid = neighbour_plan_features(stacked, neighbours, neighbour_valid, neighbour_index,
+                                                   positions, known)
+        out["neighbour_plan"], out["neighbour_plan_valid"] = plan[:, 0][mask], plan_valid[:, 0][mask]
+    return out
 
 
 def build_samples(source, split: str, scene_ids: list[str], cfg: CTGConfig, stride: int,
                   desc: str = "", mirror: bool = False) -> dict[str, torch.Tensor]:
     """Featurize every usable (scene, vehicle, t) window of ``scene_ids``; map crops stored as uint8. With
     ``mirror``, each scene's mirror image (``y -> -y``, its map reflected alike) adds its windows too."""
-    parts: dict[str, list[torch.Tensor]] = {k: [] for k in STORE_KEYS}
+    keys = STORE_KEYS + (PLAN_KEYS if cfg.neighbour_plan_steps else ())
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
     scenes = source.iter_scenes(split, scene_ids)
     for scene in tqdm(scenes, total=len(scene_ids), desc=desc or f"featurizing {split}", unit="scene"):
         for variant in (scene, mirror_scenario(scene)) if mirror else (scene,):
             samples = scene_samples(variant, cfg, stride)
             if samples is not None:
-                for k in STORE_KEYS:
+                for k in keys:
                     parts[k].append(samples[k])
     return {k: torch.cat(v) for k, v in parts.items()}
 
@@ -151,6 +162,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--mirror", action="store_true",
                         help="Also train on each train scene's mirror image (twice the windows; nuScenes has both "
                              "right-hand Boston and left-hand Singapore traffic).")
+    parser.add_argument("--neighbour-plan-steps", type=int, nargs="*", default=[], metavar="STEP",
+                        help="Interaction: condition on the neighbours' planned positions this many steps ahead "
+                             "(e.g. 10 20 30 40); the adapter then samples a proposal pass and a conditioned "
+                             "pass. Default: none (the committed layout).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -169,7 +184,10 @@ def main(argv: list[str] | None = None) -> None:
                      f"{args.unet_dims}, {args.cnn_width}.")
     cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution,
                     unet_dims=tuple(args.unet_dims), cond_dim=args.cond_dim, map_dim=args.map_dim,
-                    cnn_width=args.cnn_width)
+                    cnn_width=args.cnn_width, neighbour_plan_steps=list(args.neighbour_plan_steps))
+    if any(step < 1 or step > args.horizon for step in cfg.neighbour_plan_steps):
+        parser.error(f"--neighbour-plan-steps must lie in 1..--horizon ({args.horizon}); got "
+                     f"{cfg.neighbour_plan_steps}.")
     # history_s=0: windows start at the first logged step; we pick "now" ourselves; every scene with one horizon
     source = get_scenario_source("nuscenes_pred", history_s=0.0, min_future_s=cfg.horizon * cfg.dt, **options)
     train_ids = source.scene_ids("train")[: args.train_scenes]
@@ -214,6 +232,8 @@ def main(argv: list[str] | None = None) -> None:
             group["lr"] = lr
         idx = torch.randint(0, n_train, (args.batch_size,), generator=gen)
         b = batch_of(train, idx)
+        if cfg.neighbour_plan_steps:
+            b["neighbour_plan_valid"] = drop_neighbour_plans(b["neighbour_plan_valid"], cfg, gen)
         loss, _ = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
