@@ -56,6 +56,9 @@ class CTGOptions(AdapterOptions):
 
     stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed now (m/s) are held still.")
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene sampled by imitation_loss.")
+    plan_pass: bool = Field(True, description="For checkpoints with neighbour_plan_steps: condition each agent on "
+                            "its neighbours' proposals (a second pass). False samples the proposal pass alone "
+                            "(no neighbour plans), for ablations.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -151,7 +154,7 @@ class CTGAdapter(TrafficModelAdapter):
         plan_positions = None
         with torch.no_grad():
             cond, state_now = self._encode(context, agents)
-            if self.cfg.neighbour_plan_steps and cond.shape[0] > 0:  # the proposal pass, then the plans
+            if self.cfg.neighbour_plan_steps and self.options.plan_pass and cond.shape[0] > 0:  # proposal, plans
                 proposal, _, _, _ = self.model.sample(cond, s, generator)
                 proposed = self._scatter(self._rollout(self.model.normalize(proposal), state_now), agents,
                                          base_futures)
