@@ -193,13 +193,13 @@ def test_model_size_knobs_reach_the_layers_and_old_configs_keep_their_layout() -
 
 
 # ------------------------------------------------------------ interaction: neighbours' plans
-def _plan_adapter():  # type: ignore[no-untyped-def]
+def _plan_adapter(**options):  # type: ignore[no-untyped-def]
     """A fresh (untrained) 4 s CTG that conditions on its neighbours' plans at 1, 2, 3 and 4 s."""
     from ctg_reference.model import CTGConfig
     from trafficrlhf_ctg import CTGAdapter
 
     cfg = CTGConfig(horizon=40, neighbour_plan_steps=[10, 20, 30, 40])
-    return CTGAdapter(config=cfg.to_dict(), seed=0)
+    return CTGAdapter(config=cfg.to_dict(), seed=0, **options)
 
 
 @needs_data
@@ -262,21 +262,50 @@ def test_per_sample_plans_encode_like_one_row_per_sample() -> None:
 
 
 @needs_data
-def test_two_pass_sampler_keeps_the_contract_and_exact_log_prob(scenes) -> None:  # type: ignore[no-untyped-def]
-    """The proposal pass is part of the context: check_adapter passes, the trace carries the proposals, and the
-    guided chain's log-probability recomputed from the trace equals the sampling-time value."""
+@pytest.mark.parametrize(("mode", "plan_shape"), [("joint", (5, 4, 2)), ("proposal", (4, 2)), ("none", None)])
+def test_plan_modes_keep_the_contract_and_exact_log_prob(scenes, mode, plan_shape) -> None:  # type: ignore[no-untyped-def]
+    """The neighbours' plans (per denoising step, or one proposal) are part of the context: check_adapter
+    passes, the trace carries them, the guided chain's log-probability recomputed from the trace equals the
+    sampling-time value, and changing the stored plans changes it (they are really read)."""
     from trafficrlhf_sdk.testing.check_adapter import check_adapter
 
-    adapter = _plan_adapter()
+    adapter = _plan_adapter(plan_mode=mode)
     check_adapter(adapter, scenes)
     guidance = GuidanceSet.parse("no_collision").fit(scenes)
     out = adapter.sample(scenes, 3, guidance, torch.Generator().manual_seed(1))
-    assert out.trace.tensors["plan_positions"].shape == (scenes.num_scenes, 3, scenes.num_agents, 4, 2)
     assert torch.allclose(adapter.log_prob(scenes, out.trace), out.log_prob, atol=1e-3, rtol=1e-5)
-    # a different proposal changes the density: the trace's proposals are really used
-    moved = out.trace.tensors["plan_positions"] + 3.0
-    trace = type(out.trace)({**out.trace.tensors, "plan_positions": moved}, out.trace.agents, out.trace.now)
+    if plan_shape is None:
+        assert "plan_positions" not in out.trace.tensors
+        return
+    plans = out.trace.tensors["plan_positions"]
+    assert plans.shape == (scenes.num_scenes, 3, scenes.num_agents, *plan_shape)
+    trace = type(out.trace)({**out.trace.tensors, "plan_positions": plans + 3.0}, out.trace.agents, out.trace.now)
     assert not torch.allclose(adapter.log_prob(scenes, trace), out.log_prob, atol=1e-3)
+
+
+def test_joint_denoising_conditions_each_step_on_the_previous_clean_prediction() -> None:
+    """``cond_fn`` is called before every step after the first with that step's input's clean prediction, and
+    the conditioning it returns is the one the step uses (a per-step conditioning recomputes the same
+    log-probabilities)."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=20)).eval()
+    n, s = 4, 3
+    base = torch.randn(n, model.cfg.cond_dim)
+    calls, conds = [], [base[:, None].expand(n, s, -1)]
+
+    def cond_fn(step: int, x0: torch.Tensor) -> torch.Tensor:
+        calls.append((step, tuple(x0.shape)))
+        conds.append(base[:, None] + x0.mean((-1, -2))[..., None])  # depends on the prediction
+        return conds[-1]
+
+    with torch.no_grad():
+        _, chain, _, log_prob = model.sample(base, s, torch.Generator().manual_seed(0), cond_fn=cond_fn)
+        assert calls == [(i, (n, s, 20, 2)) for i in range(1, model.cfg.sample_steps)]
+        per_step = torch.stack(conds, 2)  # (N, S, K, D)
+        assert torch.allclose(model.chain_log_prob(per_step, chain), log_prob, atol=1e-3)
+        assert not torch.allclose(model.chain_log_prob(base, chain), log_prob, atol=1e-3)
 
 
 @needs_data

@@ -9,11 +9,13 @@
   was actually drawn from.
 * Trace: ``chain (B, S, A, K+1, 20, 2)`` (normalized x_K .. x_0) and ``guide_delta (B, S, A, K, 20, 2)``;
   log-probabilities are per denoising step, ``(B, S, A, K)`` with K = 5.
-* Interaction (checkpoints trained with ``--neighbour-plan-steps``): ``sample`` first draws an unguided proposal
-  for every sampled agent, then the plans themselves, each agent's sample s conditioned on the proposals s of
-  its sampled neighbours ahead of it. The proposals' positions at the plan steps are stored in the trace
-  (``plan_positions (B, S, A, F, 2)``): they are part of the context of the second pass, whose chain alone is
-  scored by ``log_prob``.
+* Interaction (checkpoints trained with ``--neighbour-plan-steps``), ``plan_mode``: ``"proposal"`` (default)
+  first draws an unguided proposal for every agent, then each agent's sample s conditioned on the proposals s of
+  its sampled neighbours ahead; ``"joint"`` denoises all sampled agents in lockstep, each step of agent i's sample
+  s conditioned on the positions its neighbours ahead reach in their current clean predictions of sample s (the
+  first step sees no plans); ``"none"`` never shows plans. The neighbours' positions each step was conditioned on are stored in the trace
+  (``plan_positions (B, S, A, K, F, 2)`` per denoising step, or ``(B, S, A, F, 2)`` for the proposal), so
+  ``log_prob`` recomputes exactly the density of the executed chain, the plans being part of its context.
 * Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
   kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
   ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
@@ -21,8 +23,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from pydantic import Field
@@ -56,9 +59,10 @@ class CTGOptions(AdapterOptions):
 
     stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed now (m/s) are held still.")
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene sampled by imitation_loss.")
-    plan_pass: bool = Field(True, description="For checkpoints with neighbour_plan_steps: condition each agent on "
-                            "its neighbours' proposals (a second pass). False samples the proposal pass alone "
-                            "(no neighbour plans), for ablations.")
+    plan_mode: Literal["joint", "proposal", "none"] = Field(
+        "proposal", description="For checkpoints with neighbour_plan_steps, what each agent sees of its "
+        "neighbours' plans: 'proposal' (an unguided first pass), 'joint' (their clean predictions at every "
+        "denoising step) or 'none' (no plans; an ablation).")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -105,16 +109,28 @@ class CTGAdapter(TrafficModelAdapter):
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Conditioning ``(N, D)`` and current scene-frame states ``(N, 4)`` of the ``agents (B, A)`` rows; with
         the sampled agents' ``plan_positions (B, S, A, F, 2)`` the conditioning is per sample, ``(N, S, D)``."""
+        return self._plan_encoder(context, agents)(plan_positions), context.states[:, :, context.current_index][agents]
+
+    def _plan_encoder(self, context: ScenarioTensor, agents: torch.Tensor
+                      ) -> Callable[[torch.Tensor | None], torch.Tensor]:
+        """``f(plan_positions (B, S, A, F, 2) or None) -> cond`` for the ``agents`` rows, featurizing the context
+        and encoding map and history once (the plans change between denoising steps, the rest does not)."""
         features = agent_features(context, self.cfg)
         rows = select_rows(features, agents)
-        if plan_positions is not None:
+        own = self.model.encoder.own(rows["map"], rows["history"], rows["history_valid"], rows["extent"])
+
+        def encode(plan_positions: torch.Tensor | None) -> torch.Tensor:
+            if plan_positions is None:
+                return self.model.encode(rows, own)
             b, s, a, f, _ = plan_positions.shape
             known = agents[:, None, :, None].expand(b, s, a, f)
             plan, valid = neighbour_plan_features(context, features["neighbours"], features["neighbour_valid"],
                                                   features["neighbour_index"], plan_positions, known)
-            rows["neighbour_plan"] = plan.transpose(1, 2)[agents]  # (N, S, K, F, 2)
-            rows["neighbour_plan_valid"] = valid.transpose(1, 2)[agents]
-        return self.model.encode(rows), context.states[:, :, context.current_index][agents]
+            with_plans = {**rows, "neighbour_plan": plan.transpose(1, 2)[agents],  # (N, S, K, F, 2)
+                          "neighbour_plan_valid": valid.transpose(1, 2)[agents]}
+            return self.model.encode(with_plans, own)
+
+        return encode
 
     def _plan_positions(self, futures: torch.Tensor) -> torch.Tensor:
         """Positions ``(B, S, A, F, 2)`` of scene-frame ``futures (B, S, A, H, 4)`` at the plan steps."""
@@ -151,15 +167,24 @@ class CTGAdapter(TrafficModelAdapter):
         current = context.states[:, :, now]  # (B, A, 4)
         hold = torch.stack([current[..., 0], current[..., 1], torch.zeros_like(current[..., 0]), current[..., 3]], -1)
         base_futures = hold[:, :, None, None].expand(b, a, s, h, 4)
-        plan_positions = None
+        mode = self.options.plan_mode if self.cfg.neighbour_plan_steps else "none"
+        plan_positions, cond_fn = None, None
         with torch.no_grad():
-            cond, state_now = self._encode(context, agents)
-            if self.cfg.neighbour_plan_steps and self.options.plan_pass and cond.shape[0] > 0:  # proposal, plans
+            encode = self._plan_encoder(context, agents)
+            cond, state_now = encode(None), context.states[:, :, now][agents]
+            if mode == "proposal" and cond.shape[0] > 0:  # an unguided proposal, then the plans
                 proposal, _, _, _ = self.model.sample(cond, s, generator)
-                proposed = self._scatter(self._rollout(self.model.normalize(proposal), state_now), agents,
-                                         base_futures)
-                plan_positions = self._plan_positions(proposed)
-                cond, _ = self._encode(context, agents, plan_positions)
+                plan_positions = self._plan_positions(self._scatter(
+                    self._rollout(self.model.normalize(proposal), state_now), agents, base_futures))
+                cond = encode(plan_positions)
+            elif mode == "joint" and cond.shape[0] > 0:
+                step_plans = [self._plan_positions(base_futures.transpose(1, 2))]  # first step: unused
+
+                def cond_fn(step: int, x0: torch.Tensor) -> torch.Tensor:
+                    step_plans.append(self._plan_positions(self._scatter(self._rollout(x0, state_now), agents,
+                                                                         base_futures)))
+                    return encode(step_plans[-1])
+
             guidance_fn = None
             if guidance is not None and cond.shape[0] > 0:
                 def guidance_fn(mean: torch.Tensor, step: int) -> torch.Tensor:
@@ -167,7 +192,9 @@ class CTGAdapter(TrafficModelAdapter):
                     loss = guidance.loss(futures, now, context)  # (B, S, A)
                     return (loss * agents[:, None]).sum()
 
-            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn)
+            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn)
+            if cond_fn is not None:
+                plan_positions = torch.stack(step_plans, 3)  # (B, S, A, K, F, 2)
             futures = self._rollout(self.model.normalize(actions), state_now)
         dev = context.device
         tensors = {
@@ -198,7 +225,13 @@ class CTGAdapter(TrafficModelAdapter):
         delta = trace.tensors["guide_delta"].transpose(1, 2)[agents]
         b, s, a = trace.tensors["chain"].shape[:3]
         k = chain.shape[2] - 1
-        cond, _ = self._encode(context, agents, trace.tensors.get("plan_positions"))
+        plans = trace.tensors.get("plan_positions")
+        encode = self._plan_encoder(context, agents)
+        if plans is None or plans.dim() == 5:  # no plans, or one proposal for every step
+            cond = encode(plans)
+        else:  # per denoising step; the first saw no plans
+            cond = torch.stack([encode(None)[:, None].expand(-1, s, -1)]
+                               + [encode(plans[:, :, :, i]) for i in range(1, k)], 2)  # (N, S, K, D)
         log_prob = self.model.chain_log_prob(cond, chain, delta)  # (N, S, K)
         return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
 

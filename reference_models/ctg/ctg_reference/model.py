@@ -160,10 +160,22 @@ class ContextEncoder(nn.Module):
                 neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
                 ) -> torch.Tensor:
         """Conditioning ``(N, cond_dim)``, or ``(N, S, cond_dim)`` for a plan with a sample axis."""
+        m, h = self.own(map_crop, history, history_valid, extent)
+        return self.combine(m, h, neighbours, neighbour_valid, neighbour_plan, neighbour_plan_valid)
+
+    def own(self, map_crop: torch.Tensor, history: torch.Tensor, history_valid: torch.Tensor, extent: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The parts that do not depend on the neighbours: map ``(N, map_dim)`` and history ``(N, 64)`` features
+        (computed once when the neighbours' plans change between denoising steps)."""
         m = self.map_head(self.cnn(map_crop.float()))
         hv = history_valid.float()
         h = torch.cat([history / self.history_scale * hv[..., None], hv[..., None]], -1).flatten(1)
-        h = self.history(torch.cat([h, extent / 5.0], -1))
+        return m, self.history(torch.cat([h, extent / 5.0], -1))
+
+    def combine(self, m: torch.Tensor, h: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
+                neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """Conditioning from :meth:`own`'s features and the neighbours (see :meth:`forward`)."""
         nv = neighbour_valid.float()
         n_in = torch.cat([neighbours / self.neighbour_scale, nv[..., None]], -1)  # (N, K, 8)
         valid = neighbour_valid
@@ -259,6 +271,7 @@ class TemporalUNet(nn.Module):
 
 # --------------------------------------------------------------------------------------------- model
 GuidanceFn = Callable[[torch.Tensor, int], torch.Tensor]
+CondFn = Callable[[int, torch.Tensor], torch.Tensor]
 
 
 class CTGModel(nn.Module):
@@ -304,12 +317,16 @@ class CTGModel(nn.Module):
         return unicycle_from_origin(self.unnormalize(x), v0, self.cfg.dt)
 
     # ------------------------------------------------------------ networks
-    def encode(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Conditioning ``(N, cond_dim)`` from a feature dict (keys: map, history, history_valid, extent,
-        neighbours, neighbour_valid)."""
-        return self.encoder(features["map"], features["history"], features["history_valid"], features["extent"],
-                            features["neighbours"], features["neighbour_valid"], features.get("neighbour_plan"),
-                            features.get("neighbour_plan_valid"))
+    def encode(self, features: dict[str, torch.Tensor],
+               own: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Conditioning ``(N, cond_dim)`` (``(N, S, cond_dim)`` for per-sample neighbour plans) from a feature
+        dict (keys: map, history, history_valid, extent, neighbours, neighbour_valid, optionally neighbour_plan
+        and neighbour_plan_valid); ``own`` reuses :meth:`ContextEncoder.own`'s output for the same rows."""
+        if own is None:
+            own = self.encoder.own(features["map"], features["history"], features["history_valid"],
+                                   features["extent"])
+        return self.encoder.combine(*own, features["neighbours"], features["neighbour_valid"],
+                                    features.get("neighbour_plan"), features.get("neighbour_plan_valid"))
 
     def predict_x0(self, x: torch.Tensor, k: torch.Tensor | int, cond: torch.Tensor) -> torch.Tensor:
         """Denoiser output (clean normalized actions) for noisy ``x (N, H, 2)`` at step ``k``."""
@@ -344,10 +361,10 @@ class CTGModel(nn.Module):
                                                                         "state": state_loss.detach()}
 
     # ------------------------------------------------------------ sampling
-    def _transition(self, x: torch.Tensor, k: torch.Tensor | int, k_prev: torch.Tensor | int, cond: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _transition(self, x: torch.Tensor, k: torch.Tensor | int, k_prev: torch.Tensor | int, cond: torch.Tensor,
+                    with_x0: bool = False) -> tuple[torch.Tensor, ...]:
         """DDIM mean ``mu_theta(x_k)`` ``(N, H, 2)`` and std (scalar, or ``(N, 1, 1)`` for per-row steps) of
-        ``x_{k_prev}`` given ``x_k``."""
+        ``x_{k_prev}`` given ``x_k`` (and with ``with_x0`` the clipped clean prediction ``(N, H, 2)``)."""
         ab, ab_prev = self.alphas_bar[k], self.alphas_bar[k_prev]
         if ab.dim() == 1:
             ab, ab_prev = ab[:, None, None], ab_prev[:, None, None]
@@ -355,7 +372,7 @@ class CTGModel(nn.Module):
         eps = (x - ab.sqrt() * x0) / (1 - ab).sqrt()
         sigma = self.cfg.eta * ((1 - ab_prev) / (1 - ab)).sqrt() * (1 - ab / ab_prev).clamp_min(0).sqrt()
         mean = ab_prev.sqrt() * x0 + (1 - ab_prev - sigma**2).clamp_min(0).sqrt() * eps
-        return mean, sigma
+        return (mean, sigma, x0) if with_x0 else (mean, sigma)
 
     @staticmethod
     def _gaussian_log_prob(x: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
@@ -364,7 +381,7 @@ class CTGModel(nn.Module):
         return (-0.5 * z**2 - torch.log(sigma) - 0.5 * LOG_2PI).sum((-1, -2))
 
     def sample(self, cond: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
-               guidance_fn: GuidanceFn | None = None
+               guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Draw ``num_samples`` normalized action sequences per conditioning row.
 
@@ -374,6 +391,9 @@ class CTGModel(nn.Module):
             generator: source of all the randomness.
             guidance_fn: optional ``f(mean (N, S, H, 2) normalized, step index) -> scalar`` objective to lower;
                 each non-final step's mean moves by ``-guidance_step * sign(grad)``, clipped to +-sigma.
+            cond_fn: optional ``f(step index, x0 (N, S, H, 2) normalized) -> cond (N, S, cond_dim)`` called before
+                every step after the first with the previous step's clean prediction: joint denoising, where the
+                conditioning follows what the other rows are becoming (``cond`` is used for the first step).
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
@@ -385,8 +405,11 @@ class CTGModel(nn.Module):
         x = torch.randn((n * s, h, 2), generator=generator, device=cond.device)
         schedule = self.sample_schedule
         chain, deltas, log_probs = [x], [], []
+        x0 = x
         for i, (k, k_prev) in enumerate(schedule):
-            mean, sigma = self._transition(x, k, k_prev, c)
+            if cond_fn is not None and i > 0:
+                c = cond_fn(i, x0.reshape(n, s, h, 2)).reshape(n * s, -1)
+            mean, sigma, x0 = self._transition(x, k, k_prev, c, with_x0=True)
             delta = torch.zeros_like(mean)
             if guidance_fn is not None and i < len(schedule) - 1:
                 with torch.enable_grad():
@@ -411,12 +434,15 @@ class CTGModel(nn.Module):
                        ) -> torch.Tensor:
         """Per-step log-probabilities ``(N, S, K)`` of a stored chain ``(N, S, K+1, H, 2)`` under the current
         parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims.
-        ``cond`` is ``(N, cond_dim)`` or ``(N, S, cond_dim)``."""
+        ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``."""
         n, s, steps1, h, _ = chain.shape
         k_steps = steps1 - 1
         schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
-        per_sample = cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])
-        c = per_sample[:, :, None].expand(n, s, k_steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
+        if cond.dim() == 4:
+            c = cond.reshape(-1, cond.shape[-1])
+        else:
+            per_sample = cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])
+            c = per_sample[:, :, None].expand(n, s, k_steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
         k = schedule[:, 0].repeat(n * s)
         k_prev = schedule[:, 1].repeat(n * s)
         x = chain[:, :, :-1].reshape(-1, h, 2)

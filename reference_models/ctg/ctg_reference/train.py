@@ -166,6 +166,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="Interaction: condition on the neighbours' planned positions this many steps ahead "
                              "(e.g. 10 20 30 40); the adapter then samples a proposal pass and a conditioned "
                              "pass. Default: none (the committed layout).")
+    parser.add_argument("--plan-dropout-all", type=float, default=0.5,
+                        help="With --neighbour-plan-steps: share of training windows that see no neighbour plan.")
+    parser.add_argument("--plan-dropout-each", type=float, default=0.2,
+                        help="With --neighbour-plan-steps: share of the other windows' neighbour plans hidden.")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -184,7 +188,11 @@ def main(argv: list[str] | None = None) -> None:
                      f"{args.unet_dims}, {args.cnn_width}.")
     cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution,
                     unet_dims=tuple(args.unet_dims), cond_dim=args.cond_dim, map_dim=args.map_dim,
-                    cnn_width=args.cnn_width, neighbour_plan_steps=list(args.neighbour_plan_steps))
+                    cnn_width=args.cnn_width, neighbour_plan_steps=list(args.neighbour_plan_steps),
+                    plan_dropout_all=args.plan_dropout_all, plan_dropout_each=args.plan_dropout_each)
+    if not (0 <= cfg.plan_dropout_all <= 1 and 0 <= cfg.plan_dropout_each <= 1):
+        parser.error(f"--plan-dropout-all and --plan-dropout-each are shares in [0, 1]; got "
+                     f"{cfg.plan_dropout_all}, {cfg.plan_dropout_each}.")
     if any(step < 1 or step > args.horizon for step in cfg.neighbour_plan_steps):
         parser.error(f"--neighbour-plan-steps must lie in 1..--horizon ({args.horizon}); got "
                      f"{cfg.neighbour_plan_steps}.")
