@@ -13,9 +13,10 @@
   first draws an unguided proposal for every agent, then each agent's sample s conditioned on the proposals s of
   its sampled neighbours ahead; ``"joint"`` denoises all sampled agents in lockstep, each step of agent i's sample
   s conditioned on the positions its neighbours ahead reach in their current clean predictions of sample s (the
-  first step sees no plans); ``"none"`` never shows plans. The neighbours' positions each step was conditioned on are stored in the trace
-  (``plan_positions (B, S, A, K, F, 2)`` per denoising step, or ``(B, S, A, F, 2)`` for the proposal), so
-  ``log_prob`` recomputes exactly the density of the executed chain, the plans being part of its context.
+  first step sees no plans); ``"none"`` never shows plans. The neighbours' positions each step was conditioned
+  on are stored in the trace (``plan_positions (B, S, A, K, F, 2)`` per denoising step, or ``(B, S, A, F, 2)``
+  for the proposal), so ``log_prob`` recomputes exactly the density of the executed chain, the plans being part
+  of its context.
 * Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
   kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
   ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
