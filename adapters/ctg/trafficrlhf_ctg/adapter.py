@@ -106,12 +106,6 @@ class CTGAdapter(TrafficModelAdapter):
             raise ValueError(f"the CTG model runs at dt={self.cfg.dt} s; the scenario has dt={context.dt} s. Load "
                              "the scenes with dt=0.1.")
 
-    def _encode(self, context: ScenarioTensor, agents: torch.Tensor, plan_positions: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Conditioning ``(N, D)`` and current scene-frame states ``(N, 4)`` of the ``agents (B, A)`` rows; with
-        the sampled agents' ``plan_positions (B, S, A, F, 2)`` the conditioning is per sample, ``(N, S, D)``."""
-        return self._plan_encoder(context, agents)(plan_positions), context.states[:, :, context.current_index][agents]
-
     def _plan_encoder(self, context: ScenarioTensor, agents: torch.Tensor
                       ) -> Callable[[torch.Tensor | None], torch.Tensor]:
         """``f(plan_positions (B, S, A, F, 2) or None) -> cond`` for the ``agents`` rows, featurizing the context
