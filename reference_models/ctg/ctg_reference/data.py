@@ -37,13 +37,13 @@ def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dty
     neighbours, neighbour_valid, neighbour_index = neighbour_features(context, cfg.num_neighbours,
                                                                       return_index=True)
     return {
-        "neighbour_index": neighbour_index,
         "map": crops.to(map_dtype),
         "history": history,
         "history_valid": history_valid,
         "extent": context.extent,
         "neighbours": neighbours,
         "neighbour_valid": neighbour_valid,
+        "neighbour_index": neighbour_index,
         "v0": context.speed[:, :, context.current_index],
     }
 

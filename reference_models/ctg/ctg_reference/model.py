@@ -61,9 +61,9 @@ class CTGConfig:
     guidance_step: float = 0.3
     x0_clip: float = 6.0
     state_loss_weight: float = 1.0
-    # interaction: steps after now at which the neighbours' planned positions are an input (empty: none). The
-    # sampler then draws twice: a proposal for every agent without them, and the plans conditioned on the
-    # proposals of the sampled neighbours ahead (see :meth:`CTGModel.sample` callers).
+    # interaction: steps after now at which the neighbours' planned positions are an input (empty: none). Where
+    # those plans come from at sampling time is the caller's choice (the ctg adapter's ``plan_mode``: a proposal
+    # pass, or the neighbours' clean predictions at every denoising step through ``sample(cond_fn=...)``).
     neighbour_plan_steps: list[int] = field(default_factory=list)
     plan_dropout_all: float = 0.5  # training: share of windows that see no neighbour plan (the proposal pass)
     plan_dropout_each: float = 0.2  # training: share of the other windows' neighbour plans hidden one by one
