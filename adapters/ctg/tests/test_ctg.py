@@ -329,3 +329,142 @@ def test_training_windows_see_the_same_logged_plans_as_imitation_loss(scenes) ->
     assert torch.equal(samples["neighbour_plan_valid"], valid[mask])
     assert torch.allclose(samples["neighbour_plan"], plan[mask], atol=1e-4)
     assert valid[mask].any()
+
+
+# ------------------------------------------------------------ interaction: scene-level denoising
+def _scene_adapter(**options):  # type: ignore[no-untyped-def]
+    """A fresh 4 s CTG that denoises agents jointly, its mixer's zero-initialized output layer randomized so that
+    it really reads the neighbours."""
+    from ctg_reference.model import CTGConfig
+    from trafficrlhf_ctg import CTGAdapter
+
+    adapter = CTGAdapter(config=CTGConfig(horizon=40, scene_denoising=True).to_dict(), seed=0, **options)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in adapter.model.mixer.out.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.5)
+    return adapter
+
+
+def test_co_denoised_rows_point_at_the_same_agent_in_the_same_window() -> None:
+    """Each neighbour's row is the row of the same window holding that agent slot; neighbours that are not rows,
+    or not valid, get -1 (checked against a plain loop)."""
+    from ctg_reference.data import co_denoised_rows
+
+    gen = torch.Generator().manual_seed(0)
+    w, a, k = 4, 6, 3
+    mask = torch.rand(w, a, generator=gen) > 0.4
+    index = torch.randint(0, a, (w, a, k), generator=gen)
+    valid = torch.rand(w, a, k, generator=gen) > 0.3
+    rows = co_denoised_rows(mask, index, valid)
+    slots = mask.nonzero().tolist()  # row r is (window, agent) slots[r]
+    assert rows.shape == (len(slots), k)
+    for r, (win, agent) in enumerate(slots):
+        for j in range(k):
+            target = [win, int(index[win, agent, j])]
+            expected = slots.index(target) if valid[win, agent, j] and target in slots else -1
+            assert int(rows[r, j]) == expected
+
+
+def test_an_untrained_mixer_changes_nothing_and_a_trained_one_reads_the_neighbours() -> None:
+    """With its zero-initialized output the mixer adds nothing (same chain log-probabilities as without it); once
+    its output is non-zero, changing a co-denoised neighbour's chain changes the row's log-probabilities, and a
+    row without co-denoised neighbours is unaffected."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=20, scene_denoising=True)).eval()
+    n, s, k = 3, 2, 8
+    neighbour_row = torch.full((n, k), -1, dtype=torch.long)
+    neighbour_row[0, 0], neighbour_row[1, 2] = 1, 0  # rows 0 and 1 see each other, row 2 sees nobody
+    features = {"neighbours": torch.randn(n, k, 7), "neighbour_valid": torch.ones(n, k, dtype=torch.bool),
+                "neighbour_row": neighbour_row}
+    scene = model.scene_rows(features)
+    cond = torch.randn(n, model.cfg.cond_dim)
+    with torch.no_grad():
+        _, chain, _, log_prob = model.sample(cond, s, torch.Generator().manual_seed(0), scene=scene)
+        assert torch.allclose(model.chain_log_prob(cond, chain), log_prob, atol=1e-4)
+        for p in model.mixer.out.parameters():
+            p.normal_(0, 0.5)
+        _, chain, _, log_prob = model.sample(cond, s, torch.Generator().manual_seed(0), scene=scene)
+        assert torch.allclose(model.chain_log_prob(cond, chain, scene=scene), log_prob, atol=1e-3)
+        moved = chain.clone()
+        moved[1, :, :-1] += 1.0  # row 1's noisy states, which row 0 reads
+        changed = model.chain_log_prob(cond, moved, scene=scene)
+        assert not torch.allclose(changed[0], log_prob[0], atol=1e-3)
+        assert torch.allclose(changed[2], log_prob[2], atol=1e-4)
+
+
+def test_scene_loss_shares_the_noise_level_within_a_group() -> None:
+    """``loss(group=...)`` draws one diffusion step per group: every row of a group is denoised at the same k."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=20, scene_denoising=True))
+    seen: list[torch.Tensor] = []
+    forward = model.denoiser.forward
+    model.denoiser.forward = lambda x, t, cond: (seen.append(t), forward(x, t, cond))[1]  # type: ignore[method-assign]
+    n = 12
+    group = torch.tensor([0, 0, 0, 1, 1, 2, 3, 3, 3, 3, 4, 5])
+    features = {"neighbours": torch.randn(n, 8, 7), "neighbour_valid": torch.ones(n, 8, dtype=torch.bool),
+                "neighbour_row": torch.randint(-1, n, (n, 8))}
+    loss, _ = model.loss(torch.randn(n, model.cfg.cond_dim), torch.randn(n, 20, 2), torch.rand(n) * 10,
+                         generator=torch.Generator().manual_seed(3), scene=model.scene_rows(features), group=group)
+    loss.backward()
+    (k,) = seen
+    for g in group.unique():
+        assert k[group == g].unique().numel() == 1
+    assert k.unique().numel() > 1
+    assert model.mixer.net[0].weight.grad is not None
+
+
+@needs_data
+def test_scene_denoising_adapter_keeps_the_contract_and_exact_log_prob(scenes) -> None:  # type: ignore[no-untyped-def]
+    """check_adapter passes (the mixer trains with the decoder), the guided chain's log-probability recomputed from
+    the trace equals the sampling-time value, and it depends on the other sampled agents' chains."""
+    from trafficrlhf_sdk.testing.check_adapter import check_adapter
+
+    adapter = _scene_adapter()
+    facts = check_adapter(adapter, scenes)
+    assert set(facts["groups_with_gradient"]) == {"encoder", "decoder"}
+    assert any(p is adapter.model.mixer.out.weight for p in adapter.parameter_groups()["decoder"])
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    out = adapter.sample(scenes, 3, guidance, torch.Generator().manual_seed(1))
+    assert torch.allclose(adapter.log_prob(scenes, out.trace), out.log_prob, atol=1e-3, rtol=1e-5)
+    agents = out.trace.agents
+    scene = int(agents.sum(-1).argmax())
+    first, second = agents[scene].nonzero()[:2, 0].tolist()
+    chain = out.trace.tensors["chain"].clone()
+    chain[scene, :, second, :-1] += 1.0
+    moved = adapter.log_prob(scenes, type(out.trace)({**out.trace.tensors, "chain": chain}, agents, out.trace.now))
+    assert not torch.allclose(moved[scene, :, first], out.log_prob[scene, :, first], atol=1e-3)
+    assert torch.isfinite(adapter.imitation_loss(scenes))
+
+
+@needs_data
+def test_training_windows_list_the_same_co_denoised_neighbours_as_the_adapter(scenes) -> None:  # type: ignore[no-untyped-def]
+    """The training script's rows of one window name the same co-denoised neighbours as the adapter's path for
+    that step, and a training batch re-indexes them onto the same agents."""
+    from ctg_reference.data import agent_features, co_denoised_rows, window_mask
+    from ctg_reference.model import CTGConfig
+    from ctg_reference.train import scene_batch, scene_samples
+
+    cfg = CTGConfig(horizon=40, scene_denoising=True)
+    first = ("states", "valid", "extent", "agent_type", "controlled")
+    scene = scenes.replace_unchecked(**{k: getattr(scenes, k)[:1] for k in first})
+    samples = scene_samples(scene, cfg, stride=5)
+    t = cfg.history_steps
+    features = agent_features(scene.replace_unchecked(current_index=t), cfg)
+    mask = window_mask(scene, t, cfg.horizon, cfg.history_steps)
+    expected = co_denoised_rows(mask, features["neighbour_index"], features["neighbour_valid"])
+    assert samples is not None and (expected >= 0).any()
+    first_window = samples["window"] == 0
+    assert torch.equal(samples["neighbour_row"][first_window], expected)
+    samples["map"] = samples["map"].float()
+    idx = first_window.nonzero()[:, 0].flip(0)  # a batch in another order
+    batch = scene_batch(samples, idx)
+    for r, original in enumerate(idx.tolist()):
+        for j, row in enumerate(batch["neighbour_row"][r].tolist()):
+            target = int(samples["neighbour_row"][original, j])
+            assert (row == -1) == (target == -1) and (row == -1 or int(idx[row]) == target)
+    assert batch["group"].unique().tolist() == [0]

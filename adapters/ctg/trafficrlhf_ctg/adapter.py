@@ -17,6 +17,9 @@
   on are stored in the trace (``plan_positions (B, S, A, K, F, 2)`` per denoising step, or ``(B, S, A, F, 2)``
   for the proposal), so ``log_prob`` recomputes exactly the density of the executed chain, the plans being part
   of its context.
+* Scene-level denoising (checkpoints trained with ``--scene-denoising``): all sampled agents of a scene are
+  denoised in lockstep, each step of agent i's sample s reading the current noisy samples s of its sampled
+  neighbours; those are in the trace's ``chain``, so ``log_prob`` is exact without further state.
 * Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
   kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
   ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
@@ -34,6 +37,7 @@ from pydantic import Field
 import ctg_reference
 from ctg_reference.data import (
     agent_features,
+    co_denoised_rows,
     drop_neighbour_plans,
     future_targets,
     logged_neighbour_plans,
@@ -41,7 +45,7 @@ from ctg_reference.data import (
     select_rows,
     window_mask,
 )
-from ctg_reference.model import CTGConfig, CTGModel
+from ctg_reference.model import CTGConfig, CTGModel, SceneRows
 from trafficrlhf_sdk.dynamics import unicycle_rollout
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
@@ -97,8 +101,12 @@ class CTGAdapter(TrafficModelAdapter):
         return self.model
 
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
-        """``encoder`` (map CNN, history and neighbour MLPs, fusion) and ``decoder`` (the temporal U-Net)."""
-        return {"encoder": list(self.model.encoder.parameters()), "decoder": list(self.model.denoiser.parameters())}
+        """``encoder`` (map CNN, history and neighbour MLPs, fusion) and ``decoder`` (the temporal U-Net, and the
+        co-denoising mixer of scene-denoising models)."""
+        decoder = list(self.model.denoiser.parameters())
+        if self.model.mixer is not None:
+            decoder += list(self.model.mixer.parameters())
+        return {"encoder": list(self.model.encoder.parameters()), "decoder": decoder}
 
     # ------------------------------------------------------------ helpers
     def _check_dt(self, context: ScenarioTensor) -> None:
@@ -107,11 +115,14 @@ class CTGAdapter(TrafficModelAdapter):
                              "the scenes with dt=0.1.")
 
     def _plan_encoder(self, context: ScenarioTensor, agents: torch.Tensor
-                      ) -> Callable[[torch.Tensor | None], torch.Tensor]:
+                      ) -> tuple[Callable[[torch.Tensor | None], torch.Tensor], SceneRows | None]:
         """``f(plan_positions (B, S, A, F, 2) or None) -> cond`` for the ``agents`` rows, featurizing the context
-        and encoding map and history once (the plans change between denoising steps, the rest does not)."""
+        and encoding map and history once (the plans change between denoising steps, the rest does not); and,
+        for a scene-denoising model, the rows' co-denoised neighbours (the other ``agents`` rows)."""
         features = agent_features(context, self.cfg)
         rows = select_rows(features, agents)
+        if self.model.mixer is not None:
+            rows["neighbour_row"] = co_denoised_rows(agents, features["neighbour_index"], features["neighbour_valid"])
         own = self.model.encoder.own(rows["map"], rows["history"], rows["history_valid"], rows["extent"])
 
         def encode(plan_positions: torch.Tensor | None) -> torch.Tensor:
@@ -125,7 +136,7 @@ class CTGAdapter(TrafficModelAdapter):
                           "neighbour_plan_valid": valid.transpose(1, 2)[agents]}
             return self.model.encode(with_plans, own)
 
-        return encode
+        return encode, self.model.scene_rows(rows)
 
     def _plan_positions(self, futures: torch.Tensor) -> torch.Tensor:
         """Positions ``(B, S, A, F, 2)`` of scene-frame ``futures (B, S, A, H, 4)`` at the plan steps."""
@@ -165,7 +176,7 @@ class CTGAdapter(TrafficModelAdapter):
         mode = self.options.plan_mode if self.cfg.neighbour_plan_steps else "none"
         plan_positions, cond_fn = None, None
         with torch.no_grad():
-            encode = self._plan_encoder(context, agents)
+            encode, scene = self._plan_encoder(context, agents)
             cond, state_now = encode(None), context.states[:, :, now][agents]
             if mode == "proposal" and cond.shape[0] > 0:  # an unguided proposal, then the plans
                 proposal, _, _, _ = self.model.sample(cond, s, generator)
@@ -187,7 +198,7 @@ class CTGAdapter(TrafficModelAdapter):
                     loss = guidance.loss(futures, now, context)  # (B, S, A)
                     return (loss * agents[:, None]).sum()
 
-            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn)
+            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn, scene)
             if cond_fn is not None:
                 plan_positions = torch.stack(step_plans, 3)  # (B, S, A, K, F, 2)
             futures = self._rollout(self.model.normalize(actions), state_now)
@@ -221,13 +232,13 @@ class CTGAdapter(TrafficModelAdapter):
         b, s, a = trace.tensors["chain"].shape[:3]
         k = chain.shape[2] - 1
         plans = trace.tensors.get("plan_positions")
-        encode = self._plan_encoder(context, agents)
+        encode, scene = self._plan_encoder(context, agents)
         if plans is None or plans.dim() == 5:  # no plans, or one proposal for every step
             cond = encode(plans)
         else:  # per denoising step; the first saw no plans
             cond = torch.stack([encode(None)[:, None].expand(-1, s, -1)]
                                + [encode(plans[:, :, :, i]) for i in range(1, k)], 2)  # (N, S, K, D)
-        log_prob = self.model.chain_log_prob(cond, chain, delta)  # (N, S, K)
+        log_prob = self.model.chain_log_prob(cond, chain, delta, scene)  # (N, S, K)
         return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
@@ -242,6 +253,7 @@ class CTGAdapter(TrafficModelAdapter):
             candidates = [candidates[i] for i in pick]
         actions_all = batch.actions()
         parts: dict[str, list[torch.Tensor]] = {}
+        offset = 0  # scene-denoising models: rows of one window (scene, t) are denoised together, at one noise level
         for t in candidates:  # a few time windows; agents are batched
             mask = window_mask(batch, t, h, th)
             if not mask.any():
@@ -249,6 +261,12 @@ class CTGAdapter(TrafficModelAdapter):
             at_t = batch.replace_unchecked(current_index=t)
             features = agent_features(at_t, self.cfg)
             rows = select_rows(features, mask)
+            if self.model.mixer is not None:
+                row = co_denoised_rows(mask, features["neighbour_index"], features["neighbour_valid"])
+                rows["neighbour_row"] = torch.where(row >= 0, row + offset, row)
+                scene = torch.arange(batch.num_scenes, device=mask.device)[:, None].expand_as(mask)[mask]
+                rows["group"] = scene + len(parts.get("v0", [])) * batch.num_scenes
+                offset += int(mask.sum())
             if self.cfg.neighbour_plan_steps:  # as in training: logged plans, randomly hidden
                 plan, valid = logged_neighbour_plans(at_t, self.cfg, features)
                 rows["neighbour_plan"] = plan[mask]
@@ -260,5 +278,7 @@ class CTGAdapter(TrafficModelAdapter):
         if not parts:
             return sum(p.sum() * 0.0 for p in self.model.parameters())  # type: ignore[return-value]
         data = {key: torch.cat(values) for key, values in parts.items()}
-        loss, _ = self.model.loss(self.model.encode(data), data["actions"], data["v0"], data["states"])
+        group = torch.unique(data["group"], return_inverse=True)[1] if "group" in data else None
+        loss, _ = self.model.loss(self.model.encode(data), data["actions"], data["v0"], data["states"],
+                                  scene=self.model.scene_rows(data), group=group)
         return loss

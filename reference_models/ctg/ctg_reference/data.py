@@ -16,7 +16,7 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 from ctg_reference.model import CTGConfig
 
-__all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "drop_neighbour_plans", "future_targets",
+__all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "co_denoised_rows", "drop_neighbour_plans", "future_targets",
            "logged_neighbour_plans", "neighbour_plan_features", "select_rows", "window_mask"]
 
 FEATURE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0")
@@ -125,3 +125,14 @@ def drop_neighbour_plans(valid: torch.Tensor, cfg: CTGConfig, generator: torch.G
     rows = torch.rand(n, 1, generator=generator, device=valid.device) >= cfg.plan_dropout_all
     each = torch.rand(n, k, generator=generator, device=valid.device) >= cfg.plan_dropout_each
     return valid & (rows & each)[..., None]
+
+
+def co_denoised_rows(mask: torch.Tensor, neighbour_index: torch.Tensor, neighbour_valid: torch.Tensor
+                     ) -> torch.Tensor:
+    """Joint denoising: for the rows ``mask (W, A)`` (W scenes or windows, rows in row-major order), the row
+    index of each of their neighbours ``neighbour_index (W, A, K)`` (valid where ``neighbour_valid``) that is
+    itself a row of the same window, else -1: ``(N, K)`` long."""
+    row_of = torch.full(mask.shape, -1, dtype=torch.long, device=mask.device)
+    row_of[mask] = torch.arange(int(mask.sum()), device=mask.device)
+    rows = row_of.gather(1, neighbour_index.flatten(1)).reshape(neighbour_index.shape)
+    return torch.where(neighbour_valid, rows, torch.full_like(rows, -1))[mask]

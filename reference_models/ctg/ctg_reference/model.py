@@ -14,6 +14,10 @@ This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and
   (one sign-gradient step of size ``guidance_step`` on the posterior mean, clipped to +-sigma_k, none at the
   last step); it is stored with the chain so :meth:`CTGModel.chain_log_prob` recomputes exactly the density the
   sample was drawn from.
+* Scene-level denoising (``scene_denoising``): the agents of one scene are denoised together. At every step a
+  :class:`CoDenoiseMixer` reads the current noisy samples of the neighbours being denoised with the agent (rows
+  named by ``neighbour_row``) and shifts its conditioning; training draws one noise level per scene and step.
+  Each step stays a Gaussian given every row's current sample, so the chain's density remains exact.
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -32,7 +36,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["CTGConfig", "CTGModel", "ContextEncoder", "TemporalUNet", "cosine_alphas_bar", "unicycle_from_origin"]
+__all__ = ["CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "TemporalUNet", "cosine_alphas_bar",
+           "unicycle_from_origin"]
 
 LOG_2PI = math.log(2 * math.pi)
 
@@ -67,6 +72,10 @@ class CTGConfig:
     neighbour_plan_steps: list[int] = field(default_factory=list)
     plan_dropout_all: float = 0.5  # training: share of windows that see no neighbour plan (the proposal pass)
     plan_dropout_each: float = 0.2  # training: share of the other windows' neighbour plans hidden one by one
+    # scene-level (joint) denoising: each denoising step of an agent also reads the current noisy samples of the
+    # neighbours denoised with it (CoDenoiseMixer); training shares one noise level per scene and step
+    scene_denoising: bool = False
+    scene_dropout: float = 0.3  # training: share of co-denoised neighbours shown as not co-denoised (log replay)
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -172,12 +181,15 @@ class ContextEncoder(nn.Module):
         h = torch.cat([history / self.history_scale * hv[..., None], hv[..., None]], -1).flatten(1)
         return m, self.history(torch.cat([h, extent / 5.0], -1))
 
+    def neighbour_input(self, neighbours: torch.Tensor, neighbour_valid: torch.Tensor) -> torch.Tensor:
+        """Scaled neighbour features with their validity flag, ``(N, K, 8)``."""
+        return torch.cat([neighbours / self.neighbour_scale, neighbour_valid.float()[..., None]], -1)
+
     def combine(self, m: torch.Tensor, h: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
                 neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
                 ) -> torch.Tensor:
         """Conditioning from :meth:`own`'s features and the neighbours (see :meth:`forward`)."""
-        nv = neighbour_valid.float()
-        n_in = torch.cat([neighbours / self.neighbour_scale, nv[..., None]], -1)  # (N, K, 8)
+        n_in = self.neighbour_input(neighbours, neighbour_valid)  # (N, K, 8)
         valid = neighbour_valid
         per_sample = neighbour_plan is not None and neighbour_plan.dim() == 5
         if self.num_plan_steps:
@@ -269,7 +281,44 @@ class TemporalUNet(nn.Module):
         return self.out(h).transpose(1, 2)
 
 
+# --------------------------------------------------------------------------------------------- scene-level denoising
+class CoDenoiseMixer(nn.Module):
+    """What an agent reads, at one denoising step, from the noisy samples of the neighbours denoised with it.
+
+    Per neighbour: its noisy normalized actions ``(H, 2)`` (frame-free), its pose and size in the agent's frame
+    (the encoder's neighbour input) and the noise level; an MLP, a max-pool over the co-denoised neighbours and a
+    zero-initialized projection whose output is added to the conditioning vector (so an untrained mixer changes
+    nothing).
+    """
+
+    def __init__(self, cfg: CTGConfig) -> None:
+        super().__init__()
+        self.steps = cfg.diffusion_steps
+        self.net = _mlp([cfg.horizon * 2 + 8 + 1, 128, 64])
+        self.out = nn.Linear(64, cfg.cond_dim)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: torch.Tensor, k: torch.Tensor | int, neighbour_in: torch.Tensor, neighbour_row: torch.Tensor
+                ) -> torch.Tensor:
+        """x ``(N, S, H, 2)`` every row's current noisy sample at step ``k`` (int or ``(N,)``), neighbour_in
+        ``(N, K, 8)``, neighbour_row ``(N, K)`` long (the row denoised as that neighbour, -1: none) ->
+        ``(N, S, cond_dim)``."""
+        n, s = x.shape[:2]
+        kk = neighbour_row.shape[1]
+        known = neighbour_row >= 0
+        picked = x[neighbour_row.clamp_min(0)].transpose(1, 2) * known[:, None, :, None, None]  # (N, S, K, H, 2)
+        level = (torch.as_tensor(k, device=x.device, dtype=x.dtype) / self.steps).reshape(-1, 1, 1, 1)
+        features = torch.cat([picked.flatten(-2), neighbour_in[:, None].expand(n, s, kk, 8),
+                              level.expand(n, s, kk, 1)], -1)
+        mixed = self.net(features)  # (N, S, K, 64)
+        mixed = torch.where(known[:, None, :, None], mixed, torch.full_like(mixed, -1e4)).amax(-2)
+        mixed = torch.where(known.any(-1)[:, None, None], mixed, torch.zeros_like(mixed))
+        return self.out(mixed)
+
+
 # --------------------------------------------------------------------------------------------- model
+SceneRows = tuple[torch.Tensor, torch.Tensor]  # (neighbour_in (N, K, 8), neighbour_row (N, K)), see CoDenoiseMixer
 GuidanceFn = Callable[[torch.Tensor, int], torch.Tensor]
 CondFn = Callable[[int, torch.Tensor], torch.Tensor]
 
@@ -282,6 +331,7 @@ class CTGModel(nn.Module):
         self.cfg = cfg or CTGConfig()
         self.encoder = ContextEncoder(self.cfg)
         self.denoiser = TemporalUNet(self.cfg)
+        self.mixer = CoDenoiseMixer(self.cfg) if self.cfg.scene_denoising else None
         self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
@@ -328,6 +378,27 @@ class CTGModel(nn.Module):
         return self.encoder.combine(*own, features["neighbours"], features["neighbour_valid"],
                                     features.get("neighbour_plan"), features.get("neighbour_plan_valid"))
 
+    def scene_rows(self, features: dict[str, torch.Tensor]) -> SceneRows | None:
+        """The mixer's inputs from a feature dict with ``neighbour_row (N, K)`` (rows denoised together), or None
+        for a model without scene-level denoising."""
+        if self.mixer is None:
+            return None
+        if "neighbour_row" not in features:
+            raise ValueError("this CTG checkpoint denoises agents jointly (scene_denoising=True); the features need "
+                             "'neighbour_row' (N, K): the row index of each neighbour denoised with the row, or -1.")
+        neighbour_in = self.encoder.neighbour_input(features["neighbours"], features["neighbour_valid"])
+        return neighbour_in, features["neighbour_row"]
+
+    def _mixed(self, cond: torch.Tensor, x: torch.Tensor, k: torch.Tensor | int, scene: SceneRows | None
+               ) -> torch.Tensor:
+        """Conditioning ``(N, S, cond_dim)`` for the rows' noisy samples ``x (N, S, H, 2)`` at step ``k``: ``cond``
+        (``(N, D)`` or ``(N, S, D)``) plus the mixer's reading of the co-denoised neighbours."""
+        n, s = x.shape[:2]
+        c = cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])
+        if scene is None or self.mixer is None:
+            return c
+        return c + self.mixer(x, k, *scene)
+
     def predict_x0(self, x: torch.Tensor, k: torch.Tensor | int, cond: torch.Tensor) -> torch.Tensor:
         """Denoiser output (clean normalized actions) for noisy ``x (N, H, 2)`` at step ``k``."""
         if not isinstance(k, torch.Tensor):
@@ -336,19 +407,29 @@ class CTGModel(nn.Module):
 
     # ------------------------------------------------------------ training
     def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
-             target_states: torch.Tensor | None = None, generator: torch.Generator | None = None
+             target_states: torch.Tensor | None = None, generator: torch.Generator | None = None,
+             scene: SceneRows | None = None, group: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Diffusion loss on physical ``actions (N, H, 2)`` with agent-frame ``target_states (N, H, 4)``
-        (default: the unicycle rollout of ``actions``) and current speeds ``v0 (N,)``.
+        (default: the unicycle rollout of ``actions``) and current speeds ``v0 (N,)``. With ``scene`` (from
+        :meth:`scene_rows`) each row also reads its co-denoised neighbours' noisy actions; ``group (N,)`` long in
+        ``0..G-1`` gives the rows denoised together one shared noise level, as at sampling time.
 
         Returns ``(loss, parts)`` with ``parts = {"action": ..., "state": ...}`` (both normalized MSEs).
         """
         n = actions.shape[0]
         x0 = self.normalize(actions)
-        k = torch.randint(0, self.cfg.diffusion_steps, (n,), generator=generator, device=actions.device)
+        if group is None:
+            k = torch.randint(0, self.cfg.diffusion_steps, (n,), generator=generator, device=actions.device)
+        else:
+            per_group = torch.randint(0, self.cfg.diffusion_steps, (int(group.max()) + 1 if n else 0,),
+                                      generator=generator, device=actions.device)
+            k = per_group[group]
         noise = torch.randn(x0.shape, generator=generator, device=actions.device)
         ab = self.alphas_bar[k][:, None, None]
         xk = ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+        if scene is not None:
+            cond = self._mixed(cond, xk[:, None], k, scene)[:, 0]
         pred = self.predict_x0(xk, k, cond)
         action_loss = F.mse_loss(pred, x0)
         if target_states is None:
@@ -381,7 +462,7 @@ class CTGModel(nn.Module):
         return (-0.5 * z**2 - torch.log(sigma) - 0.5 * LOG_2PI).sum((-1, -2))
 
     def sample(self, cond: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
-               guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None
+               guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None, scene: SceneRows | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Draw ``num_samples`` normalized action sequences per conditioning row.
 
@@ -392,8 +473,10 @@ class CTGModel(nn.Module):
             guidance_fn: optional ``f(mean (N, S, H, 2) normalized, step index) -> scalar`` objective to lower;
                 each non-final step's mean moves by ``-guidance_step * sign(grad)``, clipped to +-sigma.
             cond_fn: optional ``f(step index, x0 (N, S, H, 2) normalized) -> cond (N, S, cond_dim)`` called before
-                every step after the first with the previous step's clean prediction: joint denoising, where the
+                every step after the first with the previous step's clean prediction: scene-level denoising, where the
                 conditioning follows what the other rows are becoming (``cond`` is used for the first step).
+            scene: for a scene-denoising model, :meth:`scene_rows` of the rows: every step of row i's sample s
+                reads the current noisy samples s of the rows denoised as its neighbours.
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
@@ -409,7 +492,9 @@ class CTGModel(nn.Module):
         for i, (k, k_prev) in enumerate(schedule):
             if cond_fn is not None and i > 0:
                 c = cond_fn(i, x0.reshape(n, s, h, 2)).reshape(n * s, -1)
-            mean, sigma, x0 = self._transition(x, k, k_prev, c, with_x0=True)
+            c_step = c if scene is None else self._mixed(c.reshape(n, s, -1), x.reshape(n, s, h, 2), k,
+                                                          scene).reshape(n * s, -1)
+            mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
             delta = torch.zeros_like(mean)
             if guidance_fn is not None and i < len(schedule) - 1:
                 with torch.enable_grad():
@@ -430,14 +515,20 @@ class CTGModel(nn.Module):
         log_prob = torch.stack(log_probs, -1).reshape(n, s, len(schedule))
         return self.unnormalize(chain_t[:, :, -1]), chain_t, delta_t, log_prob
 
-    def chain_log_prob(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None
-                       ) -> torch.Tensor:
+    def chain_log_prob(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None,
+                       scene: SceneRows | None = None) -> torch.Tensor:
         """Per-step log-probabilities ``(N, S, K)`` of a stored chain ``(N, S, K+1, H, 2)`` under the current
         parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims.
-        ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``."""
+        ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``; ``scene`` as in
+        :meth:`sample` (the co-denoised rows' states at each step are read from ``chain`` itself)."""
         n, s, steps1, h, _ = chain.shape
         k_steps = steps1 - 1
         schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
+        if scene is not None and self.mixer is not None:
+            if cond.dim() == 4:
+                raise ValueError("chain_log_prob: per-step conditioning and scene-level denoising cannot be combined.")
+            cond = torch.stack([self._mixed(cond, chain[:, :, i], int(k), scene)
+                                for i, (k, _) in enumerate(self.sample_schedule)], 2)  # (N, S, K, D)
         if cond.dim() == 4:
             c = cond.reshape(-1, cond.shape[-1])
         else:

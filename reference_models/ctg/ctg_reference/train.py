@@ -31,11 +31,12 @@ from trafficrlhf_sdk.models.features import history_features, map_crops, neighbo
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
-from ctg_reference.data import PLAN_KEYS, drop_neighbour_plans, neighbour_plan_features
+from ctg_reference.data import PLAN_KEYS, co_denoised_rows, drop_neighbour_plans, neighbour_plan_features
 from ctg_reference.model import CTGConfig, CTGModel
 
 STORE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0", "actions",
               "states")
+SCENE_KEYS = ("neighbour_row", "window")
 
 
 def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor] | None:
@@ -82,6 +83,9 @@ def scene_samples(scene, cfg: CTGConfig, stride: int) -> dict[str, torch.Tensor]
         "extent": stacked.extent[mask], "neighbours": neighbours[mask], "neighbour_valid": neighbour_valid[mask],
         "v0": rows[:, 2], "actions": actions, "states": torch.cat([local, future[..., 2:3], yaw[..., None]], -1),
     }
+    if cfg.scene_denoising:  # which rows of the same step are each row's neighbours (denoised together)
+        out["neighbour_row"] = co_denoised_rows(mask, neighbour_index, neighbour_valid)
+        out["window"] = torch.arange(n)[:, None].expand(n, a)[mask]
     if cfg.neighbour_plan_steps:  # the neighbours' logged positions at the plan steps, as their "plans"
         plan_idx = (steps[:, None] + torch.tensor(cfg.neighbour_plan_steps)).clamp_max(scene.num_steps - 1)
         positions = scene.xy[0][:, plan_idx].permute(1, 0, 2, 3)[:, None]  # (n, 1, A, F, 2)
@@ -96,16 +100,57 @@ def build_samples(source, split: str, scene_ids: list[str], cfg: CTGConfig, stri
                   desc: str = "", mirror: bool = False) -> dict[str, torch.Tensor]:
     """Featurize every usable (scene, vehicle, t) window of ``scene_ids``; map crops stored as uint8. With
     ``mirror``, each scene's mirror image (``y -> -y``, its map reflected alike) adds its windows too."""
-    keys = STORE_KEYS + (PLAN_KEYS if cfg.neighbour_plan_steps else ())
+    keys = STORE_KEYS + (PLAN_KEYS if cfg.neighbour_plan_steps else ()) + (SCENE_KEYS if cfg.scene_denoising else ())
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
+    rows = windows = 0  # offsets: scene-denoising rows and windows are indexed over all scenes
     scenes = source.iter_scenes(split, scene_ids)
     for scene in tqdm(scenes, total=len(scene_ids), desc=desc or f"featurizing {split}", unit="scene"):
         for variant in (scene, mirror_scenario(scene)) if mirror else (scene,):
             samples = scene_samples(variant, cfg, stride)
-            if samples is not None:
-                for k in keys:
-                    parts[k].append(samples[k])
+            if samples is None:
+                continue
+            if cfg.scene_denoising:
+                row = samples["neighbour_row"]
+                samples["neighbour_row"] = torch.where(row >= 0, row + rows, row)
+                samples["window"] = samples["window"] + windows
+                windows = int(samples["window"].max()) + 1
+            rows += samples["v0"].shape[0]
+            for k in keys:
+                parts[k].append(samples[k])
     return {k: torch.cat(v) for k, v in parts.items()}
+
+
+def scene_batch(data: dict[str, torch.Tensor], idx: torch.Tensor, dropout: float = 0.0,
+                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    """Rows ``idx`` of scene-denoising samples with ``neighbour_row`` re-indexed into the batch (neighbours
+    outside it, and a share ``dropout`` of the others, become -1) and ``group``: the batch's windows as
+    ``0..G-1``, so each window's rows get one noise level."""
+    out = subset_rows(data, idx)
+    out["map"] = out["map"].float()
+    local = out["neighbour_row"]
+    if dropout > 0:
+        local = torch.where(torch.rand(local.shape, generator=generator) < dropout, torch.full_like(local, -1), local)
+    out["neighbour_row"] = local
+    out["group"] = torch.unique(out.pop("window"), return_inverse=True)[1]
+    return out
+
+
+def subset_rows(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Rows ``idx`` (ascending) of scene-denoising samples, ``neighbour_row`` re-indexed into them (-1 outside)."""
+    out = {k: v[idx] for k, v in data.items()}
+    position = torch.full((data["v0"].shape[0],), -1, dtype=torch.long)
+    position[idx] = torch.arange(len(idx))
+    row = out["neighbour_row"]
+    out["neighbour_row"] = torch.where(row >= 0, position[row.clamp_min(0)], row)
+    return out
+
+
+def whole_windows(data: dict[str, torch.Tensor], seeds: torch.Tensor) -> torch.Tensor:
+    """Every row of the windows (scene, step) that the rows ``seeds`` belong to (windows are contiguous)."""
+    window = data["window"]
+    chosen = torch.zeros(int(window[-1]) + 1, dtype=torch.bool)
+    chosen[window[seeds]] = True
+    return chosen[window].nonzero()[:, 0]
 
 
 def batch_of(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -121,10 +166,12 @@ def validate(model: CTGModel, data: dict[str, torch.Tensor], num_samples: int = 
     """Diffusion loss (fixed noise) and minADE/minFDE (m) of ``num_samples`` DDIM samples."""
     model.eval()
     gen = torch.Generator().manual_seed(seed)
-    b = batch_of(data, torch.arange(data["v0"].shape[0]))
-    cond = model.encode(b)
-    loss, parts = model.loss(cond, b["actions"], b["v0"], b["states"], generator=gen)
-    actions, _, _, _ = model.sample(cond, num_samples, gen)
+    everything = torch.arange(data["v0"].shape[0])
+    b = scene_batch(data, everything) if model.mixer is not None else batch_of(data, everything)
+    cond, scene = model.encode(b), model.scene_rows(b)
+    loss, parts = model.loss(cond, b["actions"], b["v0"], b["states"], generator=gen, scene=scene,
+                             group=b.get("group"))
+    actions, _, _, _ = model.sample(cond, num_samples, gen, scene=scene)
     pos = model.rollout(model.normalize(actions), b["v0"][:, None].expand(-1, num_samples))[..., :2]
     err = torch.linalg.vector_norm(pos - b["states"][:, None, :, :2], dim=-1)  # (N, S, H)
     model.train()
@@ -170,6 +217,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="With --neighbour-plan-steps: share of training windows that see no neighbour plan.")
     parser.add_argument("--plan-dropout-each", type=float, default=0.2,
                         help="With --neighbour-plan-steps: share of the other windows' neighbour plans hidden.")
+    parser.add_argument("--scene-denoising", action="store_true",
+                        help="Scene-level model: every denoising step of an agent reads the current noisy samples of "
+                             "the neighbours denoised with it; training shares one noise level per scene and step.")
+    parser.add_argument("--scene-dropout", type=float, default=0.3,
+                        help="With --scene-denoising: share of co-denoised neighbours hidden in training (as for "
+                             "log-replayed neighbours in simulation).")
     args = parser.parse_args(argv)
 
     began = time.perf_counter()
@@ -189,7 +242,12 @@ def main(argv: list[str] | None = None) -> None:
     cfg = CTGConfig(horizon=args.horizon, map_size=args.map_size, map_resolution=args.map_resolution,
                     unet_dims=tuple(args.unet_dims), cond_dim=args.cond_dim, map_dim=args.map_dim,
                     cnn_width=args.cnn_width, neighbour_plan_steps=list(args.neighbour_plan_steps),
-                    plan_dropout_all=args.plan_dropout_all, plan_dropout_each=args.plan_dropout_each)
+                    plan_dropout_all=args.plan_dropout_all, plan_dropout_each=args.plan_dropout_each,
+                    scene_denoising=args.scene_denoising, scene_dropout=args.scene_dropout)
+    if cfg.scene_denoising and cfg.neighbour_plan_steps:
+        parser.error("--scene-denoising and --neighbour-plan-steps are two kinds of interaction; choose one.")
+    if not 0 <= cfg.scene_dropout < 1:
+        parser.error(f"--scene-dropout is a share in [0, 1); got {cfg.scene_dropout}.")
     if not (0 <= cfg.plan_dropout_all <= 1 and 0 <= cfg.plan_dropout_each <= 1):
         parser.error(f"--plan-dropout-all and --plan-dropout-each are shares in [0, 1]; got "
                      f"{cfg.plan_dropout_all}, {cfg.plan_dropout_each}.")
@@ -206,7 +264,10 @@ def main(argv: list[str] | None = None) -> None:
     val_ids = [s for s in source.scene_ids("val") if s not in held_out]
     val = build_samples(source, "val", val_ids, cfg, stride=10, desc="featurizing val")
     pick = torch.linspace(0, val["v0"].shape[0] - 1, min(args.val_samples, val["v0"].shape[0])).long()
-    val = {k: v[pick] for k, v in val.items()}
+    if cfg.scene_denoising:  # the whole windows of a third as many rows, neighbours re-indexed into the subset
+        val = subset_rows(val, whole_windows(val, pick[::3]))
+    else:
+        val = {k: v[pick] for k, v in val.items()}
     prep_time = time.perf_counter() - began
     n_train = train["v0"].shape[0]
     print(f"{n_train} training windows from {len(train_ids)} scenes, {val['v0'].shape[0]} validation windows "
@@ -224,6 +285,11 @@ def main(argv: list[str] | None = None) -> None:
     num_params = sum(p.numel() for p in model.parameters())
     print(f"model: {num_params} parameters")
 
+    if cfg.scene_denoising:  # seed rows per batch so that their whole windows hold about batch_size rows
+        sizes = torch.bincount(train["window"]).float()
+        biased = float((sizes**2).sum() / sizes.sum())  # a random row's window size
+        scene_seeds = max(1, round(args.batch_size / biased))
+        print(f"scene-level denoising: {scene_seeds} windows per batch (a row's window holds {biased:.1f} rows)")
     train_budget = budget - prep_time - 45.0  # keep time for the final validation and writing
     warmup = 100
     curve: dict[str, list] = {"step": [], "train_loss": [], "val_step": [], "val_loss": [], "val_min_ade": []}
@@ -238,11 +304,15 @@ def main(argv: list[str] | None = None) -> None:
         lr = args.lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
         for group in optimizer.param_groups:
             group["lr"] = lr
-        idx = torch.randint(0, n_train, (args.batch_size,), generator=gen)
-        b = batch_of(train, idx)
+        if cfg.scene_denoising:  # whole windows, about batch_size rows
+            idx = whole_windows(train, torch.randint(0, n_train, (scene_seeds,), generator=gen))
+            b = scene_batch(train, idx, cfg.scene_dropout, gen)
+        else:
+            b = batch_of(train, torch.randint(0, n_train, (args.batch_size,), generator=gen))
         if cfg.neighbour_plan_steps:
             b["neighbour_plan_valid"] = drop_neighbour_plans(b["neighbour_plan_valid"], cfg, gen)
-        loss, _ = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen)
+        loss, _ = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen,
+                             scene=model.scene_rows(b), group=b.get("group"))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -271,7 +341,9 @@ def main(argv: list[str] | None = None) -> None:
     curve["val_step"].append(step)
     curve["val_loss"].append(final["loss"])
     curve["val_min_ade"].append(final["min_ade"])
-    final_train = validate(ema, {k: v[torch.linspace(0, n_train - 1, len(val["v0"])).long()] for k, v in train.items()})
+    spread = torch.linspace(0, n_train - 1, len(val["v0"])).long()
+    final_train = validate(ema, subset_rows(train, whole_windows(train, spread[::3])) if cfg.scene_denoising
+                           else {k: v[spread] for k, v in train.items()})
 
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "config.json"), "w", encoding="utf-8") as handle:
