@@ -129,7 +129,7 @@ def drop_neighbour_plans(valid: torch.Tensor, cfg: CTGConfig, generator: torch.G
 
 def co_denoised_rows(mask: torch.Tensor, neighbour_index: torch.Tensor, neighbour_valid: torch.Tensor
                      ) -> torch.Tensor:
-    """Joint denoising: for the rows ``mask (W, A)`` (W scenes or windows, rows in row-major order), the row
+    """Scene-level denoising: for the rows ``mask (W, A)`` (W scenes or windows, rows in row-major order), the row
     index of each of their neighbours ``neighbour_index (W, A, K)`` (valid where ``neighbour_valid``) that is
     itself a row of the same window, else -1: ``(N, K)`` long."""
     row_of = torch.full(mask.shape, -1, dtype=torch.long, device=mask.device)

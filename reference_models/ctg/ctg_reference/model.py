@@ -473,7 +473,7 @@ class CTGModel(nn.Module):
             guidance_fn: optional ``f(mean (N, S, H, 2) normalized, step index) -> scalar`` objective to lower;
                 each non-final step's mean moves by ``-guidance_step * sign(grad)``, clipped to +-sigma.
             cond_fn: optional ``f(step index, x0 (N, S, H, 2) normalized) -> cond (N, S, cond_dim)`` called before
-                every step after the first with the previous step's clean prediction: scene-level denoising, where the
+                every step after the first with the previous step's clean prediction: lockstep denoising, where the
                 conditioning follows what the other rows are becoming (``cond`` is used for the first step).
             scene: for a scene-denoising model, :meth:`scene_rows` of the rows: every step of row i's sample s
                 reads the current noisy samples s of the rows denoised as its neighbours.

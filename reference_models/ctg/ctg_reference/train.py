@@ -136,7 +136,7 @@ def scene_batch(data: dict[str, torch.Tensor], idx: torch.Tensor, dropout: float
 
 
 def subset_rows(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Rows ``idx`` (ascending) of scene-denoising samples, ``neighbour_row`` re-indexed into them (-1 outside)."""
+    """Rows ``idx`` of scene-denoising samples, ``neighbour_row`` re-indexed into them (-1 outside)."""
     out = {k: v[idx] for k, v in data.items()}
     position = torch.full((data["v0"].shape[0],), -1, dtype=torch.long)
     position[idx] = torch.arange(len(idx))
