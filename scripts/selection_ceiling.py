@@ -16,6 +16,7 @@ this reward-selected policy estimates what fine-tuning towards the reward's pref
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from collections.abc import Callable
 from typing import Any
@@ -48,7 +49,9 @@ class RewardSelectedPlanner:
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
         """``Plan`` of ``(B, A, horizon, 4)``: per agent the sample with the highest reward over the lookahead."""
         adapter = self.adapter
-        with torch.enable_grad() if adapter.guidance is not None else torch.no_grad():
+        hold = getattr(adapter, "_hold", None)  # the adapter's stationary rule, as its own plan() applies it
+        with torch.enable_grad() if adapter.guidance is not None else torch.no_grad(), \
+                hold.planning() if hold is not None else contextlib.nullcontext():
             out = adapter.sample(context, self.samples, adapter.guidance, adapter._generator)
         futures = out.futures.detach()  # (B, S, A, H, 4)
         b, s, a = futures.shape[:3]

@@ -170,3 +170,17 @@ def test_seeds_errors_come_before_any_work(cli, tmp_path) -> None:  # type: igno
         result = CliRunner().invoke(cli, ["evaluate", "--model", "constant_velocity", *args])
         assert result.exit_code != 0 and expected in str(result.exception), (args, result.exception)
     assert not any(tmp_path.iterdir())
+
+
+def test_model_options_reach_the_model_and_unknown_ones_are_named(has_data, cli) -> None:  # type: ignore[no-untyped-def]
+    # noisy_log with no position noise replays the log: its failure rate is the log's own
+    result = CliRunner().invoke(cli, ["evaluate", "--model", "noisy_log", "--scenes", "2", "--json",
+                                      "--model-option", "position_noise_m=0"])
+    assert result.exit_code == 0, (result.output, result.exception)
+    report = json.loads(result.output[result.output.index("{"):])
+    assert report["metadata"]["model_options"] == {"position_noise_m": 0}
+    assert report["metrics"]["failure_rate"] == pytest.approx(report["logged"]["failure_rate"])
+    wrong = CliRunner().invoke(cli, ["evaluate", "--model", "noisy_log", "--scenes", "1",
+                                     "--model-option", "noise=2"])
+    assert isinstance(wrong.exception, TrafficRLHFError)
+    assert "'noise'" in str(wrong.exception) and "position_noise_m" in str(wrong.exception)

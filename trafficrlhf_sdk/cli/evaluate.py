@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.cli import cli, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 if TYPE_CHECKING:
@@ -42,8 +42,12 @@ ROWS = (
 )
 
 
+COMMON_OPTIONS = ("guidance", "checkpoint", "seed")  # passed to every model that accepts them, ignored otherwise
+
+
 def build_policy(model: str, options: dict[str, object]) -> object:
-    """Instantiate registered traffic model ``model`` with only the options its factory accepts."""
+    """Instantiate registered traffic model ``model``: ``guidance``, ``checkpoint`` and ``seed`` go to factories
+    that accept them; any other option (``--model-option``) must be accepted, or the error names it."""
     from trafficrlhf_sdk.plugins import registry
 
     factory = registry("traffic_models").get(model)
@@ -57,6 +61,11 @@ def build_policy(model: str, options: dict[str, object]) -> object:
             f"traffic model {model!r} does not accept guidance (got --guidance {options['guidance']!r}); "
             "drop --guidance or pick a model that supports it."
         )
+    unknown = sorted(k for k in options if k not in COMMON_OPTIONS and not takes_any and k not in accepted)
+    if unknown:
+        raise TrafficRLHFError(f"traffic model {model!r} takes no option {', '.join(map(repr, unknown))} (got "
+                               f"--model-option {', '.join(f'{k}={options[k]!r}' for k in unknown)}); it accepts: "
+                               f"{', '.join(accepted) or 'none'}.")
     kwargs = {k: v for k, v in options.items() if v is not None and (takes_any or k in accepted)}
     return factory(**kwargs)
 
@@ -106,11 +115,15 @@ def _fmt(value: float | None) -> str:
 @click.option("--render-worst", type=click.IntRange(min=0), default=0, show_default=True,
               help="Draw the N scenes with the largest failure share as PNGs in --out/worst_scenes/: the simulated "
                    "run over the log at its first failure.")
+@click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
+              help="Traffic-model option (JSON value), repeatable, e.g. stationary_rule=every_replan or "
+                   "plan_samples=8 (the adapter's Options class lists them).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,
                      checkpoint: str | None, seed: int, seed_list: str | None, batch_size: int, out_dir: str | None,
-                     reward_model_dir: str | None, worst_scenes: int, render_worst: int, as_json: bool) -> None:
+                     reward_model_dir: str | None, worst_scenes: int, render_worst: int, model_options: tuple[str, ...],
+                     as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -134,7 +147,8 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
         seed = seeds[0]
     torch.manual_seed(seed)
     # build the model first: a bad --model/--guidance fails before any data is read
-    policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
+    extra = parse_key_values(model_options, "--model-option")
+    policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     options = {"root": root} if root else {}
     scenario_source = get_scenario_source(source, **options)
     scene_ids = _chosen_scenes(scenario_source.scene_ids(split), scene_id, split) if scene_id else \
@@ -143,7 +157,7 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
     metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
-                "reward_model": reward_model_dir, "scene_ids": list(scene_ids)}
+                "reward_model": reward_model_dir, "model_options": extra, "scene_ids": list(scene_ids)}
     if seeds:
         import os
 
@@ -151,7 +165,8 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
         for index, run_seed in enumerate(seeds):
             if index:
                 torch.manual_seed(run_seed)
-                policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": run_seed})
+                policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint,
+                                              "seed": run_seed})
             run = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=batch_size, seed=run_seed),
                                   extra_metrics=extra_metrics, progress=True, metadata=metadata)
             results.append(run.to_json())

@@ -145,6 +145,23 @@ def test_log_prob_is_the_masked_goal_distribution(adapter) -> None:  # type: ign
     assert (out.futures[0, :, 0, -1, 0] > scene.states[0, 0, 30, 0]).all()
 
 
+@pytest.mark.parametrize("rule", ["rollout_start", "every_replan"])
+def test_stationary_rule_decides_when_the_speed_is_read(rule) -> None:  # type: ignore[no-untyped-def]
+    """Car 2 is stopped at the rollout start and car 0 moving; then car 2 drives off and car 0 stops.
+    ``rollout_start`` (upstream) keeps holding car 2 and lets car 0 go on; ``every_replan`` does the opposite."""
+    from trafficrlhf_bits import BITSAdapter
+
+    scene = synthetic_scene()
+    states = scene.states.clone()
+    states[0, 0, 30, 2], states[0, 2, 30, 2] = 0.0, 6.0
+    later = scene.replace_unchecked(states=states)
+    model = BITSAdapter(seed=0, stationary_rule=rule)
+    model.reset(scene)
+    plan = model.plan(later, 20).states  # (1, 4, 20, 4)
+    held = (plan[0, :3, :, :2] == later.states[0, :3, 30, None, :2]).all(-1).all(-1)
+    assert held.tolist() == ([False, False, True] if rule == "rollout_start" else [True, False, False])
+
+
 def test_plan_picks_the_best_bits_score(adapter) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_bits import BITSAdapter
 

@@ -22,8 +22,10 @@
 * :meth:`selection_scores` ranks the samples of ``sample`` as ``plan`` would (the same score, the other agents'
   most likely goals as predictions, progress measured along the current heading in the scene frame), for
   ``AlignConfig.selection_credit``: PPO then credits each goal with its best-of-``plan_samples`` return.
-* Stationary agents (|v| <= ``stationary_speed`` now) are held still, as the ``ctg`` adapter and upstream do;
-  their goal is still sampled and scored, so ``log_prob`` stays exact.
+* Stationary agents (|v| <= ``stationary_speed``) are held still, as the ``ctg`` adapter and upstream do, decided
+  by ``stationary_rule`` (upstream's ``"rollout_start"``: once, from the speeds at ``reset``; a direct ``sample``
+  call treats its context's current step as the start); their goal is still sampled and scored, so ``log_prob``
+  stays exact.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from trafficrlhf_sdk.models.adapter import (
     extend_constant_velocity,
 )
 from trafficrlhf_sdk.models.features import from_agent_frame
+from trafficrlhf_sdk.models.stationary import StationaryHold, StationaryRule
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
 
@@ -63,7 +66,10 @@ class BITSOptions(AdapterOptions):
     """Options of :class:`BITSAdapter` (``plan_samples`` is the number of goals BITS samples per replan;
     upstream uses 50 in tbsim and 5 in CTG's scene-editing config, the SDK default)."""
 
-    stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed now (m/s) are held still.")
+    stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed (m/s) are held still.")
+    stationary_rule: StationaryRule = Field(
+        "rollout_start", description="When the speed is read: 'rollout_start' (upstream; once, at reset) or "
+        "'every_replan' (the current speed at each replan, so an agent that stops stays stopped).")
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
     selection_weights: tuple[float, float, float] = Field(
         (0.01, 15.0, 1.0), description="BITS selection weights: progress, collision, drivable area (tbsim).")
@@ -82,6 +88,7 @@ class _Draw(NamedTuple):
     local: torch.Tensor  # (N, G, H, 4) agent-frame rollouts (G = S, or S + 1 with the most likely goal last)
     futures: torch.Tensor  # (N, G, H, 4) scene-frame rollouts (stationary agents held)
     state_now: torch.Tensor  # (N, 4) current scene-frame states
+    held: torch.Tensor  # (N,) bool: held still (stationary)
 
 
 class BITSAdapter(TrafficModelAdapter):
@@ -104,6 +111,7 @@ class BITSAdapter(TrafficModelAdapter):
         self.history_steps = self.cfg.history_steps
         self.model.policy.requires_grad_(False)  # frozen in TrafficRLHF: never offered, never differentiated
         self.model.eval()
+        self._hold = StationaryHold(self.options.stationary_speed, self.options.stationary_rule)
 
     def get_config(self) -> dict[str, Any]:
         """The model's :class:`BITSConfig` as a dict (normalization statistics included)."""
@@ -129,15 +137,15 @@ class BITSAdapter(TrafficModelAdapter):
             raise ValueError(f"the BITS model runs at dt={self.cfg.dt} s; the scenario has dt={context.dt} s. Load "
                              "the scenes with dt=0.1.")
 
-    def _to_scene(self, local: torch.Tensor, state_now: torch.Tensor) -> torch.Tensor:
-        """Agent-frame states ``(N, G, H, 4)`` -> scene frame, stationary agents held still."""
+    def _to_scene(self, local: torch.Tensor, state_now: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+        """Agent-frame states ``(N, G, H, 4)`` -> scene frame from ``state_now (N, 4)``; the rows where ``held (N,)``
+        is True stay still."""
         n, g, h, _ = local.shape
         pose = torch.stack([state_now[:, 0], state_now[:, 1], state_now[:, 3]], -1)
         xy = from_agent_frame(local[None, ..., :2], pose[None])[0]
         scene = torch.cat([xy, local[..., 2:3], wrap_angle(local[..., 3:4] + pose[:, None, None, 2:3])], -1)
         hold = torch.stack([state_now[:, 0], state_now[:, 1], torch.zeros_like(state_now[:, 0]), state_now[:, 3]], -1)
-        still = (state_now[:, 2].abs() <= self.options.stationary_speed)[:, None, None, None]
-        return torch.where(still, hold[:, None, None].expand(n, g, h, 4), scene)
+        return torch.where(held[:, None, None, None], hold[:, None, None].expand(n, g, h, 4), scene)
 
     @staticmethod
     def _scatter(rows: torch.Tensor, agents: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
@@ -155,6 +163,7 @@ class BITSAdapter(TrafficModelAdapter):
         with torch.no_grad():
             feats = select_rows(agent_features(context, self.cfg), agents)
             state_now = context.states[:, :, now][agents]
+            held = self._hold.mask(context)[agents]
             out = self.model.goal_net(feats)
             mask = feats["map"][:, 0].flatten(1) > 0
             if state_now.shape[0] == 0:
@@ -165,9 +174,9 @@ class BITSAdapter(TrafficModelAdapter):
             if modes:
                 index = torch.cat([index, self.model.mode_goals(out, mask)], 1)
             local = self.model.policy.rollout(feats, self.model.goal_net.goal_at(out, index))
-            futures = self._to_scene(local, state_now)
+            futures = self._to_scene(local, state_now, held)
         return _Draw(index=index[:, :num_samples], log_p=log_p, mask=mask, local=local, futures=futures,
-                     state_now=state_now)
+                     state_now=state_now, held=held)
 
     # ------------------------------------------------------------ contract
     def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
@@ -326,8 +335,7 @@ class BITSAdapter(TrafficModelAdapter):
         draw_c = _Draw(*(t[sub] for t in draw))
         out = self._output(context, agents, draw_c, groups * k, guidance)
         progress = draw_c.local[:, : groups * k, -1, 0]
-        progress = torch.where(draw_c.state_now[:, 2:3].abs() <= self.options.stationary_speed,
-                               torch.zeros_like(progress), progress)
+        progress = torch.where(draw_c.held[:, None], torch.zeros_like(progress), progress)
         terms = self.selection_terms(context, draw_c.futures[:, : groups * k], progress, agents, valid_now, modes)
         cost, scene_level = self._selection_cost(context, agents, terms, out.futures, guidance)
         # every (scene, group) pair is one selection among K: fold the groups into the batch
@@ -351,7 +359,8 @@ class BITSAdapter(TrafficModelAdapter):
         mask = feats["map"][:, 0].flatten(1) > 0
         local = self.model.policy.rollout(feats, self.model.goal_net.goal_at(out, self.model.mode_goals(out, mask)))
         modes = torch.zeros(b, a, h, 4, device=context.device)
-        modes[valid_now] = self._to_scene(local, context.states[:, :, now][valid_now])[:, 0]
+        modes[valid_now] = self._to_scene(local, context.states[:, :, now][valid_now],
+                                          self._hold.mask(context)[valid_now])[:, 0]
         candidates = output.futures.transpose(1, 2)[agents].to(modes.dtype)  # (N, S, H, 4)
         state_now = context.states[:, :, now][agents]
         heading = torch.stack([state_now[:, 3].cos(), state_now[:, 3].sin()], -1)  # (N, 2)
@@ -362,6 +371,11 @@ class BITSAdapter(TrafficModelAdapter):
             cost = (cost * agents[:, None]).sum(-1, keepdim=True).expand_as(cost)
         return -cost * agents[:, None], self.options.plan_samples
 
+    def reset(self, scenario: ScenarioTensor) -> None:
+        """Fit the guidance and record which agents are stationary at the rollout start."""
+        super().reset(scenario)
+        self._hold.start(scenario)
+
     @torch.no_grad()
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
         """BITS: sample ``plan_samples`` goals per agent, score each trajectory by
@@ -369,7 +383,8 @@ class BITSAdapter(TrafficModelAdapter):
         the best; extended at constant velocity beyond 2 s."""
         context = context.to(self.options.device)
         self._check_dt(context)
-        out, choice = self._selection(context, 1, self.guidance, self._generator)
+        with self._hold.planning():
+            out, choice = self._selection(context, 1, self.guidance, self._generator)
         h = self.horizon
         chosen = out.futures.gather(1, choice[:, :, :, None, None].expand(-1, -1, -1, h, 4))[:, 0]
         return Plan(extend_constant_velocity(chosen, horizon, context.dt).cpu())

@@ -125,6 +125,33 @@ def test_stationary_agents_are_held(adapter, scenes) -> None:  # type: ignore[no
                        xy_now[agents[:, None].expand(-1, 2, -1)])
 
 
+@needs_data
+@pytest.mark.parametrize("rule", ["rollout_start", "every_replan"])
+def test_stationary_rule_decides_when_the_speed_is_read(scenes, rule) -> None:  # type: ignore[no-untyped-def]
+    """``rollout_start`` (upstream) holds the agents stopped at ``reset`` and only them; ``every_replan`` holds the
+    agents stopped at the replan."""
+    from trafficrlhf_ctg import CTGAdapter
+
+    now = scenes.current_index
+    agents = scenes.controlled & scenes.valid[:, :, now]
+    moving = agents & (scenes.states[:, :, now, 2].abs() > 1.0)
+    assert moving.sum() >= 3
+    states = scenes.states.clone()
+    states[:, :, now, 2] = 0.0
+    stopped = scenes.replace_unchecked(states=states)
+    model = CTGAdapter(seed=0, stationary_rule=rule)
+
+    def held(start, context) -> torch.Tensor:  # type: ignore[no-untyped-def]
+        model.reset(start)
+        plan = model.plan(context, 20).states  # (B, A, 20, 4)
+        return (plan[..., :2] == context.states[:, :, now, None, :2]).all(-1).all(-1)
+
+    assert bool(held(scenes, stopped)[moving].all()) == (rule == "every_replan")  # moving at the start, stopped now
+    assert not held(scenes, stopped)[moving].any() or rule == "every_replan"
+    assert bool(held(stopped, scenes)[moving].all()) == (rule == "rollout_start")  # stopped at the start, moving now
+    assert not held(stopped, scenes)[moving].any() or rule == "rollout_start"
+
+
 def test_registry_entry_point() -> None:
     from trafficrlhf_sdk import get_traffic_model
     from trafficrlhf_sdk.plugins import registry

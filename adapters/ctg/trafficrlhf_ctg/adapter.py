@@ -20,9 +20,11 @@
 * Scene-level denoising (checkpoints trained with ``--scene-denoising``): all sampled agents of a scene are
   denoised in lockstep, each step of agent i's sample s reading the current noisy samples s of its sampled
   neighbours; those are in the trace's ``chain``, so ``log_prob`` is exact without further state.
-* Stationary agents (|v| <= ``stationary_speed`` now, upstream's 0.5 m/s) are held still (position and heading
-  kept, speed 0), as upstream disables their control. Their chain is still sampled and scored normally, so
-  ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is therefore 0).
+* Stationary agents (|v| <= ``stationary_speed``, upstream's 0.5 m/s) are held still (position and heading
+  kept, speed 0), as upstream disables their control. ``stationary_rule="rollout_start"`` (upstream) decides from
+  the speeds at the rollout start (``reset``), so an agent that stops later may drive off again; a direct
+  ``sample`` call treats its context's current step as the start. Their chain is still sampled and scored
+  normally, so ``log_prob`` stays exact; only their executed future ignores it (their guidance gradient is 0).
 """
 
 from __future__ import annotations
@@ -49,7 +51,9 @@ from ctg_reference.model import CTGConfig, CTGModel, SceneRows
 from trafficrlhf_sdk.dynamics import unicycle_rollout
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
+from trafficrlhf_sdk.models.stationary import StationaryHold, StationaryRule
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import Plan
 
 __all__ = ["CTGAdapter", "CTGOptions", "default_checkpoint"]
 
@@ -62,7 +66,10 @@ def default_checkpoint() -> Path:
 class CTGOptions(AdapterOptions):
     """Options of :class:`CTGAdapter`."""
 
-    stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed now (m/s) are held still.")
+    stationary_speed: float = Field(0.5, ge=0, description="Agents at or below this speed (m/s) are held still.")
+    stationary_rule: StationaryRule = Field(
+        "rollout_start", description="When the speed is read: 'rollout_start' (upstream; once, at reset) or "
+        "'every_replan' (the current speed at each replan, so an agent that stops stays stopped).")
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene sampled by imitation_loss.")
     plan_mode: Literal["joint", "proposal", "none"] = Field(
         "proposal", description="For checkpoints with neighbour_plan_steps, what each agent sees of its "
@@ -90,6 +97,7 @@ class CTGAdapter(TrafficModelAdapter):
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()
+        self._hold = StationaryHold(self.options.stationary_speed, self.options.stationary_rule)
 
     def get_config(self) -> dict[str, Any]:
         """The model's :class:`CTGConfig` as a dict (normalization statistics included)."""
@@ -143,13 +151,14 @@ class CTGAdapter(TrafficModelAdapter):
         steps = torch.tensor(self.cfg.neighbour_plan_steps, device=futures.device) - 1
         return futures[..., steps, :2]
 
-    def _rollout(self, x: torch.Tensor, state_now: torch.Tensor) -> torch.Tensor:
-        """Scene-frame futures ``(N, S, H, 4)`` of normalized actions ``x (N, S, H, 2)``; stationary agents held."""
+    def _rollout(self, x: torch.Tensor, state_now: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+        """Scene-frame futures ``(N, S, H, 4)`` of normalized actions ``x (N, S, H, 2)`` from ``state_now (N, 4)``;
+        the rows where ``held (N,)`` is True stay still."""
         n, s, h, _ = x.shape
         start = state_now[:, None].expand(n, s, 4)
         states = unicycle_rollout(start, self.model.unnormalize(x), dt=self.cfg.dt, bounds=None)
         hold = torch.stack([state_now[:, 0], state_now[:, 1], torch.zeros_like(state_now[:, 0]), state_now[:, 3]], -1)
-        still = (state_now[:, 2].abs() <= self.options.stationary_speed)[:, None, None, None]
+        still = held[:, None, None, None]
         return torch.where(still, hold[:, None, None].expand(n, s, h, 4), states)
 
     @staticmethod
@@ -178,30 +187,31 @@ class CTGAdapter(TrafficModelAdapter):
         with torch.no_grad():
             encode, scene = self._plan_encoder(context, agents)
             cond, state_now = encode(None), context.states[:, :, now][agents]
+            held = self._hold.mask(context)[agents]
             if mode == "proposal" and cond.shape[0] > 0:  # an unguided proposal, then the plans
                 proposal, _, _, _ = self.model.sample(cond, s, generator)
                 plan_positions = self._plan_positions(self._scatter(
-                    self._rollout(self.model.normalize(proposal), state_now), agents, base_futures))
+                    self._rollout(self.model.normalize(proposal), state_now, held), agents, base_futures))
                 cond = encode(plan_positions)
             elif mode == "joint" and cond.shape[0] > 0:
                 step_plans = [self._plan_positions(base_futures.transpose(1, 2))]  # first step: unused
 
                 def cond_fn(step: int, x0: torch.Tensor) -> torch.Tensor:
-                    step_plans.append(self._plan_positions(self._scatter(self._rollout(x0, state_now), agents,
+                    step_plans.append(self._plan_positions(self._scatter(self._rollout(x0, state_now, held), agents,
                                                                          base_futures)))
                     return encode(step_plans[-1])
 
             guidance_fn = None
             if guidance is not None and cond.shape[0] > 0:
                 def guidance_fn(mean: torch.Tensor, step: int) -> torch.Tensor:
-                    futures = self._scatter(self._rollout(mean, state_now), agents, base_futures)
+                    futures = self._scatter(self._rollout(mean, state_now, held), agents, base_futures)
                     loss = guidance.loss(futures, now, context)  # (B, S, A)
                     return (loss * agents[:, None]).sum()
 
             actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn, scene)
             if cond_fn is not None:
                 plan_positions = torch.stack(step_plans, 3)  # (B, S, A, K, F, 2)
-            futures = self._rollout(self.model.normalize(actions), state_now)
+            futures = self._rollout(self.model.normalize(actions), state_now, held)
         dev = context.device
         tensors = {
             "chain": self._scatter(chain, agents, torch.zeros(b, a, s, k + 1, h, 2, device=dev)),
@@ -220,6 +230,17 @@ class CTGAdapter(TrafficModelAdapter):
             trace=trace,
             log_prob=self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=dev)),
         )
+
+    def reset(self, scenario: ScenarioTensor) -> None:
+        """Fit the guidance and record which agents are stationary at the rollout start."""
+        super().reset(scenario)
+        self._hold.start(scenario)
+
+    def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
+        """The base planner (guided samples, the lowest guidance loss executed), holding the agents that
+        ``stationary_rule`` marks as stationary."""
+        with self._hold.planning():
+            return super().plan(context, horizon)
 
     def log_prob(self, context: ScenarioTensor, trace: PolicyTrace) -> torch.Tensor:
         """Per-denoising-step log-probabilities ``(B, S, A, K)`` of the traced chains (0 for other agents)."""
