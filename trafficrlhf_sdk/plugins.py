@@ -9,6 +9,7 @@ Environment variables:
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import sys
 from typing import Any
@@ -16,10 +17,10 @@ from typing import Any
 import pluggy
 
 from trafficrlhf_sdk import hookspecs
-from trafficrlhf_sdk.errors import UnknownComponentError
+from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 
-__all__ = ["DEFAULT_PLUGINS", "get_plugin_manager", "list_plugins", "registry"]
+__all__ = ["DEFAULT_PLUGINS", "build_traffic_model", "get_plugin_manager", "list_plugins", "registry"]
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 DEFAULT_PLUGINS = (
@@ -81,6 +82,32 @@ def registry(kind: str) -> Registry[Any]:
         arguments = {"register": result.bind(impl.plugin_name)}
         impl.function(**{name: arguments[name] for name in impl.argnames})  # opt-in arguments, as pluggy does
     return result
+
+
+def build_traffic_model(name: str, options: dict[str, Any], optional: tuple[str, ...] = ()) -> Any:
+    """Instantiate registered traffic model ``name`` with ``options`` (None values dropped).
+
+    A ``guidance`` the factory does not take is an error (dropping it would mislabel the results); the keys in
+    ``optional`` (e.g. ``checkpoint``, ``seed``) go only to factories that take them; any other option the
+    factory does not take is an error that lists the ones it does.
+    """
+    factory = registry("traffic_models").get(name)
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        params = {}  # type: ignore[assignment]
+    takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in params.values())
+    kwargs = {k: v for k, v in options.items() if v is not None}
+    if kwargs.get("guidance") and not takes_any and "guidance" not in params:
+        raise TrafficRLHFError(f"traffic model {name!r} does not accept guidance (got {kwargs['guidance']!r}); drop "
+                               "the guidance or pick a model that supports it.")
+    kwargs = {k: v for k, v in kwargs.items() if takes_any or k in params or k not in optional}
+    unknown = sorted(k for k in kwargs if not takes_any and k not in params)
+    if unknown:
+        raise TrafficRLHFError(f"traffic model {name!r} takes no option {', '.join(map(repr, unknown))} (got "
+                               f"{', '.join(f'{k}={kwargs[k]!r}' for k in unknown)}); it accepts: "
+                               f"{', '.join(sorted(params)) or 'none'}.")
+    return factory(**kwargs)
 
 
 def list_plugins() -> list[dict[str, Any]]:

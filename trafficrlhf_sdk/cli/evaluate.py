@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 from typing import TYPE_CHECKING
@@ -42,32 +41,12 @@ ROWS = (
 )
 
 
-COMMON_OPTIONS = ("guidance", "checkpoint", "seed")  # passed to every model that accepts them, ignored otherwise
-
-
 def build_policy(model: str, options: dict[str, object]) -> object:
-    """Instantiate registered traffic model ``model``: ``guidance``, ``checkpoint`` and ``seed`` go to factories
-    that accept them; any other option (``--model-option``) must be accepted, or the error names it."""
-    from trafficrlhf_sdk.plugins import registry
+    """Instantiate registered traffic model ``model``: ``checkpoint`` and ``seed`` go to factories that accept
+    them; ``guidance`` and any other option (``--model-option``) must be accepted, or the error names it."""
+    from trafficrlhf_sdk.plugins import build_traffic_model
 
-    factory = registry("traffic_models").get(model)
-    try:
-        accepted = inspect.signature(factory).parameters
-    except (TypeError, ValueError):
-        accepted = {}
-    takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in accepted.values())
-    if options.get("guidance") and "guidance" not in accepted and not takes_any:
-        raise TrafficRLHFError(
-            f"traffic model {model!r} does not accept guidance (got --guidance {options['guidance']!r}); "
-            "drop --guidance or pick a model that supports it."
-        )
-    unknown = sorted(k for k in options if k not in COMMON_OPTIONS and not takes_any and k not in accepted)
-    if unknown:
-        raise TrafficRLHFError(f"traffic model {model!r} takes no option {', '.join(map(repr, unknown))} (got "
-                               f"--model-option {', '.join(f'{k}={options[k]!r}' for k in unknown)}); it accepts: "
-                               f"{', '.join(accepted) or 'none'}.")
-    kwargs = {k: v for k, v in options.items() if v is not None and (takes_any or k in accepted)}
-    return factory(**kwargs)
+    return build_traffic_model(model, options, optional=("checkpoint", "seed"))
 
 
 def _chosen_scenes(available: list[str], wanted: tuple[str, ...], split: str) -> list[str]:

@@ -19,7 +19,6 @@ winner). Maps are cropped to the agents' area plus a margin so the database stay
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -80,32 +79,12 @@ def context_seed(campaign_seed: int, source: str, split: str, scene_id: str) -> 
 
 
 def build_policy(model: str, guidance: str | None, seed: int, options: dict[str, Any] | None = None) -> Any:
-    """Instantiate registered traffic model ``model`` with the options its factory accepts.
+    """Instantiate registered traffic model ``model``: ``guidance`` for a model that takes none is an error
+    (silently dropping it would mislabel the campaign); ``seed`` is passed where accepted (deterministic policies
+    have none); other ``options`` must be accepted."""
+    from trafficrlhf_sdk.plugins import build_traffic_model
 
-    ``guidance`` for a model that takes none is an error (silently dropping it would mislabel the campaign);
-    ``seed`` is passed where accepted (deterministic policies have none).
-    """
-    from trafficrlhf_sdk.plugins import registry
-
-    factory = registry("traffic_models").get(model)
-    try:
-        params = inspect.signature(factory).parameters
-    except (TypeError, ValueError):
-        params = {}  # type: ignore[assignment]
-    takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in params.values())
-    kwargs = dict(options or {})
-    if guidance:
-        if not takes_any and "guidance" not in params:
-            raise TrafficRLHFError(f"traffic model {model!r} does not accept guidance (got {guidance!r}); drop the "
-                                   "guidance or pick a model that supports it.")
-        kwargs["guidance"] = guidance
-    if takes_any or "seed" in params:
-        kwargs["seed"] = seed
-    unknown = [k for k in kwargs if not takes_any and k not in params]
-    if unknown:
-        raise TrafficRLHFError(f"traffic model {model!r} does not accept the options {unknown}; it takes "
-                               f"{sorted(params)}.")
-    return factory(**kwargs)
+    return build_traffic_model(model, {**(options or {}), "guidance": guidance, "seed": seed}, optional=("seed",))
 
 
 def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int, seconds: float,
