@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
 from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
@@ -190,6 +191,11 @@ class RealismReward(FailureReward):
       them (the aligned 4 s CTG brakes and accelerates less hard than the log: realism (body) 0.102 -> 0.127).
       Measured on the 4 s CTG (docs/explanation/alignment-log.md, session 11): it brings the paper-style
       realism deviation below the base's, and takes most of the failure gain with it.
+    * heading mismatch (``heading_weight > 0``): per future step where the log drives faster than
+      ``stall_log_speed``, ``min(1, relu(|wrap(yaw - yaw_log)| - heading_tolerance) / heading_scale)``,
+      averaged over those steps. The compact CTG under-steers by about a fifth in turns and most of its
+      off-road failures start there (alignment log, session 7); this term asks for the logged turn itself
+      rather than for a recovery at the road edge. Angles in radians.
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
     39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
@@ -200,10 +206,12 @@ class RealismReward(FailureReward):
     def __init__(self, stall_weight: float = 1.0, accel_weight: float = 0.5, stall_ratio: float = 0.5,
                  stall_log_speed: float = 2.0, max_accel: float = 3.0, margins: bool = False,
                  speed_weight: float = 0.0, speed_tolerance: float = 0.25, speed_floor: float = 3.0,
-                 kinematics_weight: float = 0.0, kinematics_samples: int | None = None) -> None:
+                 kinematics_weight: float = 0.0, kinematics_samples: int | None = None,
+                 heading_weight: float = 0.0, heading_tolerance: float = 0.05, heading_scale: float = 0.5) -> None:
         super().__init__(margins=margins)
         for name, value in (("speed_weight", speed_weight), ("speed_tolerance", speed_tolerance),
-                            ("kinematics_weight", kinematics_weight)):
+                            ("kinematics_weight", kinematics_weight), ("heading_weight", heading_weight),
+                            ("heading_tolerance", heading_tolerance)):
             if value < 0:
                 raise TrafficRLHFError(f"`{name}` is {value}; use a value >= 0.")
         if speed_floor <= 0:
@@ -215,6 +223,10 @@ class RealismReward(FailureReward):
             raise TrafficRLHFError(f"`kinematics_samples` is {kinematics_samples}; use None (every future 0.5 s "
                                    "sample) or a count >= 1 (1 = the first 0.5 s, what a 2 Hz closed loop executes).")
         self.kinematics_weight, self.kinematics_samples = kinematics_weight, kinematics_samples
+        if heading_scale <= 0:
+            raise TrafficRLHFError(f"`heading_scale` is {heading_scale}; use an angle > 0 in radians (e.g. 0.5).")
+        self.heading_weight, self.heading_tolerance = heading_weight, heading_tolerance
+        self.heading_scale = heading_scale
 
     def agent_scores(self, scenario: ScenarioTensor, logged: ScenarioTensor | None = None) -> torch.Tensor:
         """``(B, A)`` rewards (0 for agents not scored); ``logged``: ``scenario`` with the logged future."""
@@ -246,6 +258,10 @@ class RealismReward(FailureReward):
         if self.kinematics_weight:
             ratio = kinematic_log_ratio(scenario, logged, mask.any(-1), self.kinematics_samples)
             penalty = penalty - self.kinematics_weight * ratio
+        if self.heading_weight:
+            turn_error = wrap_angle(scenario.states[:, :, future, 3] - logged.states[:, :, future, 3]).abs()
+            mismatch = ((turn_error - self.heading_tolerance).clamp_min(0) / self.heading_scale).clamp_max(1)
+            penalty = penalty + self.heading_weight * (mismatch * driving).sum(-1) / driving.sum(-1).clamp_min(1)
         return -(penalty * mask.any(-1))
 
 

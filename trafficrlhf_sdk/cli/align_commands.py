@@ -19,8 +19,9 @@ def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
     """A saved reward-model folder, or a hand-written reward: ``builtin:failure``, ``builtin:collision``,
     ``builtin:realism``, or ``builtin:failure-margins`` / ``builtin:realism-margins`` (the same with the
     near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`), ``builtin:realism-speed``
-    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`)
-    or ``builtin:realism-kinematics`` (``realism-margins`` plus its kinematic-histogram term); ``builtin:random``
+    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`),
+    ``builtin:realism-kinematics`` (``realism-margins`` plus its kinematic-histogram term) or
+    ``builtin:realism-heading`` (``realism-margins`` plus its heading-mismatch term); ``builtin:random``
     is :class:`~trafficrlhf_sdk.align.rewards.RandomReward`, a reward without information (the null control).
 
     ``options`` override keyword arguments of a built-in reward's constructor (``--reward-option``)."""
@@ -38,6 +39,7 @@ def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
             "realism-margins": (RealismReward, {"margins": True}),
             "realism-speed": (RealismReward, {"margins": True, "speed_weight": 1.0}),
             "realism-kinematics": (RealismReward, {"margins": True, "kinematics_weight": 0.5}),
+            "realism-heading": (RealismReward, {"margins": True, "heading_weight": 1.0}),
             "random": (RandomReward, {}),
         }
         name = spec[len(BUILTIN_PREFIX):]
@@ -97,7 +99,8 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--reward-model", "reward_spec", required=True,
               help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
                    "builtin:realism / builtin:failure-margins / builtin:realism-margins / builtin:realism-speed / "
-                   "builtin:realism-kinematics, or builtin:random (no information: the null control).")
+                   "builtin:realism-kinematics / builtin:realism-heading, or builtin:random (no information: the "
+                   "null control).")
 @click.option("--reward-option", "reward_options", multiple=True, metavar="KEY=VALUE",
               help="Keyword argument of a built-in reward (JSON value), repeatable, e.g. kinematics_weight=1.0.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
