@@ -136,3 +136,21 @@ def test_num_samples_keeps_the_first_future_samples_only() -> None:
     assert every[0, 0] != 0
     with pytest.raises(TrafficRLHFError, match="kinematics_samples"):
         RealismReward(kinematics_weight=0.5, kinematics_samples=0)
+
+
+def test_every_builtin_reward_builds_and_is_named_in_the_help() -> None:
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.align import rewards
+    from trafficrlhf_sdk.cli import get_cli
+    from trafficrlhf_sdk.cli.align_commands import BUILTIN_REWARDS
+
+    for name, (class_name, defaults) in BUILTIN_REWARDS.items():
+        reward = load_reward(f"builtin:{name}")
+        assert type(reward) is getattr(rewards, class_name)
+        assert all(getattr(reward, key) == value for key, value in defaults.items() if hasattr(reward, key))
+    help_text = "".join(CliRunner().invoke(get_cli(), ["align", "--help"]).output.split())  # click wraps at "-"
+    for name in BUILTIN_REWARDS:
+        assert f"builtin:{name}" in help_text
+    with pytest.raises(TrafficRLHFError, match="builtin:realism-heading"):
+        load_reward("builtin:no-such-reward")

@@ -10,9 +10,22 @@ import click
 
 from trafficrlhf_sdk.cli import cli
 
-__all__ = ["align_command", "load_reward"]
+__all__ = ["BUILTIN_REWARDS", "align_command", "load_reward"]
 
 BUILTIN_PREFIX = "builtin:"
+# name -> (class in trafficrlhf_sdk.align.rewards, constructor defaults); a table of names, so the CLI help is
+# built from it without importing torch at start-up
+BUILTIN_REWARDS: dict[str, tuple[str, dict[str, object]]] = {
+    "failure": ("FailureReward", {}),
+    "collision": ("FailureReward", {"offroad": False}),
+    "realism": ("RealismReward", {}),
+    "failure-margins": ("FailureReward", {"margins": True}),
+    "realism-margins": ("RealismReward", {"margins": True}),
+    "realism-speed": ("RealismReward", {"margins": True, "speed_weight": 1.0}),
+    "realism-kinematics": ("RealismReward", {"margins": True, "kinematics_weight": 0.5}),
+    "realism-heading": ("RealismReward", {"margins": True, "heading_weight": 1.0}),
+    "random": ("RandomReward", {}),
+}
 
 
 def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
@@ -29,24 +42,14 @@ def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
 
     options = dict(options or {})
     if spec.startswith(BUILTIN_PREFIX):
-        from trafficrlhf_sdk.align.rewards import FailureReward, RandomReward, RealismReward
+        from trafficrlhf_sdk.align import rewards
 
-        builders = {
-            "failure": (FailureReward, {}),
-            "collision": (FailureReward, {"offroad": False}),
-            "realism": (RealismReward, {}),
-            "failure-margins": (FailureReward, {"margins": True}),
-            "realism-margins": (RealismReward, {"margins": True}),
-            "realism-speed": (RealismReward, {"margins": True, "speed_weight": 1.0}),
-            "realism-kinematics": (RealismReward, {"margins": True, "kinematics_weight": 0.5}),
-            "realism-heading": (RealismReward, {"margins": True, "heading_weight": 1.0}),
-            "random": (RandomReward, {}),
-        }
         name = spec[len(BUILTIN_PREFIX):]
-        if name not in builders:
+        if name not in BUILTIN_REWARDS:
             raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use one of "
-                                   f"{', '.join(BUILTIN_PREFIX + n for n in builders)}.")
-        cls, defaults = builders[name]
+                                   f"{', '.join(BUILTIN_PREFIX + n for n in BUILTIN_REWARDS)}.")
+        class_name, defaults = BUILTIN_REWARDS[name]
+        cls = getattr(rewards, class_name)
         try:
             return cls(**{**defaults, **options})
         except TypeError as error:
@@ -97,10 +100,9 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @cli.command("align")
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
-              help="Saved reward model folder (`trafficrlhf rm train`), or builtin:failure / builtin:collision / "
-                   "builtin:realism / builtin:failure-margins / builtin:realism-margins / builtin:realism-speed / "
-                   "builtin:realism-kinematics / builtin:realism-heading, or builtin:random (no information: the "
-                   "null control).")
+              help="Saved reward model folder (`trafficrlhf rm train`), or a built-in reward: "
+                   + " / ".join(BUILTIN_PREFIX + name for name in BUILTIN_REWARDS)
+                   + " (builtin:random carries no information: the null control).")
 @click.option("--reward-option", "reward_options", multiple=True, metavar="KEY=VALUE",
               help="Keyword argument of a built-in reward (JSON value), repeatable, e.g. kinematics_weight=1.0.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
