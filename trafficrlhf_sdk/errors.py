@@ -9,6 +9,7 @@ from __future__ import annotations
 __all__ = [
     "DataFormatError",
     "DataNotFoundError",
+    "DeviceUnavailableError",
     "DuplicateRegistrationError",
     "ScenarioValidationError",
     "TrafficRLHFError",
@@ -46,3 +47,7 @@ class DataFormatError(TrafficRLHFError, ValueError):
 
 class UnsafePickleError(DataFormatError):
     """A pickle asked for a global outside the allow-list of the restricted unpickler."""
+
+
+class DeviceUnavailableError(TrafficRLHFError, ValueError):
+    """A torch device was asked for that this machine does not have (e.g. ``cuda`` on a CPU-only install)."""

@@ -59,6 +59,8 @@ def rm() -> None:
               help="Architecture option (JSON value), repeatable, e.g. hidden_sizes=[256,32].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Training seed.")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")
+@click.option("--device", default="cpu", show_default=True,
+              help="Where the optimiser steps run: cpu, cuda, cuda:1, ... (featurization stays on the CPU).")
 @click.option("--test-campaign", default=None, help="Held-out campaign (same --db) to evaluate and record in the card.")
 @click.option("--test-annotator", "test_annotators", multiple=True, help="Its annotator(s), e.g. a noise-free one.")
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
@@ -70,7 +72,7 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   out_dir: str, val_fraction: float, split_seed: int, epochs: int | None, lr: float | None,
                   batch_size: int | None, margin: float | None, center_coef: float | None, patience: int | None,
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
-                  seed: int, threads: int | None,
+                  seed: int, threads: int | None, device: str,
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
                   title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card."""
@@ -84,7 +86,7 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                  "center_rewards_coefficient": center_coef, "early_stopping_patience": patience}
     config = RewardConfig(architecture=architecture, architecture_config=_parse_options(arch_options),
                           ensemble_size=ensemble, bootstrap=bootstrap, seed=seed, num_threads=threads,
-                          val_fraction=val_fraction,
+                          device=device, val_fraction=val_fraction,
                           progress=not quiet, **{k: v for k, v in overrides.items() if v is not None})
 
     def log(row: dict[str, float]) -> None:

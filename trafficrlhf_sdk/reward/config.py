@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+import torch
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 __all__ = ["RewardConfig"]
 
@@ -42,6 +43,9 @@ class RewardConfig(BaseModel):
                                       "saved (Polyak averaging against label noise); None uses the raw weights.")
     seed: int = Field(0, description="Seed of initialisation, shuffling and bootstrap draws.")
     num_threads: int | None = Field(None, ge=1, description="torch threads while training; None keeps torch's.")
+    device: str = Field(
+        "cpu", description="Where the optimiser steps run: 'cpu', 'cuda', 'cuda:1', ... Featurization stays on the "
+                           "CPU; each batch is moved to the device. The trained model is left on this device.")
 
     # > early stopping on the validation contexts (by context, never by pair)
     early_stopping_patience: int | None = Field(
@@ -61,3 +65,13 @@ class RewardConfig(BaseModel):
     eval_every_epoch: bool = Field(True, description="Evaluate on the validation contexts after every epoch.")
     metric_mode: Literal["loss", "accuracy"] = Field(
         "loss", description="Validation metric for early stopping and the best epoch.")
+
+    @field_validator("device")
+    @classmethod
+    def _known_device(cls, value: str) -> str:
+        try:
+            torch.device(value)
+        except (RuntimeError, ValueError) as error:
+            raise ValueError(f"`device` must be a torch device such as 'cpu' or 'cuda:0'; got {value!r} "
+                             f"({error}).") from None
+        return value

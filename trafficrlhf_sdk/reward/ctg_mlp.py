@@ -92,6 +92,7 @@ class CTGMLPRewardModel(RewardModel):
     # ---------------------------------------------------------------- internals
     def item_rewards(self, inputs: StepInputs) -> torch.Tensor:
         """Reward of every (agent, step) item ``(N,)`` in [-1, 1]."""
+        inputs = self.on_device(inputs)
         crops = inputs.crops.to(torch.float32) / inputs.crop_max
         code = self.map_encoder(crops)
         return self.mlp(torch.cat([inputs.features, code], -1)).squeeze(-1)
@@ -99,8 +100,10 @@ class CTGMLPRewardModel(RewardModel):
     @staticmethod
     def _group_mean(key: torch.Tensor, rewards: torch.Tensor, groups: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean item reward per group ``(groups,)`` (0 where empty) and the number of items there."""
-        total = torch.zeros(groups, dtype=rewards.dtype).index_add(0, key, rewards)
-        count = torch.zeros(groups, dtype=rewards.dtype).index_add(0, key, torch.ones_like(rewards))
+        key = key.to(rewards.device)
+        total = torch.zeros(groups, dtype=rewards.dtype, device=rewards.device).index_add(0, key, rewards)
+        count = torch.zeros(groups, dtype=rewards.dtype, device=rewards.device).index_add(0, key,
+                                                                                         torch.ones_like(rewards))
         return total / count.clamp_min(1), count
 
     @classmethod

@@ -53,6 +53,18 @@ class ScenarioInputs:
         """Scenes of all parts, in order."""
         return ScenarioInputs(ScenarioTensor.concat([p.scenario for p in parts]))
 
+    def to(self, device: torch.device | str) -> ScenarioInputs:
+        """The same inputs on ``device``."""
+        return ScenarioInputs(self.scenario.to(device))
+
+
+def prepared_device(prepared: Any) -> torch.device:
+    """The device of a prepared input (:class:`ScenarioInputs` or an architecture's own, e.g. ``StepInputs``)."""
+    if isinstance(prepared, ScenarioInputs):
+        return prepared.scenario.states.device
+    tensor = next((v for v in vars(prepared).values() if isinstance(v, torch.Tensor)), None)
+    return torch.device("cpu") if tensor is None else tensor.device
+
 
 class RewardModel(nn.Module):
     """Base class of reward-model architectures.
@@ -94,7 +106,18 @@ class RewardModel(nn.Module):
 
     def score_prepared(self, prepared: Any) -> torch.Tensor:
         """Scenario rewards ``(B,)`` from the output of :meth:`prepare` (differentiable)."""
-        return self(prepared.scenario)
+        return self(self.on_device(prepared).scenario)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are (the CPU for a model without parameters)."""
+        return next((p.device for p in self.parameters()), torch.device("cpu"))
+
+    def on_device(self, prepared: Any) -> Any:
+        """``prepared`` (the output of :meth:`prepare`, which runs where the scenario is) moved to :attr:`device`,
+        so CPU-featurized inputs score on a GPU model."""
+        device = self.device
+        return prepared if prepared_device(prepared) == device else prepared.to(device)
 
     @property
     def num_parameters(self) -> int:

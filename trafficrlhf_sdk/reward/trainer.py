@@ -25,14 +25,14 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.errors import DataFormatError, DeviceUnavailableError
 from trafficrlhf_sdk.feedback.preference import PreferenceDataset
 from trafficrlhf_sdk.reward.config import RewardConfig
 from trafficrlhf_sdk.reward.data import PairData, build_pair_data, split_by_context
 from trafficrlhf_sdk.reward.losses import bradley_terry_loss, preference_metrics
 from trafficrlhf_sdk.reward.model import RewardEnsemble, RewardModel, get_reward_model_architecture
 
-__all__ = ["RewardTrainer", "TrainingResult", "evaluate_pairs"]
+__all__ = ["RewardTrainer", "TrainingResult", "evaluate_pairs", "training_device"]
 
 
 @dataclass
@@ -69,7 +69,7 @@ def evaluate_pairs(model: RewardModel, data: PairData, config: RewardConfig | No
     with torch.no_grad():
         for lo in range(0, len(contexts), batch_contexts):
             inputs, w, lo_, lab = data.batch(contexts[lo:lo + batch_contexts])
-            scores = model.score_prepared(inputs)
+            scores = model.score_prepared(inputs).cpu()
             chosen.append(scores[w])
             rejected.append(scores[lo_])
             labels.append(lab)
@@ -79,6 +79,18 @@ def evaluate_pairs(model: RewardModel, data: PairData, config: RewardConfig | No
     metrics["loss"] = float(bradley_terry_loss(c, r, lab, config.margin, config.center_rewards_coefficient,
                                                config.logit_scale))
     return metrics
+
+
+def training_device(name: str) -> torch.device:
+    """``torch.device(name)``, after checking that such a device is there (CUDA devices by index)."""
+    device = torch.device(name)
+    if device.type == "cuda" and (not torch.cuda.is_available()
+                                  or (device.index or 0) >= torch.cuda.device_count()):
+        found = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        raise DeviceUnavailableError(
+            f"`device` is {name!r} but this machine has {found} CUDA device(s) visible to torch {torch.__version__}; "
+            "use device='cpu' (`--device cpu`) or a CUDA build of torch.")
+    return device
 
 
 class RewardTrainer:
@@ -99,6 +111,7 @@ class RewardTrainer:
                  eval_dataset: PreferenceDataset | PairData | None = None, model: RewardModel | None = None,
                  labels: torch.Tensor | None = None, log: Callable[[dict[str, float]], None] | None = None) -> None:
         self.config = config or RewardConfig()
+        training_device(self.config.device)  # before featurizing, which can take a while
         self.architecture = get_reward_model_architecture(self.config.architecture)
         if train_dataset is None:
             raise ValueError("`train_dataset` is required: a PreferenceDataset (`trafficrlhf feedback export`) or "
@@ -137,6 +150,7 @@ class RewardTrainer:
     def train(self) -> TrainingResult:
         """Train (every ensemble member), restore the best epochs, set ``self.model`` and return the result."""
         cfg = self.config
+        device = training_device(cfg.device)
         threads = torch.get_num_threads()
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
@@ -149,6 +163,7 @@ class RewardTrainer:
                     member = self.model
                 else:
                     member = self.architecture(self.config.architecture_config)
+                member.to(device)
                 best_epoch, member_history = self._train_member(member, m)
                 members.append(member)
                 history += member_history
@@ -161,6 +176,7 @@ class RewardTrainer:
         seconds = time.perf_counter() - began + self.featurize_seconds
         model.card_info = {"training": {"config": cfg.model_dump(mode="json"), "best_epochs": best_epochs,
                                         "train_seconds": round(seconds, 1), "torch_threads": cfg.num_threads or threads,
+                                        "device": str(device),
                                         "history": history},
                            "data": self.dataset_info, "metrics": metrics}
         self.model = model
@@ -195,6 +211,7 @@ class RewardTrainer:
             for lo in range(0, len(order), cfg.batch_size):
                 inputs, w, l_, lab = self.train_data.batch(order[lo:lo + cfg.batch_size])
                 scores = model.score_prepared(inputs)
+                w, l_, lab = w.to(scores.device), l_.to(scores.device), lab.to(scores.device)
                 loss = bradley_terry_loss(scores[w], scores[l_], lab, cfg.margin, cfg.center_rewards_coefficient,
                                           cfg.logit_scale)
                 optimizer.zero_grad(set_to_none=True)
@@ -214,7 +231,7 @@ class RewardTrainer:
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(epoch=epoch, loss=f"{float(loss.detach()):.3f}")
-            train = preference_metrics(torch.cat(chosen), torch.cat(rejected), torch.cat(labels))
+            train = preference_metrics(torch.cat(chosen).cpu(), torch.cat(rejected).cpu(), torch.cat(labels).cpu())
             row = {"member": member, "epoch": epoch, "train_loss": sum(losses) / max(len(torch.cat(labels)), 1),
                    **{f"train_{k}": v for k, v in train.items() if k != "num_pairs"}}
             raw = None
@@ -261,7 +278,7 @@ class RewardTrainer:
             metrics["val_accuracy_member_std"] = float(accs.std())
             with torch.no_grad():
                 inputs = self.eval_data.inputs
-                scores = torch.stack([m.score_prepared(inputs) for m in members])
+                scores = torch.stack([m.score_prepared(inputs).cpu() for m in members])
             metrics["val_uncertainty"] = float(scores.std(0).mean())
         return metrics
 
