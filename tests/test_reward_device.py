@@ -96,3 +96,20 @@ def test_training_on_cuda_learns_like_on_cpu(tiny_db: str, tmp_path: Path) -> No
     scenario, candidates, valid, _, _ = tiny_context(["faithful"], 0)
     scene = scenario.with_future(candidates, valid)
     torch.testing.assert_close(loaded(scene), gpu(scene).cpu(), rtol=1e-5, atol=1e-5)
+
+
+@cuda
+def test_a_gpu_reward_model_scores_cpu_rollouts_for_the_fine_tuner(scenes: ScenarioTensor) -> None:
+    """The fine-tuner's scoring takes CPU rollouts; a reward model on the GPU featurizes them on the CPU, scores
+    on the GPU and hands back CPU scores equal to a CPU copy's."""
+    from trafficrlhf_sdk.align.scoring import agent_scores, scenario_scores
+
+    torch.manual_seed(0)
+    cpu_model = CTGMLPRewardModel(SMALL).eval()
+    gpu_model = CTGMLPRewardModel(SMALL).eval()
+    gpu_model.load_state_dict(cpu_model.state_dict())
+    gpu_model.to("cuda")
+    for score in (scenario_scores, agent_scores):
+        expected, got = score(cpu_model, scenes), score(gpu_model, scenes)
+        assert got.device.type == "cpu"
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
