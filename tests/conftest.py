@@ -81,3 +81,16 @@ def _import_script(name: str) -> ModuleType:
 def load_script():  # type: ignore[no-untyped-def]
     """``load_script(name)`` imports ``scripts/<name>.py`` as a module (the scripts are not a package)."""
     return _import_script
+
+
+@pytest.fixture(scope="session")
+def scored_futures() -> ScenarioTensor:
+    """Four tiny model-free contexts, each with the history and one candidate future (faithful, off-road,
+    collision, stall; T = 41, A = 3): inputs for reward models without real data."""
+    from trafficrlhf_sdk.testing.feedback import tiny_context
+
+    parts = []
+    for i, variant in enumerate(["faithful", "offroad", "collision", "stall"]):
+        scenario, candidates, valid, _, _ = tiny_context([variant], i)
+        parts.append(scenario.with_future(candidates, valid))
+    return ScenarioTensor.concat(parts)

@@ -27,12 +27,9 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA de
 
 
 @pytest.fixture(scope="module")
-def scenes() -> ScenarioTensor:
-    parts = []
-    for i, variant in enumerate(["faithful", "offroad", "collision", "stall"]):
-        scenario, candidates, valid, _, _ = tiny_context([variant], i)
-        parts.append(scenario.with_future(candidates, valid))
-    return ScenarioTensor.concat(parts)
+def scenes(scored_futures: ScenarioTensor) -> ScenarioTensor:
+    """Four tiny contexts, each with the history and one candidate future (T = 41, A = 3)."""
+    return scored_futures
 
 
 @pytest.fixture(scope="module")

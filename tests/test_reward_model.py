@@ -25,7 +25,7 @@ from trafficrlhf_sdk.reward import (
     evaluate_pairs,
 )
 from trafficrlhf_sdk.scenario import ScenarioTensor
-from trafficrlhf_sdk.testing.feedback import make_tiny_campaign, tiny_context
+from trafficrlhf_sdk.testing.feedback import make_tiny_campaign
 
 SMALL = {"hidden_sizes": [32, 16], "map_channels": [4, 8], "map_embedding": 8}  # fast variant for training tests
 
@@ -37,13 +37,9 @@ def model() -> CTGMLPRewardModel:
 
 
 @pytest.fixture(scope="module")
-def scenes() -> ScenarioTensor:
+def scenes(scored_futures: ScenarioTensor) -> ScenarioTensor:
     """Four tiny contexts, each with the history and one candidate future (T = 41, A = 3)."""
-    parts = []
-    for i, variant in enumerate(["faithful", "offroad", "collision", "stall"]):
-        scenario, candidates, valid, _, _ = tiny_context([variant], i)
-        parts.append(scenario.with_future(candidates, valid))
-    return ScenarioTensor.concat(parts)
+    return scored_futures
 
 
 @pytest.fixture(scope="module")
