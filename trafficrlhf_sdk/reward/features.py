@@ -108,6 +108,11 @@ class StepInputs:
                           torch.cat([p.step for p in parts]), sum(p.num_scenes for p in parts),
                           max(p.num_steps for p in parts), parts[0].crop_max)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the inputs are."""
+        return self.features.device
+
     def to(self, device: torch.device | str) -> StepInputs:
         """The same inputs on ``device``."""
         return StepInputs(self.features.to(device), self.crops.to(device), self.scene.to(device),

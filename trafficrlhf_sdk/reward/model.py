@@ -57,13 +57,16 @@ class ScenarioInputs:
         """The same inputs on ``device``."""
         return ScenarioInputs(self.scenario.to(device))
 
+    @property
+    def device(self) -> torch.device:
+        """Where the inputs are."""
+        return self.scenario.states.device
+
 
 def prepared_device(prepared: Any) -> torch.device:
-    """The device of a prepared input (:class:`ScenarioInputs` or an architecture's own, e.g. ``StepInputs``)."""
-    if isinstance(prepared, ScenarioInputs):
-        return prepared.scenario.states.device
-    tensor = next((v for v in vars(prepared).values() if isinstance(v, torch.Tensor)), None)
-    return torch.device("cpu") if tensor is None else tensor.device
+    """The device of a prepared input: its ``device`` attribute (:class:`ScenarioInputs`, ``StepInputs``); an
+    architecture's own input type without one is taken to be on the CPU, where :meth:`RewardModel.prepare` runs."""
+    return torch.device(getattr(prepared, "device", "cpu"))
 
 
 class RewardModel(nn.Module):
