@@ -495,3 +495,42 @@ def test_training_windows_list_the_same_co_denoised_neighbours_as_the_adapter(sc
             target = int(samples["neighbour_row"][original, j])
             assert (row == -1) == (target == -1) and (row == -1 or int(idx[row]) == target)
     assert batch["group"].unique().tolist() == [0]
+
+
+@needs_data
+def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``steer=True`` adds a zero head: same guided futures and log-probabilities as the base under one generator;
+    it is the ``steer`` group and gets the only gradient of a log-probability once its output layer is non-zero;
+    the head then changes the sampled futures and the guided log-probability stays exact; it survives
+    save_pretrained/from_pretrained without the option."""
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
+    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, steer=True)
+    assert "steer" not in base.parameter_groups() and set(steered.parameter_groups()) == {"encoder", "decoder", "steer"}
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    b = steered.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a.futures, b.futures)
+    torch.testing.assert_close(a.log_prob, b.log_prob)
+
+    with torch.no_grad():
+        steered.model.steer.net[-1].weight.normal_(0, 0.05)
+    out = steered.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    agents = out.trace.agents
+    moved = (out.futures - a.futures)[:, :, :, :, :2].norm(dim=-1).amax(-1)  # (B, S, A)
+    assert moved.masked_select(agents[:, None]).min() > 0
+    recomputed = steered.log_prob(scenes, out.trace.detach())
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-3, rtol=1e-4)
+    for group in steered.parameter_groups().values():
+        for p in group:
+            p.grad = None
+    recomputed.sum().backward()
+    head = steered.parameter_groups()["steer"]
+    assert all(p.grad is not None for p in head[-2:]) and head[-2].grad.abs().sum() > 0
+
+    steered.save_pretrained(str(tmp_path))
+    loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
+    assert loaded.cfg.steer
+    again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(again.futures, out.futures)

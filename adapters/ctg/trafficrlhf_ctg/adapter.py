@@ -29,6 +29,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
@@ -75,6 +76,10 @@ class CTGOptions(AdapterOptions):
         "proposal", description="For checkpoints with neighbour_plan_steps, what each agent sees of its "
         "neighbours' plans: 'proposal' (an unguided first pass), 'joint' (their clean predictions at every "
         "denoising step) or 'none' (no plans; an ablation).")
+    steer: bool = Field(False, description="Add a zero-initialized steering head (ctg_reference.SteerHead) to a "
+                        "checkpoint that has none, offered as the parameter group 'steer': fine-tuning only it "
+                        "moves the sampler through the frozen encoder and denoiser. Checkpoints saved with a head "
+                        "load it without this option.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -94,10 +99,20 @@ class CTGAdapter(TrafficModelAdapter):
             "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small",
             CTGConfig, CTGModel,
         )
+        if self.options.steer and not self.cfg.steer:
+            self._add_steer_head()
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()
         self._hold = StationaryHold(self.options.stationary_speed, self.options.stationary_rule)
+
+    def _add_steer_head(self) -> None:
+        """Rebuild the model with a fresh (zero) steering head, keeping every trained weight."""
+        cfg = dataclasses.replace(self.cfg, steer=True)
+        model = CTGModel(cfg).to(self.options.device)
+        missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
+        assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
+        self.cfg, self.model = cfg, model
 
     def get_config(self) -> dict[str, Any]:
         """The model's :class:`CTGConfig` as a dict (normalization statistics included)."""
@@ -109,12 +124,15 @@ class CTGAdapter(TrafficModelAdapter):
         return self.model
 
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
-        """``encoder`` (map CNN, history and neighbour MLPs, fusion) and ``decoder`` (the temporal U-Net, and the
-        co-denoising mixer of scene-denoising models)."""
+        """``encoder`` (map CNN, history and neighbour MLPs, fusion), ``decoder`` (the temporal U-Net, and the
+        co-denoising mixer of scene-denoising models) and, with a steering head, ``steer``."""
         decoder = list(self.model.denoiser.parameters())
         if self.model.mixer is not None:
             decoder += list(self.model.mixer.parameters())
-        return {"encoder": list(self.model.encoder.parameters()), "decoder": decoder}
+        groups = {"encoder": list(self.model.encoder.parameters()), "decoder": decoder}
+        if self.model.steer is not None:
+            groups["steer"] = list(self.model.steer.parameters())
+        return groups
 
     # ------------------------------------------------------------ helpers
     def _check_dt(self, context: ScenarioTensor) -> None:

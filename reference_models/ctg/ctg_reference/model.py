@@ -18,6 +18,8 @@ This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and
   :class:`CoDenoiseMixer` reads the current noisy samples of the neighbours being denoised with the agent (rows
   named by ``neighbour_row``) and shifts its conditioning; training draws one noise level per scene and step.
   Each step stays a Gaussian given every row's current sample, so the chain's density remains exact.
+* Steering (``steer``): a :class:`SteerHead` adds ``sigma_k * tanh(g(cond, x0_k, k))`` to each step's mean. It
+  starts at zero; fine-tuned alone it moves where the sampler goes through the frozen denoiser.
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -36,8 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "TemporalUNet", "cosine_alphas_bar",
-           "unicycle_from_origin"]
+__all__ = ["CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead", "TemporalUNet",
+           "cosine_alphas_bar", "unicycle_from_origin"]
 
 LOG_2PI = math.log(2 * math.pi)
 
@@ -76,6 +78,10 @@ class CTGConfig:
     # neighbours denoised with it (CoDenoiseMixer); training shares one noise level per scene and step
     scene_denoising: bool = False
     scene_dropout: float = 0.3  # training: share of co-denoised neighbours shown as not co-denoised (log replay)
+    # steering head (SteerHead): a learned shift of each sampling step's mean, zero until fine-tuned; the
+    # encoder and denoiser stay as trained, so only how the sampler moves through them changes
+    steer: bool = False
+    steer_hidden: int = 128
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -323,6 +329,35 @@ GuidanceFn = Callable[[torch.Tensor, int], torch.Tensor]
 CondFn = Callable[[int, torch.Tensor], torch.Tensor]
 
 
+class SteerHead(nn.Module):
+    """Learned steering of the sampler: per DDIM step, a shift of the step's mean by ``sigma_k * tanh(g)``, with
+    ``g = MLP(cond, x0_k, k)`` read from the conditioning, the step's clean prediction and the step.
+
+    Its output layer starts at zero, so a model with a fresh head samples exactly as without one; fine-tuning the
+    head alone is policy optimization in the sampler's noise space (each step's shift is bounded by its own noise
+    scale), with the trained encoder and denoiser frozen."""
+
+    def __init__(self, cfg: CTGConfig) -> None:
+        super().__init__()
+        self.horizon, self.x0_clip = cfg.horizon, cfg.x0_clip
+        self.step_embedding = SinusoidalEmbedding(cfg.time_dim)
+        self.net = _mlp([cfg.cond_dim + 2 * cfg.horizon + cfg.time_dim, cfg.steer_hidden, cfg.steer_hidden,
+                         2 * cfg.horizon])
+        last = self.net[-1]
+        assert isinstance(last, nn.Linear)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+
+    def forward(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int) -> torch.Tensor:
+        """Shift in units of the step's sigma, in (-1, 1): ``(M, H, 2)`` from ``cond (M, D)``, normalized clean
+        prediction ``x0 (M, H, 2)`` and step ``k`` (int or ``(M,)``)."""
+        m = x0.shape[0]
+        if not isinstance(k, torch.Tensor):
+            k = torch.full((m,), int(k), dtype=torch.long, device=x0.device)
+        inputs = torch.cat([cond, x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k)], -1)
+        return torch.tanh(self.net(inputs)).reshape(m, self.horizon, 2)
+
+
 class CTGModel(nn.Module):
     """Encoder + denoiser + diffusion utilities. Actions are normalized with the config's mean/std."""
 
@@ -332,6 +367,7 @@ class CTGModel(nn.Module):
         self.encoder = ContextEncoder(self.cfg)
         self.denoiser = TemporalUNet(self.cfg)
         self.mixer = CoDenoiseMixer(self.cfg) if self.cfg.scene_denoising else None
+        self.steer = SteerHead(self.cfg) if self.cfg.steer else None
         self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
@@ -495,6 +531,8 @@ class CTGModel(nn.Module):
             c_step = c if scene is None else self._mixed(c.reshape(n, s, -1), x.reshape(n, s, h, 2), k,
                                                           scene).reshape(n * s, -1)
             mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
+            if self.steer is not None:
+                mean = mean + sigma * self.steer(c_step, x0, k)
             delta = torch.zeros_like(mean)
             if guidance_fn is not None and i < len(schedule) - 1:
                 with torch.enable_grad():
@@ -537,7 +575,9 @@ class CTGModel(nn.Module):
         k = schedule[:, 0].repeat(n * s)
         k_prev = schedule[:, 1].repeat(n * s)
         x = chain[:, :, :-1].reshape(-1, h, 2)
-        mean, sigma = self._transition(x, k, k_prev, c)  # one batched network call for all steps
+        mean, sigma, x0 = self._transition(x, k, k_prev, c, with_x0=True)  # one batched call for all steps
+        if self.steer is not None:
+            mean = mean + sigma * self.steer(c, x0, k)
         if guide_delta is not None:
             mean = mean + guide_delta.reshape(-1, h, 2)
         log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean, sigma)
