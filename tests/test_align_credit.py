@@ -368,6 +368,36 @@ def test_speed_neutral_advantages_are_least_squares_residuals(train_scene_list: 
     assert torch.allclose(trainer._normalize(rewards, dim=1, covariate=flat), trainer._normalize(rewards, dim=1))
 
 
+def test_batch_advantage_scale_keeps_each_group_in_proportion_to_its_spread(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    """'group' blows a group that differs by a hair up to the size of one with a failing sample; 'batch' divides
+    every group by one RMS over the sampled entries, so their advantages keep the ratio of their spreads."""
+    rewards = torch.zeros(2, 4, 2)
+    rewards[0, :, 0] = torch.tensor([0.0, -1.0, 0.0, 0.0])  # agent 0 of context 0: one sample fails
+    rewards[1, :, 0] = torch.tensor([0.0, -0.001, 0.0, 0.0])  # the same pattern, a thousand times smaller
+    rewards[:, :, 1] = 7.0  # an agent that was not sampled: its values must not enter the scale
+    mask = torch.zeros(2, 4, 2, dtype=torch.bool)
+    mask[:, :, 0] = True
+    per_group = AlignTrainer(_model(), FailureReward(), AlignConfig(alpha=1.0, credit="agent", **FAST),
+                             scenes=train_scene_list)._normalize(rewards, dim=1, mask=mask)
+    torch.testing.assert_close(per_group[0, :, 0], per_group[1, :, 0], atol=1e-2, rtol=1e-2)  # eps aside
+    config = AlignConfig(alpha=1.0, credit="agent", advantage_scale="batch", **FAST)
+    trainer = AlignTrainer(_model(), FailureReward(margins=True), config, scenes=train_scene_list)
+    batch = trainer._normalize(rewards, dim=1, mask=mask)
+    centred = rewards[:, :, 0] - rewards[:, :, 0].mean(1, keepdim=True)
+    rms = centred.pow(2).mean().sqrt()
+    torch.testing.assert_close(batch[:, :, 0], (centred / rms).clamp(-5, 5))
+    assert batch[1, :, 0].abs().max() < 2e-3 * batch[0, :, 0].abs().max()
+    rollout = trainer._rollout(0)
+    b, a = rollout.contexts.num_scenes, rollout.contexts.num_agents
+    sampled = rollout.trace.agents[:, None, :].expand(b, 3, a)
+    assert torch.all(rollout.advantages[~sampled] == 0) and torch.isfinite(rollout.advantages).all()
+    unclipped = rollout.advantages[sampled]
+    assert unclipped.abs().max() > 0, "margins should tell some samples apart"
+    if unclipped.abs().max() < config.advantage_clip:
+        assert torch.isclose(unclipped.pow(2).mean().sqrt(), torch.tensor(1.0), atol=1e-3)
+
+
 @pytest.mark.parametrize("credit", ["agent", "scene"])
 def test_speed_neutral_rollout_advantages_are_orthogonal_to_sample_speed(
         train_scene_list: list[ScenarioTensor], credit: str) -> None:

@@ -57,7 +57,12 @@ class AlignConfig(BaseModel):
                                         "last DDIM steps have a tiny sigma, so their ratios swing wildly). DDPO's "
                                         "timestep_fraction. None: all steps.")
     advantage_clip: float = Field(5.0, gt=0, description="Normalized advantages are clipped to +- this (DDPO).")
-    advantage_eps: float = Field(1e-6, gt=0, description="Added to the per-context reward std before dividing.")
+    advantage_eps: float = Field(1e-6, gt=0, description="Added to the reward std before dividing.")
+    advantage_scale: Literal["group", "batch"] = Field(
+        "group", description="What the centred rewards are divided by: 'group', each advantage group's own std "
+        "(DDPO, GRPO), so a group whose samples differ by a hair gets advantages as large as one where a sample "
+        "fails; 'batch', one std over the whole rollout's centred rewards (Dr. GRPO, Liu et al. 2025), so each "
+        "group pushes in proportion to how much its samples' rewards differ.")
 
     # ---------------------------------------------------------------- schedule
     epochs: int = Field(70, ge=1, description="Rollout + optimization rounds (paper: 70).")

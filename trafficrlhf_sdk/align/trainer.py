@@ -243,7 +243,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             rewards = mean_over_sampled(per_agent, trace.agents)
             speed = self._sample_speeds(out.futures) if self.config.speed_neutral_advantages else None
             returns = self._selection_returns(contexts, out, per_agent) if self.config.selection_credit else per_agent
-            adv = self._normalize(returns, dim=1, covariate=speed) * trace.agents[:, None, :].to(per_agent.dtype)
+            sampled = trace.agents[:, None, :].expand_as(returns)
+            adv = self._normalize(returns, dim=1, covariate=speed, mask=sampled) * sampled.to(per_agent.dtype)
             ranked = per_agent
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
@@ -282,8 +283,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         """``(B, S, A)`` mean speed (m/s) of each sample ``futures (B, S, A, H, 4)`` over the scored steps."""
         return futures[..., : min(futures.shape[-2], self.reward_steps), 2].detach().mean(-1).to(torch.float32)
 
-    def _normalize(self, rewards: torch.Tensor, dim: int, covariate: torch.Tensor | None = None) -> torch.Tensor:
-        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped.
+    def _normalize(self, rewards: torch.Tensor, dim: int, covariate: torch.Tensor | None = None,
+                   mask: torch.Tensor | None = None) -> torch.Tensor:
+        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped. With
+        ``advantage_scale='batch'`` the divisor is instead the root mean square of every centred reward where
+        ``mask`` (bool, the shape of ``rewards``; None: everywhere) is True.
 
         With ``covariate`` (same shape as ``rewards``, e.g. the samples' speeds), ``r - mean`` is replaced by the
         residual of the least-squares line of ``r`` on the covariate within each group; the divisor stays the
@@ -299,6 +303,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             slope = torch.where(spread > 1e-6, (x * centred).sum(dim, keepdim=True) / spread.clamp_min(1e-6),
                                 torch.zeros_like(spread))
             centred = centred - slope * x
+        if self.config.advantage_scale == "batch":
+            kept = centred if mask is None else centred[mask]
+            std = kept.pow(2).mean().sqrt() if kept.numel() else centred.new_zeros(())
         clip = self.config.advantage_clip
         return (centred / (std + self.config.advantage_eps)).clamp(-clip, clip)
 

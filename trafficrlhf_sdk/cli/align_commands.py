@@ -157,6 +157,9 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--selection-credit", is_flag=True,
               help="Credit what the planner executes: each sample's best-of-K return under the adapter's selection "
                    "scores (BITS).")
+@click.option("--advantage-scale", type=click.Choice(["group", "batch"]), default=None,
+              help="Divide centred rewards by each group's std (group) or by one std over the rollout (batch: a "
+                   "group pushes as much as its rewards differ) [default: group].")
 @click.option("--speed-neutral-advantages", is_flag=True,
               help="Remove from each group's rewards the part explained linearly by the samples' mean speed.")
 @click.option("--denoising-steps", type=click.IntRange(min=1), default=None,
@@ -213,7 +216,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   perturb: str | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, selection_credit: bool,
-                  speed_neutral_advantages: bool,
+                  advantage_scale: str | None, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, continuation_steps: int | None, continuation_executed: int | None,
                   continuation_weight: float | None, log_reference: str | None, holdout_every: int | None,
@@ -263,6 +266,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "selection_credit": selection_credit or None, "speed_neutral_advantages": speed_neutral_advantages or None,
+        "advantage_scale": advantage_scale,
         "denoising_steps": denoising_steps, "continuation_steps": continuation_steps,
         "continuation_executed_steps": continuation_executed, "continuation_weight": continuation_weight,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
