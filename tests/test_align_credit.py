@@ -478,3 +478,35 @@ def test_bad_perturbation_flags_get_one_clear_error(tmp_path, capsys, flags: lis
               *flags])
     err = capsys.readouterr().err
     assert exit_info.value.code != 0 and message in err and "Traceback" not in err
+
+
+def test_the_anchor_samples_uniform_log_contexts_and_pulls_towards_the_starting_model(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    """With ``anchor_coef`` the rollout carries as many uniform log contexts as PPO contexts, with
+    ``anchor_samples`` futures each; with the surrogate and imitation off, the anchor alone moves a model that
+    drifted from its starting point back towards it (its KL estimate falls over the epoch's updates)."""
+    config = AlignConfig(alpha=0.0, imitation_coef=0.0, anchor_coef=1.0, anchor_samples=2, learning_rate=1e-3,
+                         **{**FAST, "ppo_epochs": 4})
+    model = _model()
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scene_list)
+    assert trainer.reference is not None
+    rollout = trainer._rollout(0)
+    assert rollout.anchor is not None
+    contexts, trace = rollout.anchor
+    assert contexts.num_scenes == rollout.contexts.num_scenes and trace.agents.shape[0] == contexts.num_scenes
+    assert model.log_prob(contexts, trace).shape[1] == 2  # anchor_samples futures per context
+    with torch.no_grad():  # drift away from the reference
+        torch.manual_seed(1)
+        for p in model.module.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+
+    def anchor_kl() -> float:
+        with torch.no_grad():
+            d = trainer._log_probs(trainer.reference, rollout, [torch.arange(contexts.num_scenes)], anchor=True) \
+                - trainer._log_probs(model, rollout, [torch.arange(contexts.num_scenes)], anchor=True)
+            return float((torch.exp(d) - 1 - d).mean())
+
+    before = anchor_kl()
+    stats = trainer._optimize(0, rollout)
+    assert stats["anchor_kl"] > 0 and stats["updates"] >= 1
+    assert anchor_kl() < before

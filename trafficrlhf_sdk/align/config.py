@@ -47,6 +47,13 @@ class AlignConfig(BaseModel):
                                                           "PPO-ptx mix).")
     kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
                                                   "(0: no reference model is kept).")
+    anchor_coef: float = Field(0.0, ge=0, description="Weight of a KL anchor to the frozen starting model on "
+                               "contexts drawn uniformly from the training log each epoch (as many as "
+                               "contexts_per_epoch, `anchor_samples` futures each): the k3 estimate of KL(current || "
+                               "start) on the current model's samples there. The PPO contexts are mostly failure-"
+                               "focused; the anchor holds the driving on ordinary roads, where nothing needs to "
+                               "change. 0 disables it.")
+    anchor_samples: int = Field(2, ge=1, description="Futures drawn per anchor context (anchor_coef > 0).")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this (SB3 rule).")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "

@@ -35,6 +35,7 @@ class Rollout:
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
     winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
     imitation: ScenarioTensor | None = None  # windows the imitation loss learns from; None: ``logged``
+    anchor: tuple[ScenarioTensor, PolicyTrace] | None = None  # uniform log contexts and their samples (anchor_coef)
 
 
 def derived_seed(*parts: Any) -> int:
@@ -97,12 +98,15 @@ class PPOUpdate:
         return log_prob[..., :n] if n is not None and log_prob.dim() == 4 else log_prob
 
     @torch.no_grad()
-    def _log_probs(self, model: TrafficModelAdapter, rollout: Rollout, batches: list[torch.Tensor]) -> torch.Tensor:
+    def _log_probs(self, model: TrafficModelAdapter, rollout: Rollout, batches: list[torch.Tensor],
+                   anchor: bool = False) -> torch.Tensor:
+        contexts, trace = rollout.anchor if anchor and rollout.anchor is not None else (rollout.contexts,
+                                                                                          rollout.trace)
         result: torch.Tensor | None = None
         for idx in batches:
-            lp = self._steps(model.log_prob(rollout.contexts[idx], _select_trace(rollout.trace, idx)).detach())
+            lp = self._steps(model.log_prob(contexts[idx], _select_trace(trace, idx)).detach())
             if result is None:
-                result = torch.zeros(rollout.contexts.num_scenes, *lp.shape[1:], dtype=lp.dtype)
+                result = torch.zeros(contexts.num_scenes, *lp.shape[1:], dtype=lp.dtype)
             result[idx] = lp
         assert result is not None
         return result
@@ -112,10 +116,14 @@ class PPOUpdate:
         n = rollout.contexts.num_scenes
         first = self._minibatches(epoch, 0, n)
         old = self._log_probs(self.model, rollout, first)
-        ref = self._log_probs(self.reference, rollout, first) if self.reference is not None else None
+        ref = self._log_probs(self.reference, rollout, first) if self.reference is not None and cfg.kl_coef > 0 \
+            else None
+        anchor_ref = None
+        if rollout.anchor is not None and self.reference is not None and cfg.anchor_coef > 0:
+            anchor_ref = self._log_probs(self.reference, rollout, first, anchor=True)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
                                                          "clip_fraction", "kl_ref", "grad_norm",
-                                                         "winner_loss")}
+                                                         "winner_loss", "anchor_kl")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -149,6 +157,14 @@ class PPOUpdate:
                     kl_ref = _masked_mean(torch.exp(d) - 1 - d, mask)
                     loss = loss + cfg.kl_coef * kl_ref
                     stats["kl_ref"].append(float(kl_ref.detach()))
+                if anchor_ref is not None and rollout.anchor is not None:
+                    anchor_contexts, anchor_trace = rollout.anchor
+                    anchor_trace = _select_trace(anchor_trace, idx)
+                    current = self._steps(self.model.log_prob(anchor_contexts[idx], anchor_trace))
+                    d = (anchor_ref[idx] - current).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
+                    anchor_kl = _masked_mean(torch.exp(d) - 1 - d, _entry_mask(current, anchor_trace.agents))
+                    loss = loss + cfg.anchor_coef * anchor_kl
+                    stats["anchor_kl"].append(float(anchor_kl.detach()))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 grads = [p.grad for p in self.trainable if p.grad is not None]

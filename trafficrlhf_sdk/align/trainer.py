@@ -24,7 +24,10 @@ One epoch:
    ``imitation_coef * imitation_loss - alpha * surrogate (+ kl_coef * KL to the frozen starting model)``,
    gradient clipping, and SB3's early stop once the approximate KL passes ``1.5 * target_kl``. With
    ``winner_coef > 0`` the loss also holds ``winner_coef * imitation_loss`` of each context's best sample
-   (:meth:`AlignTrainer.winner_scenarios`; reward-ranked fine-tuning beside the surrogate).
+   (:meth:`AlignTrainer.winner_scenarios`; reward-ranked fine-tuning beside the surrogate). With
+   ``anchor_coef > 0`` it also holds ``anchor_coef * KL`` to the frozen starting model on as many contexts drawn
+   uniformly from the log, sampled by the current model each epoch: the PPO contexts are mostly failure-focused,
+   and the anchor keeps the driving on ordinary roads where it was.
 
 ``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
 pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
@@ -117,7 +120,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.optimizer = torch.optim.AdamW(self.trainable, lr=self.config.learning_rate,
                                            weight_decay=self.config.weight_decay)
         self.guidance = GuidanceSet.parse(self.config.guidance)
-        self.reference = copy.deepcopy(model) if self.config.kl_coef > 0 else None
+        self.reference = copy.deepcopy(model) if self.config.kl_coef > 0 or self.config.anchor_coef > 0 else None
         if self.reference is not None:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)
@@ -184,14 +187,15 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return self.context_sampler.draw(derived_generator(self.config.seed, epoch, "contexts"), epoch)
 
     # ------------------------------------------------------------------ rollout
-    def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
+    def _sample(self, contexts: ScenarioTensor, generator: torch.Generator, samples: int | None = None) -> Any:
         guidance = self.guidance
+        samples = samples or self.config.samples_per_context
         if guidance is not None:
             guidance.fit(contexts)
             with torch.enable_grad():
-                return self.model.sample(contexts, self.config.samples_per_context, guidance, generator)
+                return self.model.sample(contexts, samples, guidance, generator)
         with torch.no_grad():
-            return self.model.sample(contexts, self.config.samples_per_context, None, generator)
+            return self.model.sample(contexts, samples, None, generator)
 
     def _mix_continuation(self, open_loop: torch.Tensor, contexts: ScenarioTensor, futures: torch.Tensor,
                           agents: torch.Tensor, epoch: int, source: ScenarioTensor | None) -> torch.Tensor:
@@ -264,7 +268,12 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if self.config.imitation_contexts == "log" and self.config.imitation_coef > 0:
             gen = derived_generator(self.config.seed, epoch, "imitation_log")
             imitation = self.context_sampler.log_contexts(b, gen)[1]
-        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation)
+        anchor = None
+        if self.config.anchor_coef > 0:
+            gen = derived_generator(self.config.seed, epoch, "anchor")
+            anchor_contexts = self.context_sampler.log_contexts(b, gen)[0]
+            anchor = (anchor_contexts, self._sample(anchor_contexts, gen, self.config.anchor_samples).trace.detach())
+        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation, anchor)
 
     def _selection_returns(self, contexts: ScenarioTensor, out: Any, rewards: torch.Tensor) -> torch.Tensor:
         """Best-of-K returns (:func:`best_of_k_returns`) of ``rewards`` ``(B, S, A)`` (agent credit) or ``(B, S)``

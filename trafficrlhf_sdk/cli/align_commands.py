@@ -157,6 +157,11 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--selection-credit", is_flag=True,
               help="Credit what the planner executes: each sample's best-of-K return under the adapter's selection "
                    "scores (BITS).")
+@click.option("--anchor-coef", type=click.FloatRange(min=0), default=None,
+              help="Weight of a KL anchor to the starting model on uniform log contexts sampled each epoch (keeps "
+                   "the driving on ordinary roads) [default: 0, off].")
+@click.option("--anchor-samples", type=click.IntRange(min=1), default=None,
+              help="Futures per anchor context [default: 2].")
 @click.option("--advantage-scale", type=click.Choice(["group", "batch"]), default=None,
               help="Divide centred rewards by each group's std (group) or by one std over the rollout (batch: a "
                    "group pushes as much as its rewards differ) [default: group].")
@@ -216,6 +221,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   perturb: str | None, failure_scenes: int | None,
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, selection_credit: bool,
+                  anchor_coef: float | None, anchor_samples: int | None,
                   advantage_scale: str | None, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, continuation_steps: int | None, continuation_executed: int | None,
@@ -266,7 +272,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "failure_kinds": _comma_list(failure_kinds), "credit": credit,
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "selection_credit": selection_credit or None, "speed_neutral_advantages": speed_neutral_advantages or None,
-        "advantage_scale": advantage_scale,
+        "advantage_scale": advantage_scale, "anchor_coef": anchor_coef, "anchor_samples": anchor_samples,
         "denoising_steps": denoising_steps, "continuation_steps": continuation_steps,
         "continuation_executed_steps": continuation_executed, "continuation_weight": continuation_weight,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
