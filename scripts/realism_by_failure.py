@@ -6,7 +6,7 @@ agent groups: all; the scenes where no run fails and the others; the agents that
 fail in some run. An alignment that keeps realism where it fixes failures but loses it on the agents that never
 failed has changed driving that needed no change.
 
-    python scripts/realism_by_failure.py --model ctg --seed 0 \\
+    python scripts/realism_by_failure.py --model ctg --seed 0 \
         --checkpoints reference_models/ctg/checkpoints/ctg_small_4s reference_models/aligned/ctg_4s
 """
 
