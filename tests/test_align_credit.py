@@ -502,8 +502,9 @@ def test_the_anchor_samples_uniform_log_contexts_and_pulls_towards_the_starting_
 
     def anchor_kl() -> float:
         with torch.no_grad():
-            d = trainer._log_probs(trainer.reference, rollout, [torch.arange(contexts.num_scenes)], anchor=True) \
-                - trainer._log_probs(model, rollout, [torch.arange(contexts.num_scenes)], anchor=True)
+            every = [torch.arange(contexts.num_scenes)]
+            d = trainer._log_probs(trainer.reference, contexts, trace, every) \
+                - trainer._log_probs(model, contexts, trace, every)
             return float((torch.exp(d) - 1 - d).mean())
 
     before = anchor_kl()

@@ -98,10 +98,9 @@ class PPOUpdate:
         return log_prob[..., :n] if n is not None and log_prob.dim() == 4 else log_prob
 
     @torch.no_grad()
-    def _log_probs(self, model: TrafficModelAdapter, rollout: Rollout, batches: list[torch.Tensor],
-                   anchor: bool = False) -> torch.Tensor:
-        contexts, trace = rollout.anchor if anchor and rollout.anchor is not None else (rollout.contexts,
-                                                                                          rollout.trace)
+    def _log_probs(self, model: TrafficModelAdapter, contexts: ScenarioTensor, trace: PolicyTrace,
+                   batches: list[torch.Tensor]) -> torch.Tensor:
+        """``model``'s log-probabilities of ``trace`` (cut to ``denoising_steps``), computed minibatch by minibatch."""
         result: torch.Tensor | None = None
         for idx in batches:
             lp = self._steps(model.log_prob(contexts[idx], _select_trace(trace, idx)).detach())
@@ -115,12 +114,13 @@ class PPOUpdate:
         cfg = self.config
         n = rollout.contexts.num_scenes
         first = self._minibatches(epoch, 0, n)
-        old = self._log_probs(self.model, rollout, first)
-        ref = self._log_probs(self.reference, rollout, first) if self.reference is not None and cfg.kl_coef > 0 \
-            else None
+        old = self._log_probs(self.model, rollout.contexts, rollout.trace, first)
+        ref = None
+        if self.reference is not None and cfg.kl_coef > 0:
+            ref = self._log_probs(self.reference, rollout.contexts, rollout.trace, first)
         anchor_ref = None
         if rollout.anchor is not None and self.reference is not None and cfg.anchor_coef > 0:
-            anchor_ref = self._log_probs(self.reference, rollout, first, anchor=True)
+            anchor_ref = self._log_probs(self.reference, *rollout.anchor, first)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
                                                          "clip_fraction", "kl_ref", "grad_norm",
                                                          "winner_loss", "anchor_kl")}

@@ -302,9 +302,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         residual of the least-squares line of ``r`` on the covariate within each group; the divisor stays the
         std of ``r``, so a group whose rewards the covariate explains gets advantages near 0 (not inflated
         noise)."""
-        mean = rewards.mean(dim, keepdim=True)
-        std = rewards.std(dim, unbiased=False, keepdim=True)
-        centred = rewards - mean
+        centred = rewards - rewards.mean(dim, keepdim=True)
+        scale = rewards.std(dim, unbiased=False, keepdim=True) if self.config.advantage_scale == "group" else None
         if covariate is not None:
             x = covariate.to(rewards.dtype)
             x = x - x.mean(dim, keepdim=True)
@@ -312,11 +311,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             slope = torch.where(spread > 1e-6, (x * centred).sum(dim, keepdim=True) / spread.clamp_min(1e-6),
                                 torch.zeros_like(spread))
             centred = centred - slope * x
-        if self.config.advantage_scale == "batch":
+        if scale is None:  # "batch": one root mean square over the sampled entries
             kept = centred if mask is None else centred[mask]
-            std = kept.pow(2).mean().sqrt() if kept.numel() else centred.new_zeros(())
+            scale = kept.pow(2).mean().sqrt() if kept.numel() else centred.new_zeros(())
         clip = self.config.advantage_clip
-        return (centred / (std + self.config.advantage_eps)).clamp(-clip, clip)
+        return (centred / (scale + self.config.advantage_eps)).clamp(-clip, clip)
 
     # ------------------------------------------------------------------ optimization
     def learning_rate(self, epoch: int) -> float:
