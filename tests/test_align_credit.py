@@ -7,6 +7,7 @@ import torch
 
 from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
 from trafficrlhf_sdk.align.contexts import ContextSampler
+from trafficrlhf_sdk.align.ppo_update import derived_generator
 from trafficrlhf_sdk.align.rewards import FailureReward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
@@ -511,3 +512,54 @@ def test_the_anchor_samples_uniform_log_contexts_and_pulls_towards_the_starting_
     stats = trainer._optimize(0, rollout)
     assert stats["anchor_kl"] > 0 and stats["updates"] >= 1
     assert anchor_kl() < before
+
+
+def test_the_passing_anchor_zeroes_passing_agents_advantages_and_holds_them_at_the_start(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    """``passing_anchor_coef``: an agent is *passing* when none of its samples collides or leaves the road
+    (checked here with the metrics' own per-step tests); its advantages become 0 while every other agent keeps
+    the advantage it has without the option; with the surrogate and imitation off, the anchor alone brings a
+    drifted model back towards its start on the passing agents' samples."""
+    common = dict(alpha=0.0, imitation_coef=0.0, credit="agent", failure_fraction=0.5, failure_scenes=4,
+                  failure_drive_s=4.0, learning_rate=1e-3, **{**FAST, "ppo_epochs": 4})
+    reward = FailureReward(margins=True)
+    plain = AlignTrainer(_model(), reward, AlignConfig(**common), scenes=train_scene_list)._rollout(0)
+    model = _model()
+    trainer = AlignTrainer(model, reward, AlignConfig(passing_anchor_coef=1.0, **common), scenes=train_scene_list)
+    assert trainer.reference is not None
+    rollout = trainer._rollout(0)
+    passing, agents = rollout.passing, rollout.trace.agents
+    assert passing is not None and not (passing & ~agents).any()
+    futures = trainer._sample(rollout.contexts, derived_generator(0, 0, "sample")).futures  # the rollout's draw
+    scenario = trainer.sample_scenarios(rollout.contexts, futures, agents)
+    future = slice(scenario.current_index + 1, None)
+    bad = (collisions_per_step(scenario) | offroad_per_step(scenario))[:, :, future] & scenario.valid[:, :, future]
+    fails = bad.any(-1).reshape(rollout.advantages.shape).any(1)  # (B, A): some sample fails
+    assert torch.equal(passing, agents & ~fails)
+    assert passing.any() and (agents & ~passing).any(), "the draw needs passing and failing agents"
+    assert torch.all(rollout.advantages[passing[:, None, :].expand_as(rollout.advantages)] == 0)
+    kept = (agents & ~passing)[:, None, :].expand_as(rollout.advantages)
+    assert torch.equal(rollout.advantages[kept], plain.advantages[kept])
+
+    with torch.no_grad():
+        torch.manual_seed(1)
+        for p in model.module.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+
+    def passing_kl() -> float:
+        every = [torch.arange(rollout.contexts.num_scenes)]
+        d = trainer._log_probs(trainer.reference, rollout.contexts, rollout.trace, every) \
+            - trainer._log_probs(model, rollout.contexts, rollout.trace, every)
+        mask = passing[:, None, :].expand(d.shape[:3])
+        mask = mask[..., None].expand(d.shape) if d.dim() == 4 else mask
+        return float((torch.exp(d) - 1 - d)[mask].mean())
+
+    before = passing_kl()
+    stats = trainer._optimize(0, rollout)
+    assert stats["passing_kl"] > 0 and stats["updates"] >= 1
+    assert passing_kl() < before
+
+
+def test_the_passing_anchor_needs_agent_credit() -> None:
+    with pytest.raises(ValueError, match="passing_anchor_coef"):
+        AlignConfig(passing_anchor_coef=1.0, credit="scene")

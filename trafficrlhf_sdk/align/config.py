@@ -54,6 +54,13 @@ class AlignConfig(BaseModel):
                                "focused; the anchor holds the driving on ordinary roads, where nothing needs to "
                                "change. 0 disables it.")
     anchor_samples: int = Field(2, ge=1, description="Futures drawn per anchor context (anchor_coef > 0).")
+    passing_anchor_coef: float = Field(0.0, ge=0, description="Weight of a KL anchor to the frozen starting model "
+                                       "on the PPO samples of *passing* agents: sampled agents none of whose "
+                                       "samples in a context collides or leaves the road over the scored steps. "
+                                       "Their advantages are set to 0, so the surrogate moves only agents with a "
+                                       "failing sample while the anchor holds the others where they were: a "
+                                       "contrast inside each scene between agents that need a change and agents "
+                                       "that do not. Needs credit='agent'. 0 disables it.")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this (SB3 rule).")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "
@@ -243,6 +250,9 @@ class AlignConfig(BaseModel):
         if self.counterfactual_credit and self.credit != "agent":
             raise ValueError("`counterfactual_credit=True` needs `credit='agent'` (it changes how each agent's "
                              "samples are scored).")
+        if self.passing_anchor_coef > 0 and self.credit != "agent":
+            raise ValueError(f"`passing_anchor_coef` is {self.passing_anchor_coef} but `credit` is 'scene': a "
+                             "passing agent is told apart from a failing one only with credit='agent'.")
         if self.continuation_steps and self.continuation_executed_steps > (self.horizon or 10**9):
             raise ValueError(f"`continuation_executed_steps` ({self.continuation_executed_steps}) exceeds `horizon` "
                              f"({self.horizon}): a sample cannot execute more steps than it holds; lower it.")

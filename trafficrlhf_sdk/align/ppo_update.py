@@ -36,6 +36,7 @@ class Rollout:
     winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
     imitation: ScenarioTensor | None = None  # windows the imitation loss learns from; None: ``logged``
     anchor: tuple[ScenarioTensor, PolicyTrace] | None = None  # uniform log contexts and their samples (anchor_coef)
+    passing: torch.Tensor | None = None  # (B, A) sampled agents none of whose samples fails (passing_anchor_coef)
 
 
 def derived_seed(*parts: Any) -> int:
@@ -116,14 +117,15 @@ class PPOUpdate:
         first = self._minibatches(epoch, 0, n)
         old = self._log_probs(self.model, rollout.contexts, rollout.trace, first)
         ref = None
-        if self.reference is not None and cfg.kl_coef > 0:
+        passing = rollout.passing if cfg.passing_anchor_coef > 0 else None
+        if self.reference is not None and (cfg.kl_coef > 0 or passing is not None):
             ref = self._log_probs(self.reference, rollout.contexts, rollout.trace, first)
         anchor_ref = None
         if rollout.anchor is not None and self.reference is not None and cfg.anchor_coef > 0:
             anchor_ref = self._log_probs(self.reference, *rollout.anchor, first)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
                                                          "clip_fraction", "kl_ref", "grad_norm",
-                                                         "winner_loss", "anchor_kl")}
+                                                         "winner_loss", "anchor_kl", "passing_kl")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -154,9 +156,15 @@ class PPOUpdate:
                     # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
                     # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
                     d = (ref[idx] - new).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
-                    kl_ref = _masked_mean(torch.exp(d) - 1 - d, mask)
-                    loss = loss + cfg.kl_coef * kl_ref
-                    stats["kl_ref"].append(float(kl_ref.detach()))
+                    k3 = torch.exp(d) - 1 - d
+                    if cfg.kl_coef > 0:
+                        kl_ref = _masked_mean(k3, mask)
+                        loss = loss + cfg.kl_coef * kl_ref
+                        stats["kl_ref"].append(float(kl_ref.detach()))
+                    if passing is not None:
+                        passing_kl = _masked_mean(k3, _entry_mask(new, passing[idx]))
+                        loss = loss + cfg.passing_anchor_coef * passing_kl
+                        stats["passing_kl"].append(float(passing_kl.detach()))
                 if anchor_ref is not None and rollout.anchor is not None:
                     anchor_contexts, anchor_trace = rollout.anchor
                     anchor_trace = _select_trace(anchor_trace, idx)

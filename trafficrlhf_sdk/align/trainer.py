@@ -52,6 +52,7 @@ from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
+from trafficrlhf_sdk.align.rewards import FailureReward
 from trafficrlhf_sdk.align.ppo_update import PPOUpdate, Rollout, derived_generator, derived_seed, mean_over_sampled
 from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.align.sample_scenarios import SampleScenarios
@@ -120,7 +121,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.optimizer = torch.optim.AdamW(self.trainable, lr=self.config.learning_rate,
                                            weight_decay=self.config.weight_decay)
         self.guidance = GuidanceSet.parse(self.config.guidance)
-        self.reference = copy.deepcopy(model) if self.config.kl_coef > 0 or self.config.anchor_coef > 0 else None
+        keeps_reference = max(self.config.kl_coef, self.config.anchor_coef, self.config.passing_anchor_coef) > 0
+        self.reference = copy.deepcopy(model) if keeps_reference else None
         if self.reference is not None:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)
@@ -227,6 +229,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         out = self._sample(contexts, gen)
         trace = out.trace.detach()
         b = contexts.num_scenes
+        passing = None
         if self.config.credit == "agent":
             source, window = None, slice(max(0, contexts.current_index - self.config.reward_history_steps),
                                          contexts.current_index + 1 + self.reward_steps)
@@ -250,6 +253,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             sampled = trace.agents[:, None, :].expand_as(returns)
             adv = self._normalize(returns, dim=1, covariate=speed, mask=sampled) * sampled.to(per_agent.dtype)
             ranked = per_agent
+            if self.config.passing_anchor_coef > 0:
+                passing = self._passing_agents(contexts, out.futures, trace.agents)
+                adv = adv * (~passing)[:, None, :].to(adv.dtype)
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
@@ -273,7 +279,17 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             gen = derived_generator(self.config.seed, epoch, "anchor")
             anchor_contexts = self.context_sampler.log_contexts(b, gen)[0]
             anchor = (anchor_contexts, self._sample(anchor_contexts, gen, self.config.anchor_samples).trace.detach())
-        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation, anchor)
+        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation, anchor,
+                       passing)
+
+    def _passing_agents(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
+        """``(B, A)`` bool: sampled ``agents`` none of whose samples ``futures (B, S, A, H, 4)`` has a failure step
+        (of ``failure_kinds``: collision with any agent, centre off the drivable area) in the reward window."""
+        kinds = self.config.failure_kinds
+        check = FailureReward(collision="collision" in kinds, offroad="offroad" in kinds)
+        scenario = self.sample_scenarios(contexts, futures, agents)
+        failing = check.agent_scores(scenario).reshape(futures.shape[:3]) < 0  # (B, S, A)
+        return agents & ~failing.any(1)
 
     def _selection_returns(self, contexts: ScenarioTensor, out: Any, rewards: torch.Tensor) -> torch.Tensor:
         """Best-of-K returns (:func:`best_of_k_returns`) of ``rewards`` ``(B, S, A)`` (agent credit) or ``(B, S)``
@@ -373,6 +389,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                          "reward_std": float(rollout.rewards.std(1, unbiased=False).mean()),
                          "reward_min": float(rollout.rewards.min()),
                          "reward_max": float(rollout.rewards.max())}
+                if rollout.passing is not None:  # share of the sampled agents that no sample of fails
+                    sampled = rollout.trace.agents.sum().clamp_min(1)
+                    stats["passing_share"] = float(rollout.passing.sum() / sampled)
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
                 if self.held_out is not None and self.held_out.due(epoch + 1):
@@ -409,7 +428,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return self.history
 
     def _log(self, stats: dict[str, float]) -> None:
-        rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max")
+        rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share")
         for key, value in stats.items():
             if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
                 continue
