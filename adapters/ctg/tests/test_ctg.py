@@ -5,6 +5,7 @@ Data-dependent tests are skipped when ``trafficrlhf_sdk.scenario.default_data_ro
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -498,15 +499,17 @@ def test_training_windows_list_the_same_co_denoised_neighbours_as_the_adapter(sc
 
 
 @needs_data
-def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """``steer=True`` adds a zero head: same guided futures and log-probabilities as the base under one generator;
-    it is the ``steer`` group and gets the only gradient of a log-probability once its output layer is non-zero;
-    the head then changes the sampled futures and the guided log-probability stays exact; it survives
-    save_pretrained/from_pretrained without the option."""
+@pytest.mark.parametrize("option", ["steer", "steer_road"])
+def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path, option) -> None:  # type: ignore[no-untyped-def]
+    """``steer=True`` (or ``steer_road=True``, a head that also reads the road) adds a zero head: same guided
+    futures and log-probabilities as the base under one generator; it is the ``steer`` group and gets the only
+    gradient of a log-probability once its output layer is non-zero; the head then changes the sampled futures
+    and the guided log-probability stays exact; it survives save_pretrained/from_pretrained without the option."""
     from trafficrlhf_ctg import CTGAdapter
 
     path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
-    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, steer=True)
+    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, **{option: True})
+    assert steered.cfg.steer_road == (option == "steer_road")
     assert "steer" not in base.parameter_groups() and set(steered.parameter_groups()) == {"encoder", "decoder", "steer"}
     guidance = GuidanceSet.parse("no_collision").fit(scenes)
     a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
@@ -531,6 +534,34 @@ def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_
 
     steered.save_pretrained(str(tmp_path))
     loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
-    assert loaded.cfg.steer
+    assert loaded.cfg.steer and loaded.cfg.steer_road == (option == "steer_road")
     again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
     torch.testing.assert_close(again.futures, out.futures)
+
+
+def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_neighbours() -> None:
+    """At agent-frame points on crop-cell centres (``map_crops``' convention: rows ahead, columns to the left,
+    a quarter of the rows behind) the bilinear profile equals those cells' values; the offsets one cell across a
+    plan heading along +x read the cells to its left and right, and a plan heading along +y swaps the axes."""
+    from ctg_reference.model import MAP_BEHIND_FRACTION, road_profile
+
+    g, res = 16, 0.5
+    crop = (torch.rand(2, 1, g, g, generator=torch.Generator().manual_seed(0)) > 0.5).float()
+    u = torch.tensor([[5, 6, 7, 9], [12, 3, 4, 8]])  # rows (ahead)
+    v = torch.tensor([[3, 4, 10, 12], [1, 7, 8, 14]])  # columns (left)
+    x = (u - MAP_BEHIND_FRACTION * g + 0.5) * res
+    y = (v - g / 2 + 0.5) * res
+    heading_x = torch.stack([x, y, torch.zeros_like(x), torch.zeros_like(x)], -1)[:, None]  # (N, S=1, H=4, 4)
+    got = road_profile(crop, heading_x, res, offset=res)[:, 0]  # (N, H, 3)
+    rows = torch.arange(2)[:, None]
+    torch.testing.assert_close(got[..., 0], crop[rows, 0, u, v])
+    torch.testing.assert_close(got[..., 1], crop[rows, 0, u, v + 1])
+    torch.testing.assert_close(got[..., 2], crop[rows, 0, u, v - 1])
+    heading_y = heading_x.clone()
+    heading_y[..., 3] = math.pi / 2  # left of a plan heading along +y is -x: the row behind
+    got = road_profile(crop, heading_y, res, offset=res)[:, 0]
+    torch.testing.assert_close(got[..., 1], crop[rows, 0, u - 1, v], atol=1e-5, rtol=0)
+    torch.testing.assert_close(got[..., 2], crop[rows, 0, u + 1, v], atol=1e-5, rtol=0)
+    far = heading_x.clone()
+    far[..., 0] = 100.0  # beyond the crop
+    assert torch.all(road_profile(crop, far, res, offset=res) == 0)

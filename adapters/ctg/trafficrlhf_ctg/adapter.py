@@ -48,7 +48,7 @@ from ctg_reference.data import (
     select_rows,
     window_mask,
 )
-from ctg_reference.model import CTGConfig, CTGModel, SceneRows
+from ctg_reference.model import CTGConfig, CTGModel, SceneRows, SteerMap
 from trafficrlhf_sdk.dynamics import unicycle_rollout
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
@@ -80,6 +80,9 @@ class CTGOptions(AdapterOptions):
                         "checkpoint that has none, offered as the parameter group 'steer': fine-tuning only it "
                         "moves the sampler through the frozen encoder and denoiser. Checkpoints saved with a head "
                         "load it without this option.")
+    steer_road: bool = Field(False, description="As `steer`, with a head that also reads the drivable layer along "
+                             "each denoising step's clean plan (ctg_reference.road_profile): whether a plan leaves "
+                             "the road becomes one of its inputs.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -99,16 +102,17 @@ class CTGAdapter(TrafficModelAdapter):
             "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small",
             CTGConfig, CTGModel,
         )
-        if self.options.steer and not self.cfg.steer:
-            self._add_steer_head()
+        if (self.options.steer or self.options.steer_road) and not self.cfg.steer:
+            self._add_steer_head(self.options.steer_road)
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()
         self._hold = StationaryHold(self.options.stationary_speed, self.options.stationary_rule)
 
-    def _add_steer_head(self) -> None:
-        """Rebuild the model with a fresh (zero) steering head, keeping every trained weight."""
-        cfg = dataclasses.replace(self.cfg, steer=True)
+    def _add_steer_head(self, road: bool) -> None:
+        """Rebuild the model with a fresh (zero) steering head (reading the road with ``road``), keeping every
+        trained weight."""
+        cfg = dataclasses.replace(self.cfg, steer=True, steer_road=road)
         model = CTGModel(cfg).to(self.options.device)
         missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
         assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
@@ -141,10 +145,11 @@ class CTGAdapter(TrafficModelAdapter):
                              "the scenes with dt=0.1.")
 
     def _plan_encoder(self, context: ScenarioTensor, agents: torch.Tensor
-                      ) -> tuple[Callable[[torch.Tensor | None], torch.Tensor], SceneRows | None]:
+                      ) -> tuple[Callable[[torch.Tensor | None], torch.Tensor], SceneRows | None, SteerMap | None]:
         """``f(plan_positions (B, S, A, F, 2) or None) -> cond`` for the ``agents`` rows, featurizing the context
-        and encoding map and history once (the plans change between denoising steps, the rest does not); and,
-        for a scene-denoising model, the rows' co-denoised neighbours (the other ``agents`` rows)."""
+        and encoding map and history once (the plans change between denoising steps, the rest does not); for a
+        scene-denoising model, the rows' co-denoised neighbours (the other ``agents`` rows); and for a steering
+        head that reads the road, the rows' drivable crop (the first map layer) and speed."""
         features = agent_features(context, self.cfg)
         rows = select_rows(features, agents)
         if self.model.mixer is not None:
@@ -162,7 +167,8 @@ class CTGAdapter(TrafficModelAdapter):
                           "neighbour_plan_valid": valid.transpose(1, 2)[agents]}
             return self.model.encode(with_plans, own)
 
-        return encode, self.model.scene_rows(rows)
+        steer_map = (rows["map"][:, :1], rows["v0"]) if self.cfg.steer_road else None
+        return encode, self.model.scene_rows(rows), steer_map
 
     def _plan_positions(self, futures: torch.Tensor) -> torch.Tensor:
         """Positions ``(B, S, A, F, 2)`` of scene-frame ``futures (B, S, A, H, 4)`` at the plan steps."""
@@ -203,11 +209,11 @@ class CTGAdapter(TrafficModelAdapter):
         mode = self.options.plan_mode if self.cfg.neighbour_plan_steps else "none"
         plan_positions, cond_fn = None, None
         with torch.no_grad():
-            encode, scene = self._plan_encoder(context, agents)
+            encode, scene, steer_map = self._plan_encoder(context, agents)
             cond, state_now = encode(None), context.states[:, :, now][agents]
             held = self._hold.mask(context)[agents]
             if mode == "proposal" and cond.shape[0] > 0:  # an unguided proposal, then the plans
-                proposal, _, _, _ = self.model.sample(cond, s, generator)
+                proposal, _, _, _ = self.model.sample(cond, s, generator, steer_map=steer_map)
                 plan_positions = self._plan_positions(self._scatter(
                     self._rollout(self.model.normalize(proposal), state_now, held), agents, base_futures))
                 cond = encode(plan_positions)
@@ -226,7 +232,8 @@ class CTGAdapter(TrafficModelAdapter):
                     loss = guidance.loss(futures, now, context)  # (B, S, A)
                     return (loss * agents[:, None]).sum()
 
-            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn, scene)
+            actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn, scene,
+                                                                steer_map)
             if cond_fn is not None:
                 plan_positions = torch.stack(step_plans, 3)  # (B, S, A, K, F, 2)
             futures = self._rollout(self.model.normalize(actions), state_now, held)
@@ -271,13 +278,13 @@ class CTGAdapter(TrafficModelAdapter):
         b, s, a = trace.tensors["chain"].shape[:3]
         k = chain.shape[2] - 1
         plans = trace.tensors.get("plan_positions")
-        encode, scene = self._plan_encoder(context, agents)
+        encode, scene, steer_map = self._plan_encoder(context, agents)
         if plans is None or plans.dim() == 5:  # no plans, or one proposal for every step
             cond = encode(plans)
         else:  # per denoising step; the first saw no plans
             cond = torch.stack([encode(None)[:, None].expand(-1, s, -1)]
                                + [encode(plans[:, :, :, i]) for i in range(1, k)], 2)  # (N, S, K, D)
-        log_prob = self.model.chain_log_prob(cond, chain, delta, scene)  # (N, S, K)
+        log_prob = self.model.chain_log_prob(cond, chain, delta, scene, steer_map)  # (N, S, K)
         return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ from trafficrlhf_sdk.models.features import agent_poses, history_features, map_c
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-from ctg_reference.model import CTGConfig
+from ctg_reference.model import MAP_BEHIND_FRACTION, CTGConfig
 
 __all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "co_denoised_rows", "drop_neighbour_plans", "future_targets",
            "logged_neighbour_plans", "neighbour_plan_features", "select_rows", "window_mask"]
@@ -32,7 +32,8 @@ def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dty
     neighbours ``(B, A, K, 7)`` and neighbour_valid, neighbour_index ``(B, A, K)`` (their agent slots),
     v0 ``(B, A)``.
     """
-    crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.map_resolution, behind_fraction=0.25)
+    crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.map_resolution,
+                      behind_fraction=MAP_BEHIND_FRACTION)
     history, history_valid = history_features(context, cfg.history_steps)
     neighbours, neighbour_valid, neighbour_index = neighbour_features(context, cfg.num_neighbours,
                                                                       return_index=True)

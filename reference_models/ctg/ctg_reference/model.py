@@ -19,7 +19,8 @@ This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and
   named by ``neighbour_row``) and shifts its conditioning; training draws one noise level per scene and step.
   Each step stays a Gaussian given every row's current sample, so the chain's density remains exact.
 * Steering (``steer``): a :class:`SteerHead` adds ``sigma_k * tanh(g(cond, x0_k, k))`` to each step's mean. It
-  starts at zero; fine-tuned alone it moves where the sampler goes through the frozen denoiser.
+  starts at zero; fine-tuned alone it moves where the sampler goes through the frozen denoiser. With
+  ``steer_road`` it also reads the drivable layer along ``x0_k``'s plan (:func:`road_profile`).
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -38,10 +39,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead", "TemporalUNet",
-           "cosine_alphas_bar", "unicycle_from_origin"]
+__all__ = ["MAP_BEHIND_FRACTION", "CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead",
+           "TemporalUNet", "cosine_alphas_bar", "road_profile", "unicycle_from_origin"]
 
 LOG_2PI = math.log(2 * math.pi)
+SteerMap = tuple[torch.Tensor, torch.Tensor]  # a road-reading steering head's inputs: drivable crop, speed
+MAP_BEHIND_FRACTION = 0.25  # share of the map crop's rows behind the agent (the rest is ahead)
 
 
 @dataclass
@@ -82,6 +85,11 @@ class CTGConfig:
     # encoder and denoiser stay as trained, so only how the sampler moves through them changes
     steer: bool = False
     steer_hidden: int = 128
+    # the head also reads the drivable layer of the agent's map crop along each step's clean plan (on it, and
+    # steer_road_offset m to either side of it), so whether a plan leaves the road is an input, not a pattern
+    # the head would have to find in the encoder's summary of the whole crop
+    steer_road: bool = False
+    steer_road_offset: float = 1.0
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -331,7 +339,8 @@ CondFn = Callable[[int, torch.Tensor], torch.Tensor]
 
 class SteerHead(nn.Module):
     """Learned steering of the sampler: per DDIM step, a shift of the step's mean by ``sigma_k * tanh(g)``, with
-    ``g = MLP(cond, x0_k, k)`` read from the conditioning, the step's clean prediction and the step.
+    ``g = MLP(cond, x0_k, k[, road])`` read from the conditioning, the step's clean prediction, the step and, with
+    ``steer_road``, the drivable layer along that prediction (:func:`road_profile`).
 
     Its output layer starts at zero, so a model with a fresh head samples exactly as without one; fine-tuning the
     head alone is policy optimization in the sampler's noise space (each step's shift is bounded by its own noise
@@ -341,21 +350,49 @@ class SteerHead(nn.Module):
         super().__init__()
         self.horizon, self.x0_clip = cfg.horizon, cfg.x0_clip
         self.step_embedding = SinusoidalEmbedding(cfg.time_dim)
-        self.net = _mlp([cfg.cond_dim + 2 * cfg.horizon + cfg.time_dim, cfg.steer_hidden, cfg.steer_hidden,
+        road = 3 * cfg.horizon if cfg.steer_road else 0
+        self.net = _mlp([cfg.cond_dim + 2 * cfg.horizon + cfg.time_dim + road, cfg.steer_hidden, cfg.steer_hidden,
                          2 * cfg.horizon])
         last = self.net[-1]
         assert isinstance(last, nn.Linear)
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 
-    def forward(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int) -> torch.Tensor:
+    def forward(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
+                road: torch.Tensor | None = None) -> torch.Tensor:
         """Shift in units of the step's sigma, in (-1, 1): ``(M, H, 2)`` from ``cond (M, D)``, normalized clean
-        prediction ``x0 (M, H, 2)`` and step ``k`` (int or ``(M,)``)."""
+        prediction ``x0 (M, H, 2)``, step ``k`` (int or ``(M,)``) and, for a ``steer_road`` head, ``road (M, H, 3)``
+        in [0, 1] from :func:`road_profile`."""
         m = x0.shape[0]
         if not isinstance(k, torch.Tensor):
             k = torch.full((m,), int(k), dtype=torch.long, device=x0.device)
-        inputs = torch.cat([cond, x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k)], -1)
-        return torch.tanh(self.net(inputs)).reshape(m, self.horizon, 2)
+        inputs = [cond, x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k)]
+        if road is not None:
+            inputs.append(road.reshape(m, -1))
+        return torch.tanh(self.net(torch.cat(inputs, -1))).reshape(m, self.horizon, 2)
+
+
+def road_profile(drivable: torch.Tensor, states: torch.Tensor, resolution: float, offset: float) -> torch.Tensor:
+    """The drivable layer along plans: ``(N, S, H, 3)`` in [0, 1], bilinear in the crop, at each planned position
+    and ``offset`` m to its left and right (across the planned heading); 0 outside the crop.
+
+    Args:
+        drivable: ``(N, 1, G, G)`` the rows' map crops (:data:`MAP_BEHIND_FRACTION` of the rows behind the agent,
+            ``resolution`` m per cell, x ahead along rows and y to the left along columns).
+        states: agent-frame plans ``(N, S, H, 4)`` (x, y, speed, yaw), e.g. :meth:`CTGModel.rollout`.
+    """
+    n, s, h, _ = states.shape
+    xy, yaw = states[..., :2], states[..., 3]
+    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1) * offset
+    points = torch.stack([xy, xy + left, xy - left], 3)  # (N, S, H, 3, 2)
+    size = drivable.shape[-1] * resolution
+    # grid_sample's (x, y) are (column, row) in [-1, 1] over the crop's extent (align_corners=False)
+    column = 2 * points[..., 1] / size
+    row = 2 * points[..., 0] / size + 2 * MAP_BEHIND_FRACTION - 1
+    grid = torch.stack([column, row], -1).reshape(n, 1, s * h * 3, 2)
+    values = F.grid_sample(drivable.to(states.dtype), grid, mode="bilinear", padding_mode="zeros",
+                           align_corners=False)
+    return values.reshape(n, s, h, 3)
 
 
 class CTGModel(nn.Module):
@@ -441,6 +478,22 @@ class CTGModel(nn.Module):
             k = torch.full((x.shape[0],), int(k), dtype=torch.long, device=x.device)
         return self.denoiser(x, k, cond)
 
+    def _steer_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
+                     n: int) -> torch.Tensor:
+        """The steering head's shift ``(M, H, 2)`` for ``M = n * R`` rows ordered row-major by the ``n``
+        conditioning rows (R samples, or samples x steps, each)."""
+        assert self.steer is not None
+        if not self.cfg.steer_road:
+            return self.steer(cond, x0, k)
+        if steer_map is None:
+            raise ValueError("this CTG model's steering head reads the road along its plans (steer_road=True): pass "
+                             "steer_map=(drivable crop (N, 1, G, G), v0 (N,)).")
+        drivable, v0 = steer_map
+        plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
+        states = self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
+        road = road_profile(drivable, states, self.cfg.map_resolution, self.cfg.steer_road_offset)
+        return self.steer(cond, x0, k, road.reshape(*x0.shape[:2], 3))
+
     # ------------------------------------------------------------ training
     def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
              target_states: torch.Tensor | None = None, generator: torch.Generator | None = None,
@@ -498,8 +551,8 @@ class CTGModel(nn.Module):
         return (-0.5 * z**2 - torch.log(sigma) - 0.5 * LOG_2PI).sum((-1, -2))
 
     def sample(self, cond: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
-               guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None, scene: SceneRows | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+               guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None, scene: SceneRows | None = None,
+               steer_map: SteerMap | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Draw ``num_samples`` normalized action sequences per conditioning row.
 
         Args:
@@ -513,6 +566,7 @@ class CTGModel(nn.Module):
                 conditioning follows what the other rows are becoming (``cond`` is used for the first step).
             scene: for a scene-denoising model, :meth:`scene_rows` of the rows: every step of row i's sample s
                 reads the current noisy samples s of the rows denoised as its neighbours.
+            steer_map: for a ``steer_road`` head, the rows' drivable crop ``(N, 1, G, G)`` and speed ``v0 (N,)``.
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
@@ -532,7 +586,7 @@ class CTGModel(nn.Module):
                                                           scene).reshape(n * s, -1)
             mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
             if self.steer is not None:
-                mean = mean + sigma * self.steer(c_step, x0, k)
+                mean = mean + sigma * self._steer_shift(c_step, x0, k, steer_map, n)
             delta = torch.zeros_like(mean)
             if guidance_fn is not None and i < len(schedule) - 1:
                 with torch.enable_grad():
@@ -554,11 +608,12 @@ class CTGModel(nn.Module):
         return self.unnormalize(chain_t[:, :, -1]), chain_t, delta_t, log_prob
 
     def chain_log_prob(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None,
-                       scene: SceneRows | None = None) -> torch.Tensor:
+                       scene: SceneRows | None = None, steer_map: SteerMap | None = None) -> torch.Tensor:
         """Per-step log-probabilities ``(N, S, K)`` of a stored chain ``(N, S, K+1, H, 2)`` under the current
         parameters: ``log N(x_{k_prev}; mu_theta(x_k) + delta_k, sigma_k^2)`` summed over H and action dims.
-        ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``; ``scene`` as in
-        :meth:`sample` (the co-denoised rows' states at each step are read from ``chain`` itself)."""
+        ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``; ``scene`` and
+        ``steer_map`` as in :meth:`sample` (the co-denoised rows' states at each step are read from ``chain``
+        itself)."""
         n, s, steps1, h, _ = chain.shape
         k_steps = steps1 - 1
         schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
@@ -577,7 +632,7 @@ class CTGModel(nn.Module):
         x = chain[:, :, :-1].reshape(-1, h, 2)
         mean, sigma, x0 = self._transition(x, k, k_prev, c, with_x0=True)  # one batched call for all steps
         if self.steer is not None:
-            mean = mean + sigma * self.steer(c, x0, k)
+            mean = mean + sigma * self._steer_shift(c, x0, k, steer_map, n)
         if guide_delta is not None:
             mean = mean + guide_delta.reshape(-1, h, 2)
         log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean, sigma)
