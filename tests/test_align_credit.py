@@ -563,3 +563,20 @@ def test_the_passing_anchor_zeroes_passing_agents_advantages_and_holds_them_at_t
 def test_the_passing_anchor_needs_agent_credit() -> None:
     with pytest.raises(ValueError, match="passing_anchor_coef"):
         AlignConfig(passing_anchor_coef=1.0, credit="scene")
+
+
+def test_passing_with_margins_also_excludes_agents_that_come_near_a_failure(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    config = AlignConfig(credit="agent", passing_anchor_coef=1.0, failure_fraction=0.5, failure_scenes=4,
+                         failure_drive_s=4.0, **FAST)
+    trainer = AlignTrainer(_model(), FailureReward(margins=True), config, scenes=train_scene_list)
+    contexts, _ = trainer._contexts(0)
+    out = trainer._sample(contexts, derived_generator(0, 0, "sample"))
+    agents = out.trace.agents
+    plain = trainer._passing_agents(contexts, out.futures, agents)
+    trainer.config = config.model_copy(update={"passing_margins": True})
+    strict = trainer._passing_agents(contexts, out.futures, agents)
+    assert not (strict & ~plain).any() and (plain & ~strict).any()
+    near = FailureReward(margins=True).agent_scores(trainer.sample_scenarios(contexts, out.futures, agents))
+    clean = (near.reshape(out.futures.shape[:3]) == 0).all(1)  # (B, A): no sample with any cost
+    assert torch.equal(strict, agents & clean)

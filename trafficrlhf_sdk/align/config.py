@@ -61,6 +61,10 @@ class AlignConfig(BaseModel):
                                        "failing sample while the anchor holds the others where they were: a "
                                        "contrast inside each scene between agents that need a change and agents "
                                        "that do not. Needs credit='agent'. 0 disables it.")
+    passing_margins: bool = Field(False, description="With passing_anchor_coef: an agent passes only if none of "
+                                  "its samples comes near a failure either (a box corner off the drivable area, "
+                                  "or a box grown by FailureReward's near-miss buffer overlapping another agent), "
+                                  "so agents that graze an edge keep their push.")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this (SB3 rule).")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "

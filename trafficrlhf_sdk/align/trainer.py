@@ -284,9 +284,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
 
     def _passing_agents(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
         """``(B, A)`` bool: sampled ``agents`` none of whose samples ``futures (B, S, A, H, 4)`` has a failure step
-        (of ``failure_kinds``: collision with any agent, centre off the drivable area) in the reward window."""
+        (of ``failure_kinds``: collision with any agent, centre off the drivable area) in the reward window, nor
+        with ``passing_margins`` a near-failure one (a corner off the road, a near miss)."""
         kinds = self.config.failure_kinds
-        check = FailureReward(collision="collision" in kinds, offroad="offroad" in kinds)
+        check = FailureReward(collision="collision" in kinds, offroad="offroad" in kinds,
+                              margins=self.config.passing_margins)
         scenario = self.sample_scenarios(contexts, futures, agents)
         failing = check.agent_scores(scenario).reshape(futures.shape[:3]) < 0  # (B, S, A)
         return agents & ~failing.any(1)

@@ -165,6 +165,8 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @click.option("--passing-anchor-coef", type=click.FloatRange(min=0), default=None,
               help="With --credit agent: weight of a KL anchor to the starting model on the agents none of whose "
                    "samples fails; their advantages become 0 [default: 0, off].")
+@click.option("--passing-margins", is_flag=True,
+              help="With --passing-anchor-coef: an agent passes only if no sample comes near a failure either.")
 @click.option("--advantage-scale", type=click.Choice(["group", "batch"]), default=None,
               help="Divide centred rewards by each group's std (group) or by one std over the rollout (batch: a "
                    "group pushes as much as its rewards differ) [default: group].")
@@ -225,6 +227,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, selection_credit: bool,
                   anchor_coef: float | None, anchor_samples: int | None, passing_anchor_coef: float | None,
+                  passing_margins: bool,
                   advantage_scale: str | None, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, continuation_steps: int | None, continuation_executed: int | None,
@@ -276,7 +279,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
         "counterfactual_credit": counterfactual_credit or None, "log_reference": log_reference,
         "selection_credit": selection_credit or None, "speed_neutral_advantages": speed_neutral_advantages or None,
         "advantage_scale": advantage_scale, "anchor_coef": anchor_coef, "anchor_samples": anchor_samples,
-        "passing_anchor_coef": passing_anchor_coef,
+        "passing_anchor_coef": passing_anchor_coef, "passing_margins": passing_margins or None,
         "denoising_steps": denoising_steps, "continuation_steps": continuation_steps,
         "continuation_executed_steps": continuation_executed, "continuation_weight": continuation_weight,
         "source": source, "root": root, "save_every": save_every, "holdout_every": holdout_every,
