@@ -510,6 +510,10 @@ def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_
     path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
     base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, **{option: True})
     assert steered.cfg.steer_road == (option == "steer_road")
+    torch.manual_seed(123)  # whatever the global generator holds, a fresh head is the same draw
+    again = CTGAdapter(checkpoint=path, seed=1, **{option: True})
+    for name, tensor in steered.model.steer.state_dict().items():
+        assert torch.equal(tensor, again.model.steer.state_dict()[name]), name
     assert "steer" not in base.parameter_groups() and set(steered.parameter_groups()) == {"encoder", "decoder", "steer"}
     guidance = GuidanceSet.parse("no_collision").fit(scenes)
     a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))

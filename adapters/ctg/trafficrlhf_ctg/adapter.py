@@ -59,6 +59,9 @@ from trafficrlhf_sdk.simulation.policies import Plan
 __all__ = ["CTGAdapter", "CTGOptions", "default_checkpoint"]
 
 
+STEER_INIT_SEED = 0  # the draw of a fresh steering head's hidden layers (the same in every run)
+
+
 def default_checkpoint() -> Path:
     """The checkpoint bundled with ``trafficrlhf-reference-ctg`` (``reference_models/ctg/checkpoints/ctg_small``)."""
     return Path(ctg_reference.__file__).resolve().parent.parent / "checkpoints" / "ctg_small"
@@ -111,9 +114,12 @@ class CTGAdapter(TrafficModelAdapter):
 
     def _add_steer_head(self, road: bool) -> None:
         """Rebuild the model with a fresh (zero) steering head (reading the road with ``road``), keeping every
-        trained weight."""
+        trained weight. The head's hidden layers are one fixed draw (seed 0), so every run starts from the same
+        weights: runs with different seeds can be averaged, and a run repeats exactly."""
         cfg = dataclasses.replace(self.cfg, steer=True, steer_road=road)
-        model = CTGModel(cfg).to(self.options.device)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(STEER_INIT_SEED)
+            model = CTGModel(cfg).to(self.options.device)
         missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
         assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
         self.cfg, self.model = cfg, model
