@@ -2,7 +2,7 @@
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
-# guidance, the aligned CTG, the 4 s CTG with its aligned version, TrafficGen with its aligned-and-extrapolated
+# guidance, the aligned CTG, the 4 s CTG with its two aligned versions, TrafficGen with its aligned-and-extrapolated
 # version, the 4 s TrafficGen with its aligned version and its pace-keeping composition, and BITS with its
 # aligned version; a comparison table closes. Outputs land in out/main/.
 set -euo pipefail
@@ -27,6 +27,9 @@ $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/ct
   --source nuscenes_pred --split val --scenes 100 --out "$OUT/ctg4s_no_collision"
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg4s_aligned_no_collision"
+# ... and the 4 s CTG with a road-reading steering head, the only part trained (reference_models/aligned/ctg_4s_road/README.md)
+$T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s_road --source nuscenes_pred \
+  --split val --scenes 100 --out "$OUT/ctg4s_road_no_collision"
 # TrafficGen and its aligned version extrapolated by 2 (reference_models/aligned/trafficgen_x2/README.md)
 $T evaluate --model trafficgen --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
   --out "$OUT/trafficgen_no_collision"
@@ -48,7 +51,8 @@ $T evaluate --model bits --guidance no_collision --source nuscenes_pred --split 
 $T evaluate --model bits --guidance no_collision --checkpoint reference_models/aligned/bits --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/bits_aligned_no_collision" --worst-scenes 5 --render-worst 3
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
-  "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/trafficgen_no_collision" \
+  "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/ctg4s_road_no_collision" \
+  "$OUT/trafficgen_no_collision" \
   "$OUT/trafficgen_x2_no_collision" "$OUT/trafficgen4s_no_collision" \
   "$OUT/trafficgen4s_aligned_no_collision" "$OUT/trafficgen4s_pace_no_collision" \
   "$OUT/bits_no_collision" "$OUT/bits_aligned_no_collision" | tee "$OUT/comparison.md"

@@ -56,6 +56,7 @@ COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1
     "reference_models/ctg/checkpoints/ctg_small_4s": 40,
     "reference_models/aligned/ctg": 20,
     "reference_models/aligned/ctg_4s": 40,
+    "reference_models/aligned/ctg_4s_road": 40,
 }
 
 
@@ -89,6 +90,19 @@ def test_committed_aligned_checkpoints_are_fine_tuned_from_their_base(aligned: s
     assert all(tuned[k].shape == start[k].shape for k in tuned)
     changed = [k for k in tuned if tuned[k].is_floating_point() and not torch.equal(tuned[k], start[k])]
     assert len(changed) > len(tuned) // 2, f"only {len(changed)} of {len(tuned)} tensors differ from the base"
+
+
+def test_the_committed_road_steered_ctg_is_its_base_plus_a_trained_head() -> None:
+    """Only the steering group trained: every base tensor is bitwise the base's, and the head moved off zero."""
+    from safetensors.torch import load_file
+
+    tuned = load_file(str(REPO / "reference_models/aligned/ctg_4s_road/model.safetensors"))
+    start = load_file(str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s/model.safetensors"))
+    assert all(torch.equal(tuned[k], start[k]) for k in start)
+    head = sorted(set(tuned) - set(start))
+    assert head and all(k.startswith("steer.") for k in head)
+    last = max((k for k in head if k.endswith(".weight")), key=lambda k: int(k.split(".")[2]))
+    assert tuned[last].abs().sum() > 0  # the zero-initialized output layer was trained
 
 
 @needs_data
