@@ -27,7 +27,9 @@ One epoch:
    (:meth:`AlignTrainer.winner_scenarios`; reward-ranked fine-tuning beside the surrogate). With
    ``anchor_coef > 0`` it also holds ``anchor_coef * KL`` to the frozen starting model on as many contexts drawn
    uniformly from the log, sampled by the current model each epoch: the PPO contexts are mostly failure-focused,
-   and the anchor keeps the driving on ordinary roads where it was.
+   and the anchor keeps the driving on ordinary roads where it was. With ``passing_anchor_coef > 0`` (agent
+   credit), agents none of whose samples fails get advantage 0 and ``passing_anchor_coef * KL`` to the starting
+   model on their own samples instead: the push and the hold act on different agents of the same contexts.
 
 ``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
 pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
@@ -52,8 +54,8 @@ from trafficrlhf_sdk.align.config import AlignConfig
 from trafficrlhf_sdk.align.continuation import continuation_scenarios
 from trafficrlhf_sdk.align.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.align.held_out import HeldOutEvaluator
-from trafficrlhf_sdk.align.rewards import FailureReward
 from trafficrlhf_sdk.align.ppo_update import PPOUpdate, Rollout, derived_generator, derived_seed, mean_over_sampled
+from trafficrlhf_sdk.align.rewards import FailureReward
 from trafficrlhf_sdk.align.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.align.sample_scenarios import SampleScenarios
 from trafficrlhf_sdk.align.selection import best_of_k_returns
