@@ -560,9 +560,11 @@ def test_the_passing_anchor_zeroes_passing_agents_advantages_and_holds_them_at_t
     assert passing_kl() < before
 
 
-def test_the_passing_anchor_needs_agent_credit() -> None:
+def test_the_passing_anchor_needs_agent_credit_and_its_margins_flag_needs_the_anchor() -> None:
     with pytest.raises(ValueError, match="passing_anchor_coef"):
         AlignConfig(passing_anchor_coef=1.0, credit="scene")
+    with pytest.raises(ValueError, match="passing_margins"):
+        AlignConfig(passing_margins=True, credit="agent")
 
 
 def test_passing_with_margins_also_excludes_agents_that_come_near_a_failure(
@@ -573,10 +575,11 @@ def test_passing_with_margins_also_excludes_agents_that_come_near_a_failure(
     contexts, _ = trainer._contexts(0)
     out = trainer._sample(contexts, derived_generator(0, 0, "sample"))
     agents = out.trace.agents
-    plain = trainer._passing_agents(contexts, out.futures, agents)
+    scenarios = trainer.sample_scenarios(contexts, out.futures, agents)
+    plain = trainer._passing_agents(scenarios, agents, 3)
     trainer.config = config.model_copy(update={"passing_margins": True})
-    strict = trainer._passing_agents(contexts, out.futures, agents)
+    strict = trainer._passing_agents(scenarios, agents, 3)
     assert not (strict & ~plain).any() and (plain & ~strict).any()
-    near = FailureReward(margins=True).agent_scores(trainer.sample_scenarios(contexts, out.futures, agents))
+    near = FailureReward(margins=True).agent_scores(scenarios)
     clean = (near.reshape(out.futures.shape[:3]) == 0).all(1)  # (B, A): no sample with any cost
     assert torch.equal(strict, agents & clean)

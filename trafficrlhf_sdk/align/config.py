@@ -257,6 +257,9 @@ class AlignConfig(BaseModel):
         if self.passing_anchor_coef > 0 and self.credit != "agent":
             raise ValueError(f"`passing_anchor_coef` is {self.passing_anchor_coef} but `credit` is 'scene': a "
                              "passing agent is told apart from a failing one only with credit='agent'.")
+        if self.passing_margins and self.passing_anchor_coef == 0:
+            raise ValueError("`passing_margins=True` changes which agents the passing anchor holds, but "
+                             "`passing_anchor_coef` is 0; set it (e.g. 1.0) or drop passing_margins.")
         if self.continuation_steps and self.continuation_executed_steps > (self.horizon or 10**9):
             raise ValueError(f"`continuation_executed_steps` ({self.continuation_executed_steps}) exceeds `horizon` "
                              f"({self.horizon}): a sample cannot execute more steps than it holds; lower it.")

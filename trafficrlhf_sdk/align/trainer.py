@@ -239,6 +239,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 # the log of the same window, not the context: a closed-loop or failure-focused context
                 # continues with the model's own driving, which a comparison with the log must not see
                 source = logged if self.config.log_reference == "log" else contexts
+            scenario = None  # the B * S sample scenarios, built once for the reward and the passing check
             if self.config.counterfactual_credit:
                 reference = None if source is None else source.time_slice(window.start, window.stop)  # (B) windows
                 per_agent = self._counterfactual_agent_scores(contexts, out.futures, trace.agents, reference)
@@ -256,7 +257,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             adv = self._normalize(returns, dim=1, covariate=speed, mask=sampled) * sampled.to(per_agent.dtype)
             ranked = per_agent
             if self.config.passing_anchor_coef > 0:
-                passing = self._passing_agents(contexts, out.futures, trace.agents)
+                if scenario is None:
+                    scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
+                passing = self._passing_agents(scenario, trace.agents, self.config.samples_per_context)
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
         else:
             scenario = self.sample_scenarios(contexts, out.futures, trace.agents)
@@ -284,15 +287,15 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), winners, imitation, anchor,
                        passing)
 
-    def _passing_agents(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
-        """``(B, A)`` bool: sampled ``agents`` none of whose samples ``futures (B, S, A, H, 4)`` has a failure step
-        (of ``failure_kinds``: collision with any agent, centre off the drivable area) in the reward window, nor
-        with ``passing_margins`` a near-failure one (a corner off the road, a near miss)."""
+    def _passing_agents(self, scenario: ScenarioTensor, agents: torch.Tensor, samples: int) -> torch.Tensor:
+        """``(B, A)`` bool: sampled ``agents (B, A)`` none of whose ``samples`` in the ``B * S`` sample scenarios
+        (:meth:`sample_scenarios`, context-major) has a failure step (of ``failure_kinds``: collision with any
+        agent, centre off the drivable area), nor with ``passing_margins`` a near-failure one (a corner off the
+        road, a near miss)."""
         kinds = self.config.failure_kinds
         check = FailureReward(collision="collision" in kinds, offroad="offroad" in kinds,
                               margins=self.config.passing_margins)
-        scenario = self.sample_scenarios(contexts, futures, agents)
-        failing = check.agent_scores(scenario).reshape(futures.shape[:3]) < 0  # (B, S, A)
+        failing = check.agent_scores(scenario).reshape(agents.shape[0], samples, agents.shape[1]) < 0  # (B, S, A)
         return agents & ~failing.any(1)
 
     def _selection_returns(self, contexts: ScenarioTensor, out: Any, rewards: torch.Tensor) -> torch.Tensor:
