@@ -179,6 +179,20 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     assert result.exit_code == 0, result.output
     report = json.loads(result.output[result.output.index("{"):])
     assert report["metadata"]["checkpoint"] == out and 0 <= report["metrics"]["failure_rate"] <= 1
+    # a second stage from the aligned weights whose passing anchor holds the first stage's start
+    from trafficrlhf_example_gru.adapter import BUNDLED_CHECKPOINT
+
+    stage2 = str(tmp_path / "stage2")
+    second = ["align", "--model", "example_gru", "--reward-model", "builtin:collision", "--checkpoint", out,
+              "--out", stage2, "--epochs", "1", "--contexts", "2", "--samples", "2", "--scenes", "3", "--threads",
+              "1", "--quiet", "--credit", "agent", "--passing-anchor-coef", "1"]
+    result = runner.invoke(get_cli(), [*second, "--reference-checkpoint", BUNDLED_CHECKPOINT],
+                           catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert json.load(open(os.path.join(stage2, "align_summary.json")))["reference_checkpoint"] == BUNDLED_CHECKPOINT
+    missing = str(tmp_path / "no_such_model")
+    bad = runner.invoke(get_cli(), [*second, "--reference-checkpoint", missing])
+    assert bad.exit_code != 0 and "no_such_model" in bad.output + str(bad.exception)
     bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:nope", "--out", out])
     assert bad.exit_code != 0
     bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--reward-model", "builtin:collision",

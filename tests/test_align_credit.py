@@ -583,3 +583,56 @@ def test_passing_with_margins_also_excludes_agents_that_come_near_a_failure(
     near = FailureReward(margins=True).agent_scores(scenarios)
     clean = (near.reshape(out.futures.shape[:3]) == 0).all(1)  # (B, A): no sample with any cost
     assert torch.equal(strict, agents & clean)
+
+
+def test_a_given_reference_is_the_model_the_anchor_pulls_towards(train_scene_list: list[ScenarioTensor]) -> None:
+    """``reference=``: the KL terms hold the policy to that model (a frozen copy; the caller's object is left
+    alone) instead of to the policy's own start: with the surrogate and imitation off, the anchor moves the
+    policy towards the given reference, and its KL estimate to it falls over the epoch's updates."""
+    config = AlignConfig(alpha=0.0, imitation_coef=0.0, anchor_coef=1.0, anchor_samples=2, learning_rate=1e-3,
+                         **{**FAST, "ppo_epochs": 4})
+    model, target = _model(), _model()
+    with torch.no_grad():  # the reference sits away from where the policy starts
+        torch.manual_seed(2)
+        for p in target.module.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    kept = {k: v.clone() for k, v in target.module.state_dict().items()}
+    trainer = AlignTrainer(model, FailureReward(), config, scenes=train_scene_list, reference=target)
+    assert trainer.reference is not target
+    assert all(not p.requires_grad for p in trainer.reference.module.parameters())
+    for key, value in trainer.reference.module.state_dict().items():
+        assert torch.equal(value, kept[key]), key
+    rollout = trainer._rollout(0)
+    assert rollout.anchor is not None
+    contexts, trace = rollout.anchor
+
+    def kl_to_reference() -> float:
+        with torch.no_grad():
+            every = [torch.arange(contexts.num_scenes)]
+            d = trainer._log_probs(trainer.reference, contexts, trace, every) \
+                - trainer._log_probs(model, contexts, trace, every)
+            return float((torch.exp(d) - 1 - d).mean())
+
+    before = kl_to_reference()
+    assert before > 0  # the policy starts away from the reference, so the anchor has work to do
+    trainer._optimize(0, rollout)
+    assert kl_to_reference() < before
+    for key, value in target.module.state_dict().items():
+        assert torch.equal(value, kept[key]), key
+
+
+def test_a_reference_that_cannot_score_the_policy_or_is_unused_is_refused(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    anchored = AlignConfig(anchor_coef=1.0, **FAST)
+    with pytest.raises(TrafficRLHFError, match="nothing would use it"):
+        AlignTrainer(_model(), FailureReward(), AlignConfig(**FAST), scenes=train_scene_list, reference=_model())
+
+    class OtherAdapter(gru.ExampleGRUAdapter):
+        pass
+
+    with pytest.raises(TrafficRLHFError, match="same adapter"):
+        AlignTrainer(_model(), FailureReward(), anchored, scenes=train_scene_list, reference=OtherAdapter())
+    smaller = _model()
+    smaller.build({"hidden": 32})
+    with pytest.raises(TrafficRLHFError, match="other shapes"):
+        AlignTrainer(_model(), FailureReward(), anchored, scenes=train_scene_list, reference=smaller)

@@ -23,21 +23,23 @@ __all__ = ["PAPER_ALPHA", "AlignConfig", "AlignResult", "AlignTrainer", "RewardL
 
 
 def align(model: Any, reward_model: Any, alpha: float = 0.3, *, scenes: Any = None, eval_scenes: Any = None,
-          callback: Callable[[int, dict[str, float]], bool | None] | None = None, **config: Any) -> AlignResult:
+          reference: Any = None, callback: Callable[[int, dict[str, float]], bool | None] | None = None,
+          **config: Any) -> AlignResult:
     """Fine-tune ``model`` (an adapter, or the name of a registered traffic model) against ``reward_model``.
 
     ``alpha`` weighs the PPO surrogate against the model's imitation loss (paper: CTG 0.1, BITS 0.5,
     TrafficGen 0.3); every other :class:`AlignConfig` field can be passed as a keyword (e.g. ``epochs=70,
     guidance="no_collision", groups=("decoder",), output_dir="out/ctg"``). ``scenes`` replaces the source's
-    training split; ``eval_scenes`` (with ``eval_every``) the held-out scenes. The adapter is updated in place
-    and returned with the per-epoch history.
+    training split; ``eval_scenes`` (with ``eval_every``) the held-out scenes; ``reference`` the frozen model
+    the KL terms hold the policy to (None: ``model`` as it starts). The adapter is updated in place and
+    returned with the per-epoch history.
     """
     if isinstance(model, str):
         from trafficrlhf_sdk import get_traffic_model
 
         model = get_traffic_model(model)
     trainer = AlignTrainer(model, reward_model, AlignConfig(alpha=alpha, **config), scenes=scenes,
-                           eval_scenes=eval_scenes)
+                           eval_scenes=eval_scenes, reference=reference)
     history = trainer.train(callback)
     return AlignResult(model, history)
 

@@ -68,6 +68,22 @@ from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
 
+def _check_reference(model: TrafficModelAdapter, reference: TrafficModelAdapter) -> None:
+    """Raise unless ``reference`` can score ``model``'s samples: same class, same parameter names and shapes."""
+    if type(reference) is not type(model):
+        raise TrafficRLHFError(f"`reference` is a {type(reference).__name__} but the model is a "
+                               f"{type(model).__name__}; pass a reference built by the same adapter.")
+    ours = {k: tuple(v.shape) for k, v in model.module.state_dict().items()}
+    theirs = {k: tuple(v.shape) for k, v in reference.module.state_dict().items()}
+    if ours != theirs:
+        missing = sorted(set(ours) - set(theirs))[:3]
+        extra = sorted(set(theirs) - set(ours))[:3]
+        reshaped = sorted(k for k in set(ours) & set(theirs) if ours[k] != theirs[k])[:3]
+        raise TrafficRLHFError(f"`reference` does not have the model's parameters (missing {missing}, extra "
+                               f"{extra}, other shapes {reshaped}); build it with the same model options (e.g. "
+                               "the same head) from the checkpoint it should hold the policy to.")
+
+
 class AlignResult(NamedTuple):
     """What :func:`trafficrlhf_sdk.align` returns: the aligned adapter (the same object, updated in place) and
     one dict of statistics per epoch."""
@@ -87,11 +103,15 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             ``config.split`` of ``config.source``.
         eval_scenes: held-out scenes ``(B, A, T)`` for ``config.eval_every``; None: the scenes
             ``config.holdout_every`` keeps out of the source's split.
+        reference: the frozen model the KL terms (``kl_coef``, ``anchor_coef``, ``passing_anchor_coef``) hold
+            the policy to; None: a copy of ``model`` as it starts. Give one to keep a later stage of a
+            multi-stage run anchored to the first stage's start (e.g. the base model with a fresh, zero-output
+            head). It must be the same adapter class with the same parameter names and shapes.
     """
 
     def __init__(self, model: TrafficModelAdapter, reward_model: Any, config: AlignConfig | None = None,
                  scenes: ScenarioTensor | Sequence[ScenarioTensor] | None = None,
-                 eval_scenes: ScenarioTensor | None = None) -> None:
+                 eval_scenes: ScenarioTensor | None = None, reference: TrafficModelAdapter | None = None) -> None:
         self.model = model
         self.reward_model = reward_model
         self.config = config or AlignConfig()
@@ -124,7 +144,15 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                                            weight_decay=self.config.weight_decay)
         self.guidance = GuidanceSet.parse(self.config.guidance)
         keeps_reference = max(self.config.kl_coef, self.config.anchor_coef, self.config.passing_anchor_coef) > 0
-        self.reference = copy.deepcopy(model) if keeps_reference else None
+        if reference is not None:
+            if not keeps_reference:
+                raise TrafficRLHFError("`reference` (--reference-checkpoint) was given but kl_coef, anchor_coef "
+                                       "and passing_anchor_coef are all 0, so nothing would use it; set one of "
+                                       "them or drop `reference`.")
+            _check_reference(model, reference)
+            self.reference = copy.deepcopy(reference)
+        else:
+            self.reference = copy.deepcopy(model) if keeps_reference else None
         if self.reference is not None:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)

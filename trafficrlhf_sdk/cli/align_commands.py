@@ -167,6 +167,10 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
                    "samples fails; their advantages become 0 [default: 0, off].")
 @click.option("--passing-margins", is_flag=True,
               help="With --passing-anchor-coef: an agent passes only if no sample comes near a failure either.")
+@click.option("--reference-checkpoint", type=click.Path(file_okay=False), default=None,
+              help="Hold the KL terms (--kl-coef, --anchor-coef, --passing-anchor-coef) to this checkpoint, built "
+                   "with the same --model-option values, instead of to --checkpoint (e.g. a second stage anchored "
+                   "to the base) [default: the starting model].")
 @click.option("--advantage-scale", type=click.Choice(["group", "batch"]), default=None,
               help="Divide centred rewards by each group's std (group) or by one std over the rollout (batch: a "
                    "group pushes as much as its rewards differ) [default: group].")
@@ -227,7 +231,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
                   failure_refresh: int | None, failure_lead: str | None, failure_kinds: str | None,
                   credit: str | None, counterfactual_credit: bool, selection_credit: bool,
                   anchor_coef: float | None, anchor_samples: int | None, passing_anchor_coef: float | None,
-                  passing_margins: bool,
+                  passing_margins: bool, reference_checkpoint: str | None,
                   advantage_scale: str | None, speed_neutral_advantages: bool,
                   denoising_steps: int | None, pessimism: float | None,
                   reward_horizon: int | None, continuation_steps: int | None, continuation_executed: int | None,
@@ -258,8 +262,16 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
 
         reward = PessimisticReward(reward, pessimism)
 
-    adapter = build_policy(model, {**parse_key_values(model_options, "--model-option"), "checkpoint": checkpoint,
-                                   "seed": seed})
+    option_values = parse_key_values(model_options, "--model-option")
+    adapter = build_policy(model, {**option_values, "checkpoint": checkpoint, "seed": seed})
+    reference = None
+    if reference_checkpoint is not None:
+        from trafficrlhf_sdk.errors import TrafficRLHFError
+
+        try:
+            reference = build_policy(model, {**option_values, "checkpoint": reference_checkpoint, "seed": seed})
+        except TrafficRLHFError as err:
+            raise TrafficRLHFError(f"--reference-checkpoint {reference_checkpoint!r}: {err}") from err
     if not hasattr(adapter, "parameter_groups"):
         from trafficrlhf_sdk.errors import TrafficRLHFError
 
@@ -294,11 +306,12 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
     )
     torch.manual_seed(seed)
     start = time.perf_counter()
-    trainer = AlignTrainer(adapter, reward, config)
+    trainer = AlignTrainer(adapter, reward, config, reference=reference)
     history = trainer.train()
     wall = time.perf_counter() - start
     summary = {"model": model, "reward_model": reward_spec, "alpha": config.alpha, "epochs": len(history),
-               "groups": list(trainer.group_names), "wall_time_s": wall, "threads": torch.get_num_threads(),
+               "groups": list(trainer.group_names), "reference_checkpoint": reference_checkpoint,
+               "wall_time_s": wall, "threads": torch.get_num_threads(),
                "reward_first": history[0]["reward_mean"] if history else None,
                "reward_last": history[-1]["reward_mean"] if history else None,
                "best_epoch": trainer.held_out.best_epoch if config.keep_best and trainer.held_out else None}
