@@ -513,19 +513,22 @@ def test_training_windows_list_the_same_co_denoised_neighbours_as_the_adapter(sc
 
 
 @needs_data
-@pytest.mark.parametrize("option", ["steer", "steer_road"])
-def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path, option) -> None:  # type: ignore[no-untyped-def]
-    """``steer=True`` (or ``steer_road=True``, a head that also reads the road) adds a zero head: same guided
+@pytest.mark.parametrize("options", [("steer",), ("steer_road",), ("steer_road", "steer_neighbours")])
+def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path, options) -> None:  # type: ignore[no-untyped-def]
+    """``steer=True`` (or ``steer_road=True``, a head that also reads the road, with ``steer_neighbours`` the
+    traffic too) adds a zero head: same guided
     futures and log-probabilities as the base under one generator; it is the ``steer`` group and gets the only
     gradient of a log-probability once its output layer is non-zero; the head then changes the sampled futures
     and the guided log-probability stays exact; it survives save_pretrained/from_pretrained without the option."""
     from trafficrlhf_ctg import CTGAdapter
 
     path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
-    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, **{option: True})
-    assert steered.cfg.steer_road == (option == "steer_road")
+    flags = dict.fromkeys(options, True)
+    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, **flags)
+    assert steered.cfg.steer_road == ("steer_road" in options)
+    assert steered.cfg.steer_neighbours == ("steer_neighbours" in options)
     torch.manual_seed(123)  # whatever the global generator holds, a fresh head is the same draw
-    again = CTGAdapter(checkpoint=path, seed=1, **{option: True})
+    again = CTGAdapter(checkpoint=path, seed=1, **flags)
     for name, tensor in steered.model.steer.state_dict().items():
         assert torch.equal(tensor, again.model.steer.state_dict()[name]), name
     assert "steer" not in base.parameter_groups() and set(steered.parameter_groups()) == {"encoder", "decoder", "steer"}
@@ -552,9 +555,49 @@ def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_
 
     steered.save_pretrained(str(tmp_path))
     loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
-    assert loaded.cfg.steer and loaded.cfg.steer_road == (option == "steer_road")
+    assert loaded.cfg.steer and loaded.cfg.steer_road == ("steer_road" in options)
+    assert loaded.cfg.steer_neighbours == ("steer_neighbours" in options)
     again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
     torch.testing.assert_close(again.futures, out.futures)
+
+
+def test_neighbour_proximity_matches_a_per_point_loop_and_ignores_missing_neighbours() -> None:
+    """Against a plain Python loop over rows, samples, steps, probes and neighbours: each neighbour driven on at
+    its current velocity, clearance = centre distance less both mean half-extents, proximity exp(-clearance /
+    scale) (1 when the footprints overlap), the largest over valid neighbours; 0 with none."""
+    from ctg_reference.model import neighbour_proximity
+
+    gen = torch.Generator().manual_seed(0)
+    n, k, s, h, dt, offset, scale = 3, 4, 2, 5, 0.1, 1.0, 2.0
+    yaw_n = torch.rand(n, k, generator=gen) * 6.28
+    neighbours = torch.cat([torch.randn(n, k, 2, generator=gen) * 6, torch.cos(yaw_n)[..., None],
+                            torch.sin(yaw_n)[..., None], torch.rand(n, k, 1, generator=gen) * 10,
+                            3 + torch.rand(n, k, 1, generator=gen) * 2, 1.5 + torch.rand(n, k, 1, generator=gen)], -1)
+    valid = torch.rand(n, k, generator=gen) > 0.3
+    valid[2] = False  # a row without neighbours
+    extent = torch.tensor([[4.5, 1.9], [4.0, 1.8], [5.0, 2.0]])
+    states = torch.randn(n, s, h, 4, generator=gen) * 5
+    got = neighbour_proximity(neighbours, valid, extent, states, dt, offset, scale)
+    assert got.shape == (n, s, h, 3)
+    expected = torch.zeros(n, s, h, 3)
+    for i in range(n):
+        for j in range(s):
+            for t in range(h):
+                x, y, _, yaw = states[i, j, t].tolist()
+                probes = [(x, y), (x - math.sin(yaw) * offset, y + math.cos(yaw) * offset),
+                          (x + math.sin(yaw) * offset, y - math.cos(yaw) * offset)]
+                for p, (px, py) in enumerate(probes):
+                    for m in range(k):
+                        if not valid[i, m]:
+                            continue
+                        nx, ny, c, sn, v, length, width = neighbours[i, m].tolist()
+                        cx, cy = nx + v * c * (t + 1) * dt, ny + v * sn * (t + 1) * dt
+                        reach = (extent[i].sum().item() + length + width) / 4
+                        clearance = max(math.hypot(px - cx, py - cy) - reach, 0.0)
+                        expected[i, j, t, p] = max(expected[i, j, t, p].item(), math.exp(-clearance / scale))
+    torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+    assert torch.all(got[2] == 0)
+    assert neighbour_proximity(neighbours[:, :0], valid[:, :0], extent, states, dt, offset, scale).abs().sum() == 0
 
 
 def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_neighbours() -> None:

@@ -86,6 +86,9 @@ class CTGOptions(AdapterOptions):
     steer_road: bool = Field(False, description="As `steer`, with a head that also reads the drivable layer along "
                              "each denoising step's clean plan (ctg_reference.road_profile): whether a plan leaves "
                              "the road becomes one of its inputs.")
+    steer_neighbours: bool = Field(False, description="As `steer`, with a head that also reads how close the other "
+                                   "agents (driven on at constant velocity) come to each denoising step's clean "
+                                   "plan (ctg_reference.neighbour_proximity); combines with `steer_road`.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -105,18 +108,20 @@ class CTGAdapter(TrafficModelAdapter):
             "python -m ctg_reference.train --out reference_models/ctg/checkpoints/ctg_small",
             CTGConfig, CTGModel,
         )
-        if (self.options.steer or self.options.steer_road) and not self.cfg.steer:
-            self._add_steer_head(self.options.steer_road)
+        opts = self.options
+        if (opts.steer or opts.steer_road or opts.steer_neighbours) and not self.cfg.steer:
+            self._add_steer_head(opts.steer_road, opts.steer_neighbours)
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()
         self._hold = StationaryHold(self.options.stationary_speed, self.options.stationary_rule)
 
-    def _add_steer_head(self, road: bool) -> None:
-        """Rebuild the model with a fresh (zero) steering head (reading the road with ``road``), keeping every
-        trained weight. The head's hidden layers are one fixed draw (seed 0), so every run starts from the same
-        weights: runs with different seeds can be averaged, and a run repeats exactly."""
-        cfg = dataclasses.replace(self.cfg, steer=True, steer_road=road)
+    def _add_steer_head(self, road: bool, neighbours: bool = False) -> None:
+        """Rebuild the model with a fresh (zero) steering head (reading the road with ``road``, the other agents
+        with ``neighbours``), keeping every trained weight. The head's hidden layers are one fixed draw (seed 0),
+        so every run starts from the same weights: runs with different seeds can be averaged, and a run repeats
+        exactly."""
+        cfg = dataclasses.replace(self.cfg, steer=True, steer_road=road, steer_neighbours=neighbours)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(STEER_INIT_SEED)
             model = CTGModel(cfg).to(self.options.device)
@@ -155,7 +160,8 @@ class CTGAdapter(TrafficModelAdapter):
         """``f(plan_positions (B, S, A, F, 2) or None) -> cond`` for the ``agents`` rows, featurizing the context
         and encoding map and history once (the plans change between denoising steps, the rest does not); for a
         scene-denoising model, the rows' co-denoised neighbours (the other ``agents`` rows); and for a steering
-        head that reads the road, the rows' drivable crop (the first map layer) and speed."""
+        head that reads the road or the traffic, the rows' drivable crop (the first map layer) and speed (and
+        their neighbours and extent)."""
         features = agent_features(context, self.cfg)
         rows = select_rows(features, agents)
         if self.model.mixer is not None:
@@ -173,7 +179,11 @@ class CTGAdapter(TrafficModelAdapter):
                           "neighbour_plan_valid": valid.transpose(1, 2)[agents]}
             return self.model.encode(with_plans, own)
 
-        steer_map = (rows["map"][:, :1], rows["v0"]) if self.cfg.steer_road else None
+        steer_map: SteerMap | None = None
+        if self.cfg.steer_road or self.cfg.steer_neighbours:
+            steer_map = (rows["map"][:, :1], rows["v0"])
+            if self.cfg.steer_neighbours:
+                steer_map += (rows["neighbours"], rows["neighbour_valid"], rows["extent"])
         return encode, self.model.scene_rows(rows), steer_map
 
     def _plan_positions(self, futures: torch.Tensor) -> torch.Tensor:

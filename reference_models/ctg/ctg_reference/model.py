@@ -20,7 +20,8 @@ This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and
   Each step stays a Gaussian given every row's current sample, so the chain's density remains exact.
 * Steering (``steer``): a :class:`SteerHead` adds ``sigma_k * tanh(g(cond, x0_k, k))`` to each step's mean. It
   starts at zero; fine-tuned alone it moves where the sampler goes through the frozen denoiser. With
-  ``steer_road`` it also reads the drivable layer along ``x0_k``'s plan (:func:`road_profile`).
+  ``steer_road`` it also reads the drivable layer along ``x0_k``'s plan (:func:`road_profile`); with
+  ``steer_neighbours``, how close the other agents come to that plan (:func:`neighbour_proximity`).
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -40,10 +41,12 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["MAP_BEHIND_FRACTION", "CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead",
-           "TemporalUNet", "cosine_alphas_bar", "road_profile", "unicycle_from_origin"]
+           "TemporalUNet", "cosine_alphas_bar", "neighbour_proximity", "road_profile", "unicycle_from_origin"]
 
 LOG_2PI = math.log(2 * math.pi)
-SteerMap = tuple[torch.Tensor, torch.Tensor]  # a road-reading steering head's inputs: drivable crop, speed
+# a reading steering head's inputs, per row: drivable crop (N, 1, G, G) and speed v0 (N,); with steer_neighbours
+# also the neighbours (N, K, 7) as in the features, their valid mask (N, K) and the row's own extent (N, 2)
+SteerMap = tuple[torch.Tensor, ...]
 MAP_BEHIND_FRACTION = 0.25  # share of the map crop's rows behind the agent (the rest is ahead)
 
 
@@ -90,6 +93,11 @@ class CTGConfig:
     # the head would have to find in the encoder's summary of the whole crop
     steer_road: bool = False
     steer_road_offset: float = 1.0
+    # the head also reads how close the other agents come to each step's clean plan (on it and
+    # steer_road_offset m to either side), with each neighbour driven on at its current velocity: the road
+    # profile tells the head where the road ends, this where the traffic is
+    steer_neighbours: bool = False
+    steer_neighbour_scale: float = 2.0  # m: proximity exp(-clearance / scale) of a neighbour's footprint
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -350,7 +358,7 @@ class SteerHead(nn.Module):
         super().__init__()
         self.horizon, self.x0_clip = cfg.horizon, cfg.x0_clip
         self.step_embedding = SinusoidalEmbedding(cfg.time_dim)
-        road = 3 * cfg.horizon if cfg.steer_road else 0
+        road = 3 * cfg.horizon * (int(cfg.steer_road) + int(cfg.steer_neighbours))
         self.net = _mlp([cfg.cond_dim + 2 * cfg.horizon + cfg.time_dim + road, cfg.steer_hidden, cfg.steer_hidden,
                          2 * cfg.horizon])
         last = self.net[-1]
@@ -361,8 +369,9 @@ class SteerHead(nn.Module):
     def forward(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
                 road: torch.Tensor | None = None) -> torch.Tensor:
         """Shift in units of the step's sigma, in (-1, 1): ``(M, H, 2)`` from ``cond (M, D)``, normalized clean
-        prediction ``x0 (M, H, 2)``, step ``k`` (int or ``(M,)``) and, for a ``steer_road`` head, ``road (M, H, 3)``
-        in [0, 1] from :func:`road_profile`."""
+        prediction ``x0 (M, H, 2)``, step ``k`` (int or ``(M,)``) and, for a head that reads the plan's
+        surroundings, ``road (M, H, 3)`` or ``(M, H, 6)`` in [0, 1]: :func:`road_profile` and/or
+        :func:`neighbour_proximity`, concatenated in that order."""
         m = x0.shape[0]
         if not isinstance(k, torch.Tensor):
             k = torch.full((m,), int(k), dtype=torch.long, device=x0.device)
@@ -393,6 +402,34 @@ def road_profile(drivable: torch.Tensor, states: torch.Tensor, resolution: float
     values = F.grid_sample(drivable.to(states.dtype), grid, mode="bilinear", padding_mode="zeros",
                            align_corners=False)
     return values.reshape(n, s, h, 3)
+
+
+def neighbour_proximity(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor,
+                        states: torch.Tensor, dt: float, offset: float, scale: float) -> torch.Tensor:
+    """How close the nearest neighbour comes to plans: ``(N, S, H, 3)`` in [0, 1], at each planned position and
+    ``offset`` m to its left and right, ``exp(-clearance / scale)`` with clearance (m) the centre distance less
+    both agents' mean half-extent ((length + width) / 4 each), 0 below it; 0 where no neighbour is valid.
+
+    Args:
+        neighbours: ``(N, K, 7)`` in the row's agent frame now (x, y in m, cos and sin of relative yaw, speed in
+            m/s, length and width in m), each driven on at constant velocity: plan step h (0-based) is
+            ``(h + 1) * dt`` s ahead.
+        neighbour_valid: ``(N, K)`` bool.
+        extent: ``(N, 2)`` the row's own length and width (m).
+        states: agent-frame plans ``(N, S, H, 4)`` (x, y, speed, yaw).
+    """
+    h = states.shape[2]
+    ahead = torch.arange(1, h + 1, dtype=states.dtype, device=states.device) * dt  # (H,) s
+    heading = neighbours[..., 2:4].to(states.dtype)
+    moved = neighbours[:, :, None, :2] + (neighbours[..., 4:5] * heading)[:, :, None] * ahead[:, None]  # (N, K, H, 2)
+    xy, yaw = states[..., :2], states[..., 3]
+    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1) * offset
+    probes = torch.stack([xy, xy + left, xy - left], 3)  # (N, S, H, 3, 2)
+    gap = probes[:, :, :, :, None] - moved.permute(0, 2, 1, 3)[:, None, :, None]  # (N, S, H, 3, K, 2)
+    reach = (extent.sum(-1, keepdim=True) + neighbours[..., 5:7].sum(-1)) / 4  # (N, K)
+    clearance = (torch.linalg.vector_norm(gap, dim=-1) - reach[:, None, None, None]).clamp_min(0)
+    proximity = torch.exp(-clearance / scale) * neighbour_valid[:, None, None, None]
+    return proximity.amax(-1) if proximity.shape[-1] else proximity.new_zeros(proximity.shape[:-1])
 
 
 class CTGModel(nn.Module):
@@ -483,16 +520,24 @@ class CTGModel(nn.Module):
         """The steering head's shift ``(M, H, 2)`` for ``M = n * R`` rows ordered row-major by the ``n``
         conditioning rows (R samples, or samples x steps, each)."""
         assert self.steer is not None
-        if not self.cfg.steer_road:
+        cfg = self.cfg
+        if not (cfg.steer_road or cfg.steer_neighbours):
             return self.steer(cond, x0, k)
-        if steer_map is None:
-            raise ValueError("this CTG model's steering head reads the road along its plans (steer_road=True): pass "
-                             "steer_map=(drivable crop (N, 1, G, G), v0 (N,)).")
-        drivable, v0 = steer_map
+        if steer_map is None or (cfg.steer_neighbours and len(steer_map) < 5):
+            raise ValueError("this CTG model's steering head reads the plans' surroundings (steer_road / "
+                             "steer_neighbours): pass steer_map=(drivable crop (N, 1, G, G), v0 (N,)) and, for "
+                             "steer_neighbours, also neighbours (N, K, 7), neighbour_valid (N, K), extent (N, 2).")
+        drivable, v0 = steer_map[0], steer_map[1]
         plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
         states = self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
-        road = road_profile(drivable, states, self.cfg.map_resolution, self.cfg.steer_road_offset)
-        return self.steer(cond, x0, k, road.reshape(*x0.shape[:2], 3))
+        parts = []
+        if cfg.steer_road:
+            parts.append(road_profile(drivable, states, cfg.map_resolution, cfg.steer_road_offset))
+        if cfg.steer_neighbours:
+            parts.append(neighbour_proximity(*steer_map[2:5], states, cfg.dt, cfg.steer_road_offset,
+                                             cfg.steer_neighbour_scale))
+        surroundings = torch.cat(parts, -1)
+        return self.steer(cond, x0, k, surroundings.reshape(*x0.shape[:2], surroundings.shape[-1]))
 
     # ------------------------------------------------------------ training
     def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
@@ -566,7 +611,9 @@ class CTGModel(nn.Module):
                 conditioning follows what the other rows are becoming (``cond`` is used for the first step).
             scene: for a scene-denoising model, :meth:`scene_rows` of the rows: every step of row i's sample s
                 reads the current noisy samples s of the rows denoised as its neighbours.
-            steer_map: for a ``steer_road`` head, the rows' drivable crop ``(N, 1, G, G)`` and speed ``v0 (N,)``.
+            steer_map: for a ``steer_road`` head, the rows' drivable crop ``(N, 1, G, G)`` and speed ``v0 (N,)``;
+                a ``steer_neighbours`` head also needs the rows' neighbours ``(N, K, 7)``, their valid mask
+                ``(N, K)`` and the rows' extent ``(N, 2)`` (see :data:`SteerMap`).
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
