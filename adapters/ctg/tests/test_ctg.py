@@ -600,6 +600,39 @@ def test_neighbour_proximity_matches_a_per_point_loop_and_ignores_missing_neighb
     assert neighbour_proximity(neighbours[:, :0], valid[:, :0], extent, states, dt, offset, scale).abs().sum() == 0
 
 
+def test_the_steering_gate_leaves_plans_on_a_clear_road_alone_and_scales_others_by_their_hazard() -> None:
+    """``steer_gate``: the head's shift is multiplied by the plan's largest hazard (off-road share inside the
+    crop, neighbour proximity): all road and nobody near gives no shift at all; no road gives the ungated shift;
+    a neighbour on the plan gives it too; past the crop's edge the missing map is no hazard."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=8, steer=True, steer_road=True, steer_neighbours=True, steer_gate=True))
+    with torch.no_grad():
+        model.steer.net[-1].weight.normal_(0, 0.1)
+    n, r, g = 2, 3, model.cfg.map_size
+    cond = torch.randn(n * r, model.cfg.cond_dim)
+    x0 = torch.randn(n * r, 8, 2) * 0.3
+    v0 = torch.full((n,), 2.0)
+    neighbours = torch.zeros(n, 1, 7)
+    neighbours[..., 2], neighbours[..., 5], neighbours[..., 6] = 1.0, 4.5, 1.9
+    far = torch.zeros(n, 1, dtype=torch.bool)
+    extent = torch.tensor([[4.5, 1.9]] * n)
+
+    def shift(drivable: torch.Tensor, valid: torch.Tensor, gate: bool) -> torch.Tensor:
+        model.cfg.steer_gate = gate
+        return model._steer_shift(cond, x0, 2, (drivable, v0, neighbours, valid, extent), n)
+
+    road, no_road = torch.ones(n, 1, g, g), torch.zeros(n, 1, g, g)
+    assert torch.all(shift(road, far, gate=True) == 0)
+    assert shift(road, far, gate=False).abs().amin() > 0
+    torch.testing.assert_close(shift(no_road, far, gate=True), shift(no_road, far, gate=False))
+    near = torch.ones(n, 1, dtype=torch.bool)  # a neighbour standing where every plan starts
+    torch.testing.assert_close(shift(road, near, gate=True), shift(road, near, gate=False))
+    v0.fill_(80.0)  # plans that leave the 48 m crop within 0.5 s: the unmapped rest is not off-road
+    assert torch.all(shift(road, far, gate=True) == 0)
+
+
 def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_neighbours() -> None:
     """At agent-frame points on crop-cell centres (``map_crops``' convention: rows ahead, columns to the left,
     a quarter of the rows behind) the bilinear profile equals those cells' values; the offsets one cell across a

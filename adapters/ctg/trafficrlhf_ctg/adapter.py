@@ -89,6 +89,10 @@ class CTGOptions(AdapterOptions):
     steer_neighbours: bool = Field(False, description="As `steer`, with a head that also reads how close the other "
                                    "agents (driven on at constant velocity) come to each denoising step's clean "
                                    "plan (ctg_reference.neighbour_proximity); combines with `steer_road`.")
+    steer_gate: bool | None = Field(None, description="Scale a reading head's shift by its plan's hazard (the "
+                                    "off-road share and neighbour proximity along it, largest value), so plans "
+                                    "with a clear road and nobody near are not steered; None keeps the "
+                                    "checkpoint's setting. Applies to a fresh head or a saved one.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -111,6 +115,12 @@ class CTGAdapter(TrafficModelAdapter):
         opts = self.options
         if (opts.steer or opts.steer_road or opts.steer_neighbours) and not self.cfg.steer:
             self._add_steer_head(opts.steer_road, opts.steer_neighbours)
+        if opts.steer_gate is not None and opts.steer_gate != self.cfg.steer_gate:
+            if opts.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
+                raise ValueError("steer_gate=True needs a steering head that reads the road or the traffic; add "
+                                 "steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
+            self.cfg = dataclasses.replace(self.cfg, steer_gate=opts.steer_gate)
+            self.model.cfg = self.cfg
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()

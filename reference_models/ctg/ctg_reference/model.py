@@ -98,6 +98,10 @@ class CTGConfig:
     # profile tells the head where the road ends, this where the traffic is
     steer_neighbours: bool = False
     steer_neighbour_scale: float = 2.0  # m: proximity exp(-clearance / scale) of a neighbour's footprint
+    # gate the head's shift by the plan's hazard, the largest over its steps and probes of the off-road share
+    # (inside the crop) and the neighbour proximity: a plan with the road clear around it and nobody near is
+    # left as the frozen model draws it, so steering cannot change driving that needed no change
+    steer_gate: bool = False
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -537,7 +541,14 @@ class CTGModel(nn.Module):
             parts.append(neighbour_proximity(*steer_map[2:5], states, cfg.dt, cfg.steer_road_offset,
                                              cfg.steer_neighbour_scale))
         surroundings = torch.cat(parts, -1)
-        return self.steer(cond, x0, k, surroundings.reshape(*x0.shape[:2], surroundings.shape[-1]))
+        shift = self.steer(cond, x0, k, surroundings.reshape(*x0.shape[:2], surroundings.shape[-1]))
+        if not cfg.steer_gate:
+            return shift
+        hazards = [parts[-1]] if cfg.steer_neighbours else []
+        if cfg.steer_road:  # the off-road share, 0 past the crop's edge (a plan leaving the crop is no hazard)
+            hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, cfg.steer_road_offset))
+        gate = torch.cat(hazards, -1).amax((-2, -1)).reshape(-1, 1, 1)  # (M, 1, 1) in [0, 1]
+        return gate * shift
 
     # ------------------------------------------------------------ training
     def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
