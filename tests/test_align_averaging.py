@@ -403,3 +403,50 @@ def test_greedy_soup_adds_a_run_only_when_the_held_out_failure_does_not_rise(thr
         with pytest.raises(SystemExit):
             soup.main(["--model", "example_gru", "--runs", *runs, *extra, "--out", str(tmp_path / "never")])
     assert "--keep" in capsys.readouterr().err and not (tmp_path / "never").exists()
+
+
+def test_graft_takes_the_prefixed_tensors_from_the_part_and_the_rest_from_the_body(three: list[str], tmp_path,
+                                                                                 capsys) -> None:  # type: ignore[no-untyped-def]
+    """Bitwise: every ``history.`` tensor is the part's, every other the body's, the config the part's; a body
+    without the prefixed module (a model saved before a head was added) gets it; the result loads."""
+    from trafficrlhf_sdk.align import graft_checkpoint
+
+    body, part = three[0], three[1]
+    out = graft_checkpoint(body, part, str(tmp_path / "grafted"), prefixes=("history.",))
+    got, b, p = _weights(out), _weights(body), _weights(part)
+    assert got.keys() == b.keys() and any(k.startswith("history.") for k in got)
+    for name, tensor in got.items():
+        assert torch.equal(tensor, (p if name.startswith("history.") else b)[name]), name
+    assert json.load(open(os.path.join(out, "grafted_from.json")))["prefixes"] == ["history."]
+    assert gru.ExampleGRUAdapter.from_pretrained(out) is not None
+
+    headless = str(tmp_path / "headless")
+    shutil.copytree(body, headless)
+    save_file({k: v for k, v in b.items() if not k.startswith("history.")},
+              os.path.join(headless, "model.safetensors"))
+    again = _weights(graft_checkpoint(headless, part, str(tmp_path / "grafted2"), prefixes=("history.",)))
+    assert again.keys() == got.keys() and all(torch.equal(again[k], got[k]) for k in got)
+
+    with pytest.raises(SystemExit) as done:
+        main(["graft", part, "--body", body, "--prefix", "history.", "--out", str(tmp_path / "cli")])
+    assert done.value.code in (0, None) and "history." in capsys.readouterr().out
+    assert all(torch.equal(v, got[k]) for k, v in _weights(str(tmp_path / "cli")).items())
+
+
+def test_graft_refuses_a_prefix_that_matches_nothing_other_architectures_and_overwriting_an_input(
+        three: list[str], tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.align import graft_checkpoint
+
+    with pytest.raises(DataFormatError, match="no tensor whose name starts with"):
+        graft_checkpoint(three[0], three[1], str(tmp_path / "a"), prefixes=("nothing.",))
+    with pytest.raises(TrafficRLHFError, match="one of the inputs"):
+        graft_checkpoint(three[0], three[1], three[0], prefixes=("history.",))
+    small = gru.ExampleGRUAdapter()
+    small.build({"hidden": 32})
+    small.save_pretrained(str(tmp_path / "small"))
+    with pytest.raises(DataFormatError, match=r"tensor .* is .* in"):
+        graft_checkpoint(str(tmp_path / "small"), three[1], str(tmp_path / "b"), prefixes=("history.",))
+    with pytest.raises(SystemExit) as failed:
+        main(["graft", three[1], "--body", str(tmp_path / "nope"), "--out", str(tmp_path / "c")])
+    err = capsys.readouterr().err
+    assert failed.value.code == 2 and err.startswith("Error:") and "Traceback" not in err

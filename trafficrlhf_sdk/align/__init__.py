@@ -5,6 +5,7 @@
 - :func:`average_checkpoints`: the weight average of several aligned runs (a model soup), e.g. training seeds.
 - :func:`extrapolate_checkpoint`: base + factor x (aligned - base), past the aligned weights (ExPO) or back
   towards the base (WiSE-FT).
+- :func:`graft_checkpoint`: one checkpoint's module (e.g. a CTG steering head) on another checkpoint's weights.
 - :class:`TrafficRLHFEnv`: the closed-loop simulator as a Gymnasium environment with the reward model as reward,
   for stable-baselines3 agents (imported lazily: it needs ``gymnasium``).
 """
@@ -14,12 +15,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from trafficrlhf_sdk.align.averaging import average_checkpoints, extrapolate_checkpoint
+from trafficrlhf_sdk.align.averaging import average_checkpoints, extrapolate_checkpoint, graft_checkpoint
 from trafficrlhf_sdk.align.config import PAPER_ALPHA, AlignConfig, paper_alpha
 from trafficrlhf_sdk.align.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
 
 __all__ = ["PAPER_ALPHA", "AlignConfig", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
-           "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "scenario_scores"]
+           "average_checkpoints", "extrapolate_checkpoint", "graft_checkpoint", "paper_alpha", "scenario_scores"]
 
 
 def align(model: Any, reward_model: Any, alpha: float = 0.3, *, scenes: Any = None, eval_scenes: Any = None,

@@ -376,3 +376,23 @@ def extrapolate_command(aligned: str, base_dir: str, factor: float,
     extrapolate_checkpoint(base_dir, aligned, out_dir, factor, directions)
     extra = "".join(f" + {w:g} x ({b} - {a})" for a, b, w in directions)
     click.echo(f"wrote base + {factor:g} x (aligned - base){extra} to {out_dir}")
+
+
+@cli.command("graft")
+@click.argument("part", type=click.Path(file_okay=False))
+@click.option("--body", "body_dir", required=True, type=click.Path(file_okay=False),
+              help="The checkpoint that gives every tensor outside --prefix (e.g. a fully fine-tuned model).")
+@click.option("--prefix", "prefixes", multiple=True, default=("steer.",), show_default=True,
+              help="Tensor-name prefix taken from PART (repeatable).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Folder for config.json (PART's) + model.safetensors (+ grafted_from.json).")
+def graft_command(part: str, body_dir: str, prefixes: tuple[str, ...], out_dir: str) -> None:
+    """Put PART's module (its tensors under --prefix, e.g. a CTG steering head) onto --body's weights.
+
+    Both must be checkpoints of one adapter and architecture outside the prefix; the result loads like any
+    checkpoint: `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
+    """
+    from trafficrlhf_sdk.align.averaging import graft_checkpoint
+
+    graft_checkpoint(body_dir, part, out_dir, prefixes)
+    click.echo(f"wrote {body_dir} with the {', '.join(prefixes)} tensors of {part} to {out_dir}")

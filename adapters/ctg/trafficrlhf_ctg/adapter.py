@@ -93,6 +93,9 @@ class CTGOptions(AdapterOptions):
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
                                     "checkpoint's setting. Applies to a fresh head or a saved one.")
+    steer_gate_offset: float | None = Field(None, gt=0, description="With `steer_gate`: metres to either side of "
+                                           "the plan at which the gate reads the road (default: the head's own "
+                                           "1 m); None keeps the checkpoint's setting.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -120,6 +123,9 @@ class CTGAdapter(TrafficModelAdapter):
                 raise ValueError("steer_gate=True needs a steering head that reads the road or the traffic; add "
                                  "steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
             self.cfg = dataclasses.replace(self.cfg, steer_gate=opts.steer_gate)
+            self.model.cfg = self.cfg
+        if opts.steer_gate_offset is not None:
+            self.cfg = dataclasses.replace(self.cfg, steer_gate_offset=opts.steer_gate_offset)
             self.model.cfg = self.cfg
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps

@@ -102,6 +102,8 @@ class CTGConfig:
     # (inside the crop) and the neighbour proximity: a plan with the road clear around it and nobody near is
     # left as the frozen model draws it, so steering cannot change driving that needed no change
     steer_gate: bool = False
+    steer_gate_offset: float | None = None  # m to either side of the plan the gate's road hazard is read at
+    # (None: steer_road_offset); wider than the head's own probes, it opens before a plan reaches the road edge
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -546,7 +548,8 @@ class CTGModel(nn.Module):
             return shift
         hazards = [parts[-1]] if cfg.steer_neighbours else []
         if cfg.steer_road:  # the off-road share, 0 past the crop's edge (a plan leaving the crop is no hazard)
-            hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, cfg.steer_road_offset))
+            offset = cfg.steer_road_offset if cfg.steer_gate_offset is None else cfg.steer_gate_offset
+            hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, offset))
         gate = torch.cat(hazards, -1).amax((-2, -1)).reshape(-1, 1, 1)  # (M, 1, 1) in [0, 1]
         return gate * shift
 
