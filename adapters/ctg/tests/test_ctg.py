@@ -57,6 +57,7 @@ COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1
     "reference_models/aligned/ctg": 20,
     "reference_models/aligned/ctg_4s": 40,
     "reference_models/aligned/ctg_4s_road": 40,
+    "reference_models/aligned/ctg_4s_gated": 40,
 }
 
 
@@ -92,11 +93,12 @@ def test_committed_aligned_checkpoints_are_fine_tuned_from_their_base(aligned: s
     assert len(changed) > len(tuned) // 2, f"only {len(changed)} of {len(tuned)} tensors differ from the base"
 
 
-def test_the_committed_road_steered_ctg_is_its_base_plus_a_trained_head() -> None:
+@pytest.mark.parametrize("name", ["ctg_4s_road", "ctg_4s_gated"])
+def test_the_committed_road_steered_ctgs_are_their_base_plus_a_trained_head(name: str) -> None:
     """Only the steering group trained: every base tensor is bitwise the base's, and the head moved off zero."""
     from safetensors.torch import load_file
 
-    tuned = load_file(str(REPO / "reference_models/aligned/ctg_4s_road/model.safetensors"))
+    tuned = load_file(str(REPO / "reference_models/aligned" / name / "model.safetensors"))
     start = load_file(str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s/model.safetensors"))
     assert all(torch.equal(tuned[k], start[k]) for k in start)
     head = sorted(set(tuned) - set(start))
