@@ -25,6 +25,15 @@ def _model():  # type: ignore[no-untyped-def]
     return gru.ExampleGRUAdapter()
 
 
+def _kl_to_reference(trainer: AlignTrainer, model, contexts: ScenarioTensor, trace) -> float:  # type: ignore[no-untyped-def]
+    """The k3 estimate of KL(model || trainer.reference) on the stored samples of ``contexts``."""
+    with torch.no_grad():
+        every = [torch.arange(contexts.num_scenes)]
+        d = trainer._log_probs(trainer.reference, contexts, trace, every) \
+            - trainer._log_probs(model, contexts, trace, every)
+        return float((torch.exp(d) - 1 - d).mean())
+
+
 def test_failure_reward_agent_scores_count_each_agents_failing_steps(train_scene_list: list[ScenarioTensor]) -> None:
     scene = train_scene_list[0].replace_unchecked(current_index=10)
     scores = FailureReward().agent_scores(scene)
@@ -502,11 +511,7 @@ def test_the_anchor_samples_uniform_log_contexts_and_pulls_towards_the_starting_
             p.add_(0.05 * torch.randn_like(p))
 
     def anchor_kl() -> float:
-        with torch.no_grad():
-            every = [torch.arange(contexts.num_scenes)]
-            d = trainer._log_probs(trainer.reference, contexts, trace, every) \
-                - trainer._log_probs(model, contexts, trace, every)
-            return float((torch.exp(d) - 1 - d).mean())
+        return _kl_to_reference(trainer, model, contexts, trace)
 
     before = anchor_kl()
     stats = trainer._optimize(0, rollout)
@@ -606,17 +611,10 @@ def test_a_given_reference_is_the_model_the_anchor_pulls_towards(train_scene_lis
     assert rollout.anchor is not None
     contexts, trace = rollout.anchor
 
-    def kl_to_reference() -> float:
-        with torch.no_grad():
-            every = [torch.arange(contexts.num_scenes)]
-            d = trainer._log_probs(trainer.reference, contexts, trace, every) \
-                - trainer._log_probs(model, contexts, trace, every)
-            return float((torch.exp(d) - 1 - d).mean())
-
-    before = kl_to_reference()
+    before = _kl_to_reference(trainer, model, contexts, trace)
     assert before > 0  # the policy starts away from the reference, so the anchor has work to do
     trainer._optimize(0, rollout)
-    assert kl_to_reference() < before
+    assert _kl_to_reference(trainer, model, contexts, trace) < before
     for key, value in target.module.state_dict().items():
         assert torch.equal(value, kept[key]), key
 
