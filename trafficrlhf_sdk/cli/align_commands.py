@@ -262,19 +262,17 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
 
         reward = PessimisticReward(reward, pessimism)
 
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+
     option_values = parse_key_values(model_options, "--model-option")
     adapter = build_policy(model, {**option_values, "checkpoint": checkpoint, "seed": seed})
     reference = None
     if reference_checkpoint is not None:
-        from trafficrlhf_sdk.errors import TrafficRLHFError
-
         try:
             reference = build_policy(model, {**option_values, "checkpoint": reference_checkpoint, "seed": seed})
         except TrafficRLHFError as err:
             raise TrafficRLHFError(f"--reference-checkpoint {reference_checkpoint!r}: {err}") from err
     if not hasattr(adapter, "parameter_groups"):
-        from trafficrlhf_sdk.errors import TrafficRLHFError
-
         raise TrafficRLHFError(f"{model!r} is not a trainable traffic model (no parameter groups).")
     options = {
         "epochs": epochs, "contexts_per_epoch": contexts, "samples_per_context": samples, "ppo_epochs": ppo_epochs,

@@ -661,3 +661,21 @@ def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_ne
     far = heading_x.clone()
     far[..., 0] = 100.0  # beyond the crop
     assert torch.all(road_profile(crop, far, res, offset=res) == 0)
+
+
+def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_cannot_act() -> None:
+    from trafficrlhf_ctg import CTGAdapter
+
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+
+    road = str(REPO / "reference_models/aligned/ctg_4s_road")
+    gated = CTGAdapter(checkpoint=road, steer_gate=True, steer_gate_offset=2.0)
+    assert gated.cfg.steer_gate and gated.model.cfg.steer_gate and gated.model.cfg.steer_gate_offset == 2.0
+    assert not CTGAdapter(checkpoint=road).cfg.steer_gate
+    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    assert CTGAdapter(checkpoint=committed).cfg.steer_gate
+    assert not CTGAdapter(checkpoint=committed, steer_gate=False).cfg.steer_gate
+    with pytest.raises(TrafficRLHFError, match="needs a steering head"):
+        CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_gate=True)
+    with pytest.raises(TrafficRLHFError, match="only acts with a gate"):
+        CTGAdapter(checkpoint=road, steer_gate_offset=2.0)

@@ -50,6 +50,7 @@ from ctg_reference.data import (
 )
 from ctg_reference.model import CTGConfig, CTGModel, SceneRows, SteerMap
 from trafficrlhf_sdk.dynamics import unicycle_rollout
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
 from trafficrlhf_sdk.models.stationary import StationaryHold, StationaryRule
@@ -118,15 +119,16 @@ class CTGAdapter(TrafficModelAdapter):
         opts = self.options
         if (opts.steer or opts.steer_road or opts.steer_neighbours) and not self.cfg.steer:
             self._add_steer_head(opts.steer_road, opts.steer_neighbours)
-        if opts.steer_gate is not None and opts.steer_gate != self.cfg.steer_gate:
-            if opts.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
-                raise ValueError("steer_gate=True needs a steering head that reads the road or the traffic; add "
-                                 "steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
-            self.cfg = dataclasses.replace(self.cfg, steer_gate=opts.steer_gate)
-            self.model.cfg = self.cfg
-        if opts.steer_gate_offset is not None:
-            self.cfg = dataclasses.replace(self.cfg, steer_gate_offset=opts.steer_gate_offset)
-            self.model.cfg = self.cfg
+        gate = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset}
+        gate = {key: value for key, value in gate.items() if value is not None}
+        if gate:
+            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **gate)
+            if self.cfg.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
+                raise TrafficRLHFError("steer_gate=true needs a steering head that reads the road or the traffic; "
+                                       "add steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
+            if opts.steer_gate_offset is not None and not self.cfg.steer_gate:
+                raise TrafficRLHFError(f"steer_gate_offset={opts.steer_gate_offset} only acts with a gate; add "
+                                       "steer_gate=true (or load a checkpoint saved with one).")
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()
