@@ -635,6 +635,25 @@ def test_the_steering_gate_leaves_plans_on_a_clear_road_alone_and_scales_others_
     assert torch.all(shift(road, far, gate=True) == 0)
 
 
+def test_a_lateral_only_head_shifts_the_yaw_rate_and_leaves_acceleration_to_the_base() -> None:
+    """``steer_lateral_only``: the acceleration channel of the shift is exactly 0, the yaw-rate channel is the
+    full head's."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=8, steer=True, steer_road=True))
+    with torch.no_grad():
+        model.steer.net[-1].weight.normal_(0, 0.1)
+    n, r, g = 2, 3, model.cfg.map_size
+    cond, x0 = torch.randn(n * r, model.cfg.cond_dim), torch.randn(n * r, 8, 2) * 0.3
+    steer_map = (torch.zeros(n, 1, g, g), torch.full((n,), 2.0))
+    full = model._steer_shift(cond, x0, 2, steer_map, n)
+    model.cfg.steer_lateral_only = True
+    lateral = model._steer_shift(cond, x0, 2, steer_map, n)
+    assert full[..., 0].abs().amin() > 0 and torch.all(lateral[..., 0] == 0)
+    torch.testing.assert_close(lateral[..., 1], full[..., 1], atol=0, rtol=0)
+
+
 def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_neighbours() -> None:
     """At agent-frame points on crop-cell centres (``map_crops``' convention: rows ahead, columns to the left,
     a quarter of the rows behind) the bilinear profile equals those cells' values; the offsets one cell across a
@@ -679,3 +698,8 @@ def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_canno
         CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_gate=True)
     with pytest.raises(TrafficRLHFError, match="only acts with a gate"):
         CTGAdapter(checkpoint=road, steer_gate_offset=2.0)
+    lateral = CTGAdapter(checkpoint=committed, steer_lateral_only=True)
+    assert lateral.model.cfg.steer_lateral_only and lateral.cfg.steer_gate
+    assert not CTGAdapter(checkpoint=committed).cfg.steer_lateral_only
+    with pytest.raises(TrafficRLHFError, match="steer_lateral_only=true needs a steering head"):
+        CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_lateral_only=True)

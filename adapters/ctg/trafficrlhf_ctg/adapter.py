@@ -97,6 +97,9 @@ class CTGOptions(AdapterOptions):
     steer_gate_offset: float | None = Field(None, gt=0, description="With `steer_gate`: metres to either side of "
                                            "the plan at which the gate reads the road (default: the head's own "
                                            "1 m); None keeps the checkpoint's setting.")
+    steer_lateral_only: bool | None = Field(None, description="The steering head shifts the yaw-rate channel "
+                                            "only; acceleration is sampled as by the frozen model. None keeps the "
+                                            "checkpoint's setting. Applies to a fresh head or a saved one.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -119,10 +122,14 @@ class CTGAdapter(TrafficModelAdapter):
         opts = self.options
         if (opts.steer or opts.steer_road or opts.steer_neighbours) and not self.cfg.steer:
             self._add_steer_head(opts.steer_road, opts.steer_neighbours)
-        gate = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset}
-        gate = {key: value for key, value in gate.items() if value is not None}
-        if gate:
-            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **gate)
+        head = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset,
+                "steer_lateral_only": opts.steer_lateral_only}
+        head = {key: value for key, value in head.items() if value is not None}
+        if head:
+            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **head)
+            if self.cfg.steer_lateral_only and not self.cfg.steer:
+                raise TrafficRLHFError("steer_lateral_only=true needs a steering head; add steer=true or "
+                                       "steer_road=true (or load a checkpoint with one).")
             if self.cfg.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
                 raise TrafficRLHFError("steer_gate=true needs a steering head that reads the road or the traffic; "
                                        "add steer_road=true or steer_neighbours=true (or load a checkpoint with one).")

@@ -104,6 +104,9 @@ class CTGConfig:
     steer_gate: bool = False
     steer_gate_offset: float | None = None  # m to either side of the plan the gate's road hazard is read at
     # (None: steer_road_offset); wider than the head's own probes, it opens before a plan reaches the road edge
+    # the head shifts the yaw-rate channel only; acceleration is drawn as the frozen model draws it (a head that
+    # moves the speed profile too can close gaps to the agent ahead)
+    steer_lateral_only: bool = False
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -524,7 +527,14 @@ class CTGModel(nn.Module):
     def _steer_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
                      n: int) -> torch.Tensor:
         """The steering head's shift ``(M, H, 2)`` for ``M = n * R`` rows ordered row-major by the ``n``
-        conditioning rows (R samples, or samples x steps, each)."""
+        conditioning rows (R samples, or samples x steps, each); 0 on the acceleration channel with
+        ``steer_lateral_only``."""
+        shift = self._head_shift(cond, x0, k, steer_map, n)
+        return shift * shift.new_tensor([0.0, 1.0]) if self.cfg.steer_lateral_only else shift
+
+    def _head_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
+                    n: int) -> torch.Tensor:
+        """:meth:`_steer_shift` on both channels."""
         assert self.steer is not None
         cfg = self.cfg
         if not (cfg.steer_road or cfg.steer_neighbours):
