@@ -18,14 +18,11 @@ off-road-within-1-s one (an agent already at the road edge).
 
 from __future__ import annotations
 
-import argparse
 import json
 
-import torch
+from realism_by_failure import checkpoints_parser, drive
 
 from trafficrlhf_sdk import get_scenario_source
-from trafficrlhf_sdk.cli.evaluate import build_policy
-from trafficrlhf_sdk.evaluation import EvaluationConfig, run_batched
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, nanmean, scene_mean
 from trafficrlhf_sdk.render_failures import first_failures
 from trafficrlhf_sdk.simulation.simulator import Rollout
@@ -54,23 +51,13 @@ def failure_parts(rollout: Rollout) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", default="ctg")
-    parser.add_argument("--checkpoints", nargs="+", required=True)
-    parser.add_argument("--guidance", default="no_collision")
-    parser.add_argument("--split", default="val")
-    parser.add_argument("--scenes", type=int, default=100)
+    parser = checkpoints_parser(__doc__)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     args = parser.parse_args()
-    source = get_scenario_source("nuscenes_pred")
-    scenes = source.load_batch(args.split, scene_ids=source.scene_ids(args.split)[: args.scenes])
+    scenes = get_scenario_source("nuscenes_pred").load_batch(args.split, args.scenes)
     result: dict[str, dict[str, float]] = {}
     for checkpoint in args.checkpoints:
-        runs = []
-        for seed in args.seeds:
-            torch.manual_seed(seed)
-            policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": checkpoint, "seed": seed})
-            runs.append(failure_parts(run_batched(policy, scenes, EvaluationConfig(batch_size=50, seed=seed))[0]))
+        runs = [failure_parts(drive(args, scenes, checkpoint, seed)) for seed in args.seeds]
         result[checkpoint] = {key: sum(run[key] for run in runs) / len(runs) for key in runs[0]}
     names = [c.rstrip("/").split("/")[-1] for c in args.checkpoints]
     print(f"| first failure (mean over seeds {args.seeds}) | " + " | ".join(names) + " |")

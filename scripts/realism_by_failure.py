@@ -17,7 +17,7 @@ import json
 
 import torch
 
-from trafficrlhf_sdk import get_scenario_source
+from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.cli.evaluate import build_policy
 from trafficrlhf_sdk.evaluation import EvaluationConfig, run_batched
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
@@ -55,23 +55,33 @@ def realism_over(rollout: Rollout, agents: torch.Tensor, preset: str = "ctg") ->
     return values
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def checkpoints_parser(description: str | None) -> argparse.ArgumentParser:
+    """Arguments shared by the diagnostics that drive several checkpoints over the same scenes: --model,
+    --checkpoints, --guidance, --split, --scenes (the first N long-enough scenes of nuscenes_pred)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="ctg")
     parser.add_argument("--checkpoints", nargs="+", required=True)
     parser.add_argument("--guidance", default="no_collision")
     parser.add_argument("--split", default="val")
     parser.add_argument("--scenes", type=int, default=100)
+    return parser
+
+
+def drive(args: argparse.Namespace, scenes: ScenarioTensor, checkpoint: str, seed: int) -> Rollout:
+    """One closed-loop run of ``checkpoint`` over ``scenes`` at evaluation ``seed``, as ``trafficrlhf evaluate``
+    drives it (``args`` from :func:`checkpoints_parser`)."""
+    torch.manual_seed(seed)
+    policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": checkpoint, "seed": seed})
+    return run_batched(policy, scenes, EvaluationConfig(batch_size=50, seed=seed))[0]
+
+
+def main() -> None:
+    parser = checkpoints_parser(__doc__)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", choices=("ctg", "body"), default="ctg")
     args = parser.parse_args()
-    source = get_scenario_source("nuscenes_pred")
-    scenes = source.load_batch(args.split, scene_ids=source.scene_ids(args.split)[: args.scenes])
-    rollouts = []
-    for checkpoint in args.checkpoints:
-        torch.manual_seed(args.seed)
-        policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": checkpoint, "seed": args.seed})
-        rollouts.append(run_batched(policy, scenes, EvaluationConfig(batch_size=50, seed=args.seed))[0])
+    scenes = get_scenario_source("nuscenes_pred").load_batch(args.split, args.scenes)
+    rollouts = [drive(args, scenes, checkpoint, args.seed) for checkpoint in args.checkpoints]
     result = {}
     for name, agents in agent_groups(rollouts).items():
         result[name] = {"agents": int(agents.sum()), "scenes": int(agents.any(-1).sum()),
