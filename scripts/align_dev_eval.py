@@ -12,9 +12,16 @@ Two kinds of development scenes:
   the reported 100, and collisions, not off-road, dominate (docs/explanation/alignment-log.md, session 12).
   A check that a setting carries to other roads more than a place to tune failure rates.
 
+`--mirror` reflects the chosen scenes (`trafficrlhf_sdk.scenario.mirror_scenario`: y -> -y, left-hand traffic
+becomes right-hand and back). Mirrored held-out train scenes are roads neither the base nor the alignment ever
+saw in that form, and the base fails there as it fails on val: mostly off the road (4 s CTG, seed 0: failure
+0.089, off-road 0.089, collision 0.016; unmirrored, collisions dominate). It is the development set that can see
+an off-road gain (docs/explanation/alignment-log.md, session 42).
+
     python scripts/align_dev_eval.py --model ctg --guidance no_collision [--checkpoint DIR] [--first 400]
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --split val
+    python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 --mirror
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.align.contexts import held_out_scene_ids
 from trafficrlhf_sdk.cli.evaluate import build_policy
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 
 KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
@@ -39,10 +47,11 @@ KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realis
 DEFAULT_FIRST = {"train": 400, "val": 100}
 
 
-def held_out_scenes(holdout_every: int | None, first: int | None = None,
-                    split: str = "train") -> tuple[list[str], ScenarioTensor]:
+def held_out_scenes(holdout_every: int | None, first: int | None = None, split: str = "train",
+                    mirror: bool = False) -> tuple[list[str], ScenarioTensor]:
     """The development scene ids of ``split`` and their batch: every ``holdout_every``-th scene (train only), or
-    the long-enough scenes after the first ``first`` (default 400 for train, 100 for val)."""
+    the long-enough scenes after the first ``first`` (default 400 for train, 100 for val); ``mirror``: the batch
+    reflected across each scene's x axis (ids unchanged)."""
     if split not in DEFAULT_FIRST:
         raise ValueError(f"split is {split!r}; use 'train' (held-out train scenes) or 'val' (the val tail).")
     if split == "val" and holdout_every:
@@ -54,7 +63,8 @@ def held_out_scenes(holdout_every: int | None, first: int | None = None,
         ids = held_out_scene_ids(ids, holdout_every)
     else:
         ids = ids[DEFAULT_FIRST[split] if first is None else first:]
-    return ids, source.load_batch(split, scene_ids=ids)
+    batch = source.load_batch(split, scene_ids=ids)
+    return ids, mirror_scenario(batch) if mirror else batch
 
 
 def held_out_report(model: str, checkpoint: str | None, guidance: str | None, scenario: ScenarioTensor,
@@ -105,14 +115,18 @@ def main() -> None:
     parser.add_argument("--holdout-every", type=int, default=None,
                         help="Instead: the scenes `align --holdout-every K` held out (every K-th, spread over the "
                              "split).")
+    parser.add_argument("--mirror", action="store_true",
+                        help="Drive the scenes mirrored (left- and right-hand traffic swapped): roads the base never "
+                             "imitated, and alignment only with --mirror-scenes.")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.split == "val" and args.holdout_every:
         parser.error(f"--holdout-every {args.holdout_every} with --split val: use --first for the val tail.")
-    ids, scenario = held_out_scenes(args.holdout_every, args.first, args.split)
+    ids, scenario = held_out_scenes(args.holdout_every, args.first, args.split, args.mirror)
     report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed)
-    print(json.dumps({"split": args.split, "scenes": len(ids), "checkpoint": args.checkpoint, **report}))
+    print(json.dumps({"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
+                      **report}))
 
 
 if __name__ == "__main__":

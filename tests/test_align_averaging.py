@@ -269,6 +269,22 @@ def test_val_development_scenes_are_the_tail_the_reported_evaluation_never_drive
         dev.held_out_scenes(None, None, "test")
 
 
+def test_mirrored_development_scenes_are_the_held_out_scenes_reflected(data_root, load_script) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("trafficrlhf_nuscenes_pred")
+    dev = load_script("align_dev_eval")
+    ids, plain = dev.held_out_scenes(40, None, "train")
+    mirrored_ids, mirrored = dev.held_out_scenes(40, None, "train", mirror=True)
+    assert mirrored_ids == ids and mirrored.num_scenes == plain.num_scenes
+    valid = plain.valid
+    assert torch.equal(mirrored.valid, valid)
+    assert torch.equal(mirrored.xy[..., 0][valid], plain.xy[..., 0][valid])
+    assert torch.equal(mirrored.xy[..., 1][valid], -plain.xy[..., 1][valid])
+    # the map is read where the original point read it: the logged positions stay on the same pixels
+    scene, agent, step = valid.nonzero(as_tuple=True)
+    assert torch.equal(mirrored.map.lookup_points(scene, mirrored.xy[scene, agent, step].double()),
+                       plain.map.lookup_points(scene, plain.xy[scene, agent, step].double()))
+
+
 def test_sweep_over_a_second_direction_evaluates_the_grid(three: list[str], tmp_path, data_root, capsys,
                                                           load_script) -> None:  # type: ignore[no-untyped-def]
     sweep = load_script("extrapolation_sweep")
