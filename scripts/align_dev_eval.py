@@ -22,6 +22,8 @@ an off-road gain (docs/explanation/alignment-log.md, session 42).
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --split val
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 --mirror
+    python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 \
+        --model-option steer_gate_offset=2
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ from __future__ import annotations
 import argparse
 import json
 
+import click
 import torch
 from tqdm import tqdm
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.align.contexts import held_out_scene_ids
+from trafficrlhf_sdk.cli import parse_key_values
 from trafficrlhf_sdk.cli.evaluate import build_policy
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
@@ -68,11 +72,12 @@ def held_out_scenes(holdout_every: int | None, first: int | None = None, split: 
 
 
 def held_out_report(model: str, checkpoint: str | None, guidance: str | None, scenario: ScenarioTensor,
-                    seed: int) -> dict[str, float]:
-    """Closed-loop metrics of ``model`` (optionally ``checkpoint``) on ``scenario``; failure rates are shares of
-    controlled agents, realism deviations Wasserstein distances (m/s^2, m/s^3)."""
+                    seed: int, options: dict[str, object] | None = None) -> dict[str, float]:
+    """Closed-loop metrics of ``model`` (optionally ``checkpoint``, and ``options`` as `--model-option` gives
+    them) on ``scenario``; failure rates are shares of controlled agents, realism deviations Wasserstein
+    distances (m/s^2, m/s^3)."""
     torch.manual_seed(seed)
-    policy = build_policy(model, {"guidance": guidance, "checkpoint": checkpoint, "seed": seed})
+    policy = build_policy(model, {**(options or {}), "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=seed))
     return {"wall_s": round(report.wall_time_s, 1), **{k: round(report.values[k], 4) for k in KEYS}}
 
@@ -118,15 +123,21 @@ def main() -> None:
     parser.add_argument("--mirror", action="store_true",
                         help="Drive the scenes mirrored (left- and right-hand traffic swapped): roads the base never "
                              "imitated, and alignment only with --mirror-scenes.")
+    parser.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="A model option, as in `trafficrlhf evaluate --model-option` (repeatable).")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    try:
+        options = parse_key_values(args.model_option, "--model-option")
+    except click.BadParameter as error:
+        parser.error(f"--model-option: {error.message}")
     torch.set_num_threads(1)
     if args.split == "val" and args.holdout_every:
         parser.error(f"--holdout-every {args.holdout_every} with --split val: use --first for the val tail.")
     ids, scenario = held_out_scenes(args.holdout_every, args.first, args.split, args.mirror)
-    report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed)
+    report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed, options)
     print(json.dumps({"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
-                      **report}))
+                      "model_options": options, **report}))
 
 
 if __name__ == "__main__":

@@ -285,6 +285,29 @@ def test_mirrored_development_scenes_are_the_held_out_scenes_reflected(data_root
                        plain.map.lookup_points(scene, plain.xy[scene, agent, step].double()))
 
 
+def test_development_evaluation_passes_model_options_and_refuses_malformed_ones(load_script, monkeypatch,
+                                                                                capsys) -> None:  # type: ignore[no-untyped-def]
+    dev = load_script("align_dev_eval")
+    seen: list[dict] = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_build(model: str, options: dict) -> None:
+        seen.append(options)
+        raise Stop
+
+    monkeypatch.setattr(dev, "build_policy", fake_build)
+    with pytest.raises(Stop):
+        dev.held_out_report("ctg", "CKPT", "no_collision", None, 3, {"steer_gate_offset": 2, "seed": 99})
+    assert seen == [{"steer_gate_offset": 2, "seed": 3, "guidance": "no_collision", "checkpoint": "CKPT"}]
+    monkeypatch.setattr("sys.argv", ["align_dev_eval.py", "--model", "ctg", "--model-option", "oops"])
+    with pytest.raises(SystemExit) as exit_info:
+        dev.main()
+    assert exit_info.value.code == 2
+    assert "--model-option: expected KEY=VALUE, got 'oops'" in capsys.readouterr().err
+
+
 def test_sweep_over_a_second_direction_evaluates_the_grid(three: list[str], tmp_path, data_root, capsys,
                                                           load_script) -> None:  # type: ignore[no-untyped-def]
     sweep = load_script("extrapolation_sweep")
