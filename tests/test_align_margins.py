@@ -130,6 +130,18 @@ def test_bad_speed_settings_name_the_argument(kwargs: dict, match: str) -> None:
         RealismReward(**kwargs)
 
 
+def test_realism_reward_takes_the_margin_settings(jittered: ScenarioTensor) -> None:
+    settings = {"corner_weight": 0.4, "near_weight": 0.3, "near_buffer_m": [0.6, 0.3]}  # a list, as JSON gives it
+    realism = load_reward("builtin:realism-margins", settings)
+    cost, _ = realism._failures(jittered)
+    expected, _ = FailureReward(margins=True, corner_weight=0.4, near_weight=0.3, near_buffer_m=(0.6, 0.3))._failures(
+        jittered)
+    assert torch.equal(cost, expected) and realism.near_buffer_m == (0.6, 0.3)
+    assert not torch.equal(cost, RealismReward(margins=True)._failures(jittered)[0])
+    with pytest.raises(TrafficRLHFError, match="near_weight"):
+        RealismReward(margins=True, near_weight=2.0)
+
+
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"corner_weight": 1.5}, "corner_weight"),
     ({"near_weight": -0.1}, "near_weight"),

@@ -198,6 +198,9 @@ class RealismReward(FailureReward):
       asks for the logged turn itself rather than for a recovery at the road edge. Angles in radians. Measured
       on the 4 s CTG (session 36) it removes fewer failures than the plain margins reward.
 
+    ``corner_weight``, ``near_weight`` and ``near_buffer_m`` set the margins as in :class:`FailureReward`
+    (``--reward-option near_weight=1`` on ``builtin:realism-margins``).
+
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
     39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
     """
@@ -208,8 +211,11 @@ class RealismReward(FailureReward):
                  stall_log_speed: float = 2.0, max_accel: float = 3.0, margins: bool = False,
                  speed_weight: float = 0.0, speed_tolerance: float = 0.25, speed_floor: float = 3.0,
                  kinematics_weight: float = 0.0, kinematics_samples: int | None = None,
-                 heading_weight: float = 0.0, heading_tolerance: float = 0.05, heading_scale: float = 0.5) -> None:
-        super().__init__(margins=margins)
+                 heading_weight: float = 0.0, heading_tolerance: float = 0.05, heading_scale: float = 0.5,
+                 corner_weight: float = 0.5, near_weight: float = 0.5,
+                 near_buffer_m: tuple[float, float] = (0.5, 0.25)) -> None:
+        super().__init__(margins=margins, corner_weight=corner_weight, near_weight=near_weight,
+                         near_buffer_m=near_buffer_m)
         for name, value in (("speed_weight", speed_weight), ("speed_tolerance", speed_tolerance),
                             ("kinematics_weight", kinematics_weight), ("heading_weight", heading_weight),
                             ("heading_tolerance", heading_tolerance)):
