@@ -14,8 +14,8 @@ Two kinds of development scenes:
 
 `--mirror` reflects the chosen scenes (`trafficrlhf_sdk.scenario.mirror_scenario`: y -> -y, left-hand traffic
 becomes right-hand and back). Mirrored held-out train scenes are roads neither the base nor the alignment ever
-saw in that form, and the base fails there as it fails on val: mostly off the road (4 s CTG, seed 0: failure
-0.089, off-road 0.089, collision 0.016; unmirrored, collisions dominate). It is the development set that can see
+saw in that form, and the base fails there as it fails on val: mostly off the road (4 s CTG, seeds 0-7: failure
+0.086, off-road 0.073, collision 0.023; unmirrored, collisions dominate). It is the development set that can see
 an off-road gain (docs/explanation/alignment-log.md, session 42).
 
     python scripts/align_dev_eval.py --model ctg --guidance no_collision [--checkpoint DIR] [--first 400]
@@ -32,13 +32,15 @@ import argparse
 import json
 
 import click
+import pydantic
 import torch
 from tqdm import tqdm
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
 from trafficrlhf_sdk.align.contexts import held_out_scene_ids
-from trafficrlhf_sdk.cli import parse_key_values
+from trafficrlhf_sdk.cli import format_error, parse_key_values
 from trafficrlhf_sdk.cli.evaluate import build_policy
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
@@ -135,7 +137,10 @@ def main() -> None:
     if args.split == "val" and args.holdout_every:
         parser.error(f"--holdout-every {args.holdout_every} with --split val: use --first for the val tail.")
     ids, scenario = held_out_scenes(args.holdout_every, args.first, args.split, args.mirror)
-    report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed, options)
+    try:
+        report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed, options)
+    except (TrafficRLHFError, pydantic.ValidationError, OSError) as error:  # one line, as the CLI gives it
+        parser.exit(2, f"Error: {format_error(error)}\n")
     print(json.dumps({"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
                       "model_options": options, **report}))
 

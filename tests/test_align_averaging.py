@@ -307,6 +307,17 @@ def test_development_evaluation_passes_model_options_and_refuses_malformed_ones(
     assert exit_info.value.code == 2
     assert "--model-option: expected KEY=VALUE, got 'oops'" in capsys.readouterr().err
 
+    def refuse(model: str, options: dict) -> None:
+        raise TrafficRLHFError("`nosuch` is not an option of ctg")
+
+    monkeypatch.setattr(dev, "build_policy", refuse)
+    monkeypatch.setattr(dev, "held_out_scenes", lambda *args: (["scene-0001"], None))
+    monkeypatch.setattr("sys.argv", ["align_dev_eval.py", "--model", "ctg", "--model-option", "nosuch=1"])
+    with pytest.raises(SystemExit) as exit_info:
+        dev.main()
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == "Error: `nosuch` is not an option of ctg\n"
+
 
 def test_sweep_over_a_second_direction_evaluates_the_grid(three: list[str], tmp_path, data_root, capsys,
                                                           load_script) -> None:  # type: ignore[no-untyped-def]
