@@ -703,3 +703,44 @@ def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_canno
     assert not CTGAdapter(checkpoint=committed).cfg.steer_lateral_only
     with pytest.raises(TrafficRLHFError, match="steer_lateral_only=true needs a steering head"):
         CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_lateral_only=True)
+
+
+def test_widening_a_saved_road_head_to_read_the_traffic_keeps_its_output_until_fine_tuned(tmp_path: Path) -> None:
+    """``steer_neighbours=true`` on a saved road head: the new neighbour inputs get zero weights, so with the gate
+    reading the road alone (``steer_gate_traffic=false``) the shift equals the saved head's exactly; with the
+    traffic gate a neighbour on the plan opens the gate where the road left it shut."""
+    from trafficrlhf_ctg import CTGAdapter
+
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+
+    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    saved = CTGAdapter(checkpoint=committed).model
+    widened = CTGAdapter(checkpoint=committed, steer_neighbours=True, steer_gate_traffic=False).model
+    traffic = CTGAdapter(checkpoint=committed, steer_neighbours=True).model
+    assert widened.cfg.steer_neighbours and not widened.cfg.steer_gate_traffic and traffic.cfg.steer_gate_traffic
+    old_state, new_state = saved.state_dict(), widened.state_dict()
+    assert all(torch.equal(old_state[key], new_state[key]) for key in old_state if key != "steer.net.0.weight")
+    torch.manual_seed(0)
+    n, r, h, g = 3, 4, saved.cfg.horizon, saved.cfg.map_size
+    cond = torch.randn(n * r, saved.cfg.cond_dim)
+    x0 = torch.randn(n * r, h, 2) * 0.5
+    drivable = (torch.rand(n, 1, g, g) > 0.3).float()
+    v0 = torch.tensor([3.0, 6.0, 9.0])
+    neighbours = torch.zeros(n, 2, 7)
+    neighbours[..., 0] = torch.tensor([6.0, 15.0])
+    neighbours[..., 2], neighbours[..., 5], neighbours[..., 6] = 1.0, 4.5, 1.9
+    valid, extent = torch.ones(n, 2, dtype=torch.bool), torch.tensor([[4.5, 1.9]] * n)
+    full_map = (drivable, v0, neighbours, valid, extent)
+    with torch.no_grad():
+        expected = saved._steer_shift(cond, x0, 2, (drivable, v0), n)
+        torch.testing.assert_close(widened._steer_shift(cond, x0, 2, full_map, n), expected, atol=1e-6, rtol=1e-5)
+        clear = torch.ones_like(drivable)
+        assert torch.all(widened._steer_shift(cond, x0, 2, (clear, *full_map[1:]), n) == 0)
+        assert traffic._steer_shift(cond, x0, 2, (clear, *full_map[1:]), n).abs().amax() > 0
+    with pytest.raises(TrafficRLHFError, match="steer_gate_traffic"):
+        CTGAdapter(checkpoint=committed, steer_gate_traffic=False)
+    blind = tmp_path / "blind_head"
+    CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer=True).save_pretrained(
+        str(blind))
+    with pytest.raises(TrafficRLHFError, match="widens a road-reading head only"):
+        CTGAdapter(checkpoint=str(blind), steer_neighbours=True)

@@ -89,7 +89,9 @@ class CTGOptions(AdapterOptions):
                              "the road becomes one of its inputs.")
     steer_neighbours: bool = Field(False, description="As `steer`, with a head that also reads how close the other "
                                    "agents (driven on at constant velocity) come to each denoising step's clean "
-                                   "plan (ctg_reference.neighbour_proximity); combines with `steer_road`.")
+                                   "plan (ctg_reference.neighbour_proximity); combines with `steer_road`. On a "
+                                   "saved road head it widens the head: the new inputs start with zero weights, so "
+                                   "the head's output is unchanged until fine-tuned.")
     steer_gate: bool | None = Field(None, description="Scale a reading head's shift by its plan's hazard (the "
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
@@ -97,6 +99,10 @@ class CTGOptions(AdapterOptions):
     steer_gate_offset: float | None = Field(None, gt=0, description="With `steer_gate`: metres to either side of "
                                            "the plan at which the gate reads the road (default: the head's own "
                                            "1 m); None keeps the checkpoint's setting.")
+    steer_gate_traffic: bool | None = Field(None, description="With `steer_gate` and a head that reads the "
+                                            "traffic: whether neighbour proximity opens the gate as well as the "
+                                            "road (false: the road alone gates). None keeps the checkpoint's "
+                                            "setting (true for a new head).")
     steer_lateral_only: bool | None = Field(None, description="The steering head shifts the yaw-rate channel "
                                             "only; acceleration is sampled as by the frozen model. None keeps the "
                                             "checkpoint's setting. Applies to a fresh head or a saved one.")
@@ -122,8 +128,10 @@ class CTGAdapter(TrafficModelAdapter):
         opts = self.options
         if (opts.steer or opts.steer_road or opts.steer_neighbours) and not self.cfg.steer:
             self._add_steer_head(opts.steer_road, opts.steer_neighbours)
+        elif opts.steer_neighbours and not self.cfg.steer_neighbours:
+            self._widen_steer_head()
         head = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset,
-                "steer_lateral_only": opts.steer_lateral_only}
+                "steer_gate_traffic": opts.steer_gate_traffic, "steer_lateral_only": opts.steer_lateral_only}
         head = {key: value for key, value in head.items() if value is not None}
         if head:
             self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **head)
@@ -133,6 +141,12 @@ class CTGAdapter(TrafficModelAdapter):
             if self.cfg.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
                 raise TrafficRLHFError("steer_gate=true needs a steering head that reads the road or the traffic; "
                                        "add steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
+            if opts.steer_gate_traffic is not None and not (self.cfg.steer_gate and self.cfg.steer_neighbours):
+                raise TrafficRLHFError(f"steer_gate_traffic={opts.steer_gate_traffic} only acts with a gated head "
+                                       "that reads the traffic; add steer_gate=true and steer_neighbours=true.")
+            if self.cfg.steer_gate and not (self.cfg.steer_road or self.cfg.steer_gate_traffic):
+                raise TrafficRLHFError("steer_gate_traffic=false leaves this head's gate nothing to read (it does "
+                                       "not read the road); set steer_gate_traffic=true or steer_gate=false.")
             if opts.steer_gate_offset is not None and not self.cfg.steer_gate:
                 raise TrafficRLHFError(f"steer_gate_offset={opts.steer_gate_offset} only acts with a gate; add "
                                        "steer_gate=true (or load a checkpoint saved with one).")
@@ -152,6 +166,29 @@ class CTGAdapter(TrafficModelAdapter):
             model = CTGModel(cfg).to(self.options.device)
         missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
         assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
+        self.cfg, self.model = cfg, model
+
+    def _widen_steer_head(self) -> None:
+        """Give a saved road-reading head the neighbour inputs of :func:`ctg_reference.neighbour_proximity`: the
+        first layer gains ``3 * horizon`` columns with zero weights (interleaved per step after the road profile, as
+        the head concatenates them), so the head's output is unchanged until fine-tuned."""
+        if not self.cfg.steer_road:
+            raise TrafficRLHFError("steer_neighbours=true on a saved head widens a road-reading head only; this "
+                                   "checkpoint's head reads neither road nor traffic. Start from a checkpoint "
+                                   "without a head, or one saved with steer_road=true.")
+        cfg = dataclasses.replace(self.cfg, steer_neighbours=True)
+        model = CTGModel(cfg).to(self.options.device)
+        state = self.model.state_dict()
+        old = state.pop("steer.net.0.weight")
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        assert not unexpected and missing == ["steer.net.0.weight"], (missing, unexpected)
+        base = old.shape[1] - 3 * cfg.horizon  # conditioning, plan and step embedding come first
+        weight = old.new_zeros(old.shape[0], base + 6 * cfg.horizon)
+        weight[:, :base] = old[:, :base]
+        weight[:, base:].view(old.shape[0], cfg.horizon, 6)[..., :3] = old[:, base:].view(old.shape[0], -1, 3)
+        assert model.steer is not None
+        with torch.no_grad():
+            model.steer.net[0].weight.copy_(weight)
         self.cfg, self.model = cfg, model
 
     def get_config(self) -> dict[str, Any]:

@@ -104,6 +104,9 @@ class CTGConfig:
     steer_gate: bool = False
     steer_gate_offset: float | None = None  # m to either side of the plan the gate's road hazard is read at
     # (None: steer_road_offset); wider than the head's own probes, it opens before a plan reaches the road edge
+    # with steer_neighbours: whether the neighbour proximity opens the gate too (False: the road alone gates, and
+    # the head reads the traffic only once the road has opened the gate)
+    steer_gate_traffic: bool = True
     # the head shifts the yaw-rate channel only; acceleration is drawn as the frozen model draws it (a head that
     # moves the speed profile too can close gaps to the agent ahead)
     steer_lateral_only: bool = False
@@ -556,7 +559,7 @@ class CTGModel(nn.Module):
         shift = self.steer(cond, x0, k, surroundings.reshape(*x0.shape[:2], surroundings.shape[-1]))
         if not cfg.steer_gate:
             return shift
-        hazards = [parts[-1]] if cfg.steer_neighbours else []
+        hazards = [parts[-1]] if cfg.steer_neighbours and cfg.steer_gate_traffic else []
         if cfg.steer_road:  # the off-road share, 0 past the crop's edge (a plan leaving the crop is no hazard)
             offset = cfg.steer_road_offset if cfg.steer_gate_offset is None else cfg.steer_gate_offset
             hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, offset))
