@@ -16,12 +16,16 @@ Two kinds of development scenes:
 becomes right-hand and back). Mirrored held-out train scenes are roads neither the base nor the alignment ever
 saw in that form, and the base fails there as it fails on val: mostly off the road (4 s CTG, seeds 0-7: failure
 0.086, off-road 0.073, collision 0.023; unmirrored, collisions dominate). It is the development set that can see
-an off-road gain (docs/explanation/alignment-log.md, session 42).
+an off-road gain (docs/explanation/alignment-log.md, session 42). `--first 0 --mirror` drives all 442
+long-enough train scenes mirrored (about 4 min per seed on one thread): collision-heavy for the base too, and
+it did not order session 43's runs as val did.
 
     python scripts/align_dev_eval.py --model ctg --guidance no_collision [--checkpoint DIR] [--first 400]
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --split val
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 --mirror
+    python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 --mirror \
+        --seeds 0-7
     python scripts/align_dev_eval.py --model ctg --guidance no_collision --checkpoint DIR --holdout-every 10 \
         --model-option steer_gate_offset=2
 """
@@ -96,6 +100,30 @@ def comma_numbers(text: str, kind: type, option: str) -> list:  # type: ignore[t
     return values
 
 
+def seed_list(text: str) -> list[int]:
+    """``"0-3,8"`` -> ``[0, 1, 2, 3, 8]`` for an argparse ``type=`` (ranges inclusive, order kept, no repeats)."""
+    seeds: list[int] = []
+    try:
+        for part in filter(None, (piece.strip() for piece in text.split(","))):
+            first, _, last = part.partition("-")
+            span = range(int(first), int(last or first) + 1)
+            if not span:
+                raise ValueError(part)
+            seeds += [seed for seed in span if seed not in seeds]
+    except ValueError:
+        seeds = []
+    if not seeds:
+        raise argparse.ArgumentTypeError(f"--seeds is {text!r}; give seeds and inclusive ranges such as 0-7 or "
+                                         "0,1,2 or 0-3,8.")
+    return seeds
+
+
+def mean_report(reports: list[dict[str, float]]) -> dict[str, float]:
+    """The per-key mean of several :func:`held_out_report` results (``wall_s`` summed)."""
+    mean = {key: round(sum(r[key] for r in reports) / len(reports), 4) for key in reports[0] if key != "wall_s"}
+    return {"wall_s": round(sum(r["wall_s"] for r in reports), 1), **mean}
+
+
 def held_out_reports(model: str, checkpoints: dict[str, str], guidance: str | None, scenario: ScenarioTensor,
                      seeds: list[int], desc: str = "checkpoint x seed") -> dict[str, list[dict[str, float]]]:
     """``{key: [held_out_report per seed]}`` for every ``key: checkpoint`` in ``checkpoints``, with a progress bar."""
@@ -127,7 +155,12 @@ def main() -> None:
                              "imitated, and alignment only with --mirror-scenes.")
     parser.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                         help="A model option, as in `trafficrlhf evaluate --model-option` (repeatable).")
-    parser.add_argument("--seed", type=int, default=0)
+    seeds = parser.add_mutually_exclusive_group()
+    seeds.add_argument("--seed", type=int, default=0)
+    seeds.add_argument("--seeds", type=seed_list, default=None, metavar="LIST",
+                       help="Several evaluation seeds (0-7, 0,1,2 or 0-3,8): one JSON line per seed, then one "
+                            "with their means under 'mean'. One development seed moves a failure rate by up to "
+                            "0.04, so compare models over eight or more.")
     args = parser.parse_args()
     try:
         options = parse_key_values(args.model_option, "--model-option")
@@ -137,12 +170,18 @@ def main() -> None:
     if args.split == "val" and args.holdout_every:
         parser.error(f"--holdout-every {args.holdout_every} with --split val: use --first for the val tail.")
     ids, scenario = held_out_scenes(args.holdout_every, args.first, args.split, args.mirror)
-    try:
-        report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, args.seed, options)
-    except (TrafficRLHFError, pydantic.ValidationError, OSError) as error:  # one line, as the CLI gives it
-        parser.exit(2, f"Error: {format_error(error)}\n")
-    print(json.dumps({"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
-                      "model_options": options, **report}))
+    header = {"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
+              "model_options": options}
+    reports = []
+    for seed in args.seeds or [args.seed]:
+        try:
+            report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, seed, options)
+        except (TrafficRLHFError, pydantic.ValidationError, OSError) as error:  # one line, as the CLI gives it
+            parser.exit(2, f"Error: {format_error(error)}\n")
+        reports.append(report)
+        print(json.dumps({**header, **({"seed": seed} if args.seeds else {}), **report}), flush=True)
+    if args.seeds:
+        print(json.dumps({**header, "seeds": args.seeds, "mean": mean_report(reports)}))
 
 
 if __name__ == "__main__":

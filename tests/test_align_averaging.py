@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -500,3 +501,29 @@ def test_graft_refuses_a_prefix_that_matches_nothing_other_architectures_and_ove
         main(["graft", three[1], "--body", str(tmp_path / "nope"), "--out", str(tmp_path / "c")])
     err = capsys.readouterr().err
     assert failed.value.code == 2 and err.startswith("Error:") and "Traceback" not in err
+
+
+def test_development_evaluation_over_several_seeds_prints_each_then_their_mean(load_script, monkeypatch,
+                                                                               capsys) -> None:  # type: ignore[no-untyped-def]
+    dev = load_script("align_dev_eval")
+    assert dev.seed_list("0-3,8") == [0, 1, 2, 3, 8]
+    assert dev.seed_list("2, 1,2") == [2, 1]
+    for bad in ("", "a", "3-1", "1-x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="--seeds"):
+            dev.seed_list(bad)
+
+    def fake_report(model, checkpoint, guidance, scenario, seed, options=None):  # type: ignore[no-untyped-def]
+        return {"wall_s": 1.0, "failure_rate": 0.01 * (seed + 1), "collision_rate": 0.0}
+
+    monkeypatch.setattr(dev, "held_out_report", fake_report)
+    monkeypatch.setattr(dev, "held_out_scenes", lambda *args: (["scene-0001", "scene-0002"], None))
+    monkeypatch.setattr("sys.argv", ["align_dev_eval.py", "--model", "ctg", "--seeds", "0-2"])
+    dev.main()
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line["seed"] for line in lines[:3]] == [0, 1, 2] and lines[1]["failure_rate"] == 0.02
+    assert lines[3]["seeds"] == [0, 1, 2] and lines[3]["scenes"] == 2
+    assert lines[3]["mean"] == {"wall_s": 3.0, "failure_rate": 0.02, "collision_rate": 0.0}
+    monkeypatch.setattr("sys.argv", ["align_dev_eval.py", "--model", "ctg", "--seed", "1", "--seeds", "0-2"])
+    with pytest.raises(SystemExit) as exit_info:
+        dev.main()
+    assert exit_info.value.code == 2

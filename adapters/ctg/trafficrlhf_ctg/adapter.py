@@ -142,8 +142,9 @@ class CTGAdapter(TrafficModelAdapter):
                 raise TrafficRLHFError("steer_gate=true needs a steering head that reads the road or the traffic; "
                                        "add steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
             if opts.steer_gate_traffic is not None and not (self.cfg.steer_gate and self.cfg.steer_neighbours):
-                raise TrafficRLHFError(f"steer_gate_traffic={str(opts.steer_gate_traffic).lower()} only acts with a gated head "
-                                       "that reads the traffic; add steer_gate=true and steer_neighbours=true.")
+                value = str(opts.steer_gate_traffic).lower()
+                raise TrafficRLHFError(f"steer_gate_traffic={value} only acts with a gated head that reads the "
+                                       "traffic; add steer_gate=true and steer_neighbours=true.")
             if self.cfg.steer_gate and not (self.cfg.steer_road or self.cfg.steer_gate_traffic):
                 raise TrafficRLHFError("steer_gate_traffic=false leaves this head's gate nothing to read (it does "
                                        "not read the road); set steer_gate_traffic=true or steer_gate=false.")
