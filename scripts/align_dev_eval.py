@@ -101,7 +101,8 @@ def comma_numbers(text: str, kind: type, option: str) -> list:  # type: ignore[t
 
 
 def seed_list(text: str) -> list[int]:
-    """``"0-3,8"`` -> ``[0, 1, 2, 3, 8]`` for an argparse ``type=`` (ranges inclusive, order kept, no repeats)."""
+    """``"0-3,8"`` -> ``[0, 1, 2, 3, 8]`` for an argparse ``type=`` (ranges inclusive, order kept); a seed named
+    twice is refused, as `trafficrlhf evaluate --seeds` refuses it."""
     seeds: list[int] = []
     try:
         for part in filter(None, (piece.strip() for piece in text.split(","))):
@@ -109,12 +110,12 @@ def seed_list(text: str) -> list[int]:
             span = range(int(first), int(last or first) + 1)
             if not span:
                 raise ValueError(part)
-            seeds += [seed for seed in span if seed not in seeds]
+            seeds += span
     except ValueError:
         seeds = []
-    if not seeds:
-        raise argparse.ArgumentTypeError(f"--seeds is {text!r}; give seeds and inclusive ranges such as 0-7 or "
-                                         "0,1,2 or 0-3,8.")
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"--seeds is {text!r}; give distinct seeds and inclusive ranges such as "
+                                         "0-7 or 0,1,2 or 0-3,8.")
     return seeds
 
 
