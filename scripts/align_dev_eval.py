@@ -174,7 +174,7 @@ def main() -> None:
     header = {"split": args.split, "mirror": args.mirror, "scenes": len(ids), "checkpoint": args.checkpoint,
               "model_options": options}
     reports = []
-    for seed in args.seeds or [args.seed]:
+    for seed in tqdm(args.seeds or [args.seed], desc="seeds", unit="run", disable=not args.seeds):
         try:
             report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, seed, options)
         except (TrafficRLHFError, pydantic.ValidationError, OSError) as error:  # one line, as the CLI gives it
