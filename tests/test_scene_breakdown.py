@@ -11,7 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trafficrlhf_sdk.errors import DataFormatError
-from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scene_changes, scenes_carrying, worst_scenes
+from trafficrlhf_sdk.scene_breakdown import (
+    paired_change_interval,
+    pooled_per_scene,
+    scene_changes,
+    scenes_carrying,
+    worst_scenes,
+)
 
 
 def _result(values, seed=0, ids=None, agents=None, model="m"):  # type: ignore[no-untyped-def]
@@ -92,3 +98,73 @@ def test_compare_lists_the_scenes_that_changed_most(tmp_path) -> None:  # type: 
     assert "scene-0002" not in out.output  # unchanged (0.5 both), outside the top 2
     single = CliRunner().invoke(get_cli(), ["compare", folders[0], "--scene-changes", "2"])
     assert single.exit_code != 0 and "two policies" in str(single.exception)
+
+
+def _pooled(values) -> dict[str, tuple[int, float]]:  # type: ignore[no-untyped-def]
+    return {f"scene-{i:04d}": (2, float(v)) for i, v in enumerate(values)}
+
+
+def test_paired_interval_matches_scipy_bootstrap() -> None:
+    from scipy.stats import bootstrap
+
+    rng = np.random.default_rng(3)
+    before = rng.random(100) * (rng.random(100) < 0.5)
+    after = before * rng.uniform(0.0, 0.8, 100) + 0.02 * (rng.random(100) < 0.2)
+    ci = paired_change_interval(_pooled(before), _pooled(after), resamples=20_000, seed=1, target=-0.7)
+
+    def ratio(x, y, axis=-1):  # type: ignore[no-untyped-def]
+        return y.sum(axis) / x.sum(axis) - 1.0
+
+    ref = bootstrap((before, after), ratio, paired=True, vectorized=True, n_resamples=20_000,
+                    confidence_level=0.95, method="percentile", random_state=np.random.default_rng(2))
+    assert ci.change == pytest.approx(after.sum() / before.sum() - 1.0)
+    assert ci.before == pytest.approx(before.mean()) and ci.after == pytest.approx(after.mean())
+    # two independent Monte-Carlo estimates of the same percentiles
+    assert ci.low == pytest.approx(ref.confidence_interval.low, abs=0.01)
+    assert ci.high == pytest.approx(ref.confidence_interval.high, abs=0.01)
+    assert ci.low < ci.change < ci.high and ci.scenes == 100 and ci.resamples == 20_000
+    assert 0.0 <= ci.share_meeting_target <= 1.0  # type: ignore[operator]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0.01, 1), min_size=2, max_size=40), st.floats(0.1, 3.0), st.integers(0, 2**16))
+def test_paired_interval_scales_with_the_second_evaluation(values, factor, seed) -> None:  # type: ignore[no-untyped-def]
+    same = paired_change_interval(_pooled(values), _pooled(values), resamples=200, seed=seed)
+    assert same.change == pytest.approx(0.0, abs=1e-12)
+    assert same.low == pytest.approx(0.0, abs=1e-12) and same.high == pytest.approx(0.0, abs=1e-12)
+    scaled = paired_change_interval(_pooled(values), _pooled([factor * v for v in values]), resamples=200, seed=seed)
+    # the same draws: every resampled ratio is multiplied by the factor
+    assert 1 + scaled.change == pytest.approx(factor)
+    assert 1 + scaled.low == pytest.approx(factor, rel=1e-9) and 1 + scaled.high == pytest.approx(factor, rel=1e-9)
+
+
+def test_paired_interval_refuses_what_it_cannot_measure() -> None:
+    with pytest.raises(ValueError, match="level"):
+        paired_change_interval(_pooled([0.1, 0.2]), _pooled([0.1, 0.2]), level=1.0)
+    with pytest.raises(ValueError, match="resamples"):
+        paired_change_interval(_pooled([0.1, 0.2]), _pooled([0.1, 0.2]), resamples=10)
+    with pytest.raises(DataFormatError, match="share 1 scene"):
+        paired_change_interval(_pooled([0.1, 0.2]), {"scene-0000": (2, 0.1)})
+    with pytest.raises(DataFormatError, match="relative change is undefined"):
+        paired_change_interval(_pooled([0.0, 0.0]), _pooled([0.1, 0.2]))
+
+
+def test_compare_interval_prints_the_change_with_its_interval(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import get_cli
+
+    rng = np.random.default_rng(0)
+    base = rng.random(30)
+    runs = {"base_s0": _result(base.tolist(), model="base"), "base_s1": _result((base * 0.9).tolist(), 1, model="base"),
+            "new_s0": _result((base * 0.3).tolist(), model="new")}
+    for name, result in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(result))
+    folders = [str(tmp_path / name) for name in runs]
+    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--interval", "--target", "-60"])
+    assert out.exit_code == 0, out.output
+    assert "base -> new (2 / 1 seed(s)); 95 % paired bootstrap interval over scenes" in out.output
+    # pooled base = 0.95 x base, new = 0.3 x base: -68.4 % on every draw, so the interval is that point
+    assert "| failure rate | " in out.output and "-68.4 % | -68.4 % to -68.4 % | 1.00 |" in out.output
+    assert "| off-road rate | 0.0000 | 0.0000 | n/a: 0 before | | |" in out.output
+    lonely = CliRunner().invoke(get_cli(), ["compare", *folders, "--target", "-70"])
+    assert lonely.exit_code == 2 and "--target -70 only acts with --interval" in lonely.output

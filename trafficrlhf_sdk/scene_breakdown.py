@@ -13,9 +13,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from trafficrlhf_sdk.errors import DataFormatError
 
-__all__ = ["SceneChange", "SceneShare", "pooled_per_scene", "scene_changes", "scenes_carrying", "worst_scenes"]
+__all__ = ["ChangeInterval", "SceneChange", "SceneShare", "paired_change_interval", "pooled_per_scene", "scene_changes",
+           "scenes_carrying", "worst_scenes"]
 
 
 @dataclass(frozen=True)
@@ -101,3 +104,60 @@ def scene_changes(before: dict[str, tuple[int, float]], after: dict[str, tuple[i
     rows = [SceneChange(s, before[s][0], before[s][1], after[s][1]) for s in before if s in after]
     rows.sort(key=lambda row: (-abs(row.change), row.scene_id))
     return rows[: len(rows) if top is None else top]
+
+
+
+@dataclass(frozen=True)
+class ChangeInterval:
+    """The relative change of a scene-averaged metric between two evaluations of the same scenes, with a paired
+    bootstrap interval over scenes. Changes are fractions: -0.66 is 66 % lower."""
+
+    before: float
+    after: float
+    change: float
+    low: float
+    high: float
+    level: float
+    scenes: int
+    resamples: int
+    target: float | None = None
+    share_meeting_target: float | None = None
+    """Share of the resamples whose change is at or below ``target`` (None without a target)."""
+
+
+def paired_change_interval(before: dict[str, tuple[int, float]], after: dict[str, tuple[int, float]],
+                           level: float = 0.95, resamples: int = 10_000, seed: int = 0,
+                           target: float | None = None) -> ChangeInterval:
+    """``mean(after) / mean(before) - 1`` over the scenes present in both, with a percentile interval from
+    ``resamples`` paired bootstrap draws of the scenes (each draw picks the same scenes, with replacement, for
+    both evaluations).
+
+    The scene is the resampling unit because the claim is about scenes not yet seen: the interval says how far
+    the change could move on another draw of as many scenes. Evaluation-seed noise is inside it too when each
+    scene's value is already a mean over seeds (:func:`pooled_per_scene`). ``before``/``after``: as returned by
+    :func:`pooled_per_scene`. ``target`` (e.g. -0.7): also report the share of draws at or below it.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}.")
+    if resamples < 100:
+        raise ValueError(f"resamples must be at least 100 for a percentile interval, got {resamples!r}.")
+    scenes = sorted(s for s in before if s in after)
+    if len(scenes) < 2:
+        raise DataFormatError(f"the two evaluations share {len(scenes)} scene(s) with controlled agents; a paired "
+                              "interval needs at least 2. Compare runs of the same --split/--scenes.")
+    x = np.array([before[s][1] for s in scenes], dtype=np.float64)
+    y = np.array([after[s][1] for s in scenes], dtype=np.float64)
+    if x.sum() <= 0:
+        raise DataFormatError("the first evaluation's metric is 0 on every shared scene, so a relative change is "
+                              "undefined; compare absolute values instead.")
+    draws = np.random.default_rng(seed).integers(0, len(scenes), size=(resamples, len(scenes)))
+    base_sums = x[draws].sum(1)
+    # a draw of only zero-valued scenes has no defined ratio; it is dropped (vanishingly rare for real rates)
+    ok = base_sums > 0
+    changes = y[draws].sum(1)[ok] / base_sums[ok] - 1.0
+    tail = (1.0 - level) / 2.0
+    low, high = np.quantile(changes, [tail, 1.0 - tail])
+    share = None if target is None else float((changes <= target).mean())
+    return ChangeInterval(before=float(x.mean()), after=float(y.mean()), change=float(y.sum() / x.sum() - 1.0),
+                          low=float(low), high=float(high), level=level, scenes=len(scenes),
+                          resamples=int(ok.sum()), target=target, share_meeting_target=share)

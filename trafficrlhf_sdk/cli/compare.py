@@ -10,7 +10,7 @@ import click
 from trafficrlhf_sdk.cli import cli
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["comparison_table", "scene_change_table"]
+__all__ = ["change_interval_table", "comparison_table", "scene_change_table"]
 
 ROWS = (
     ("failure_rate", "failure rate"),
@@ -104,11 +104,7 @@ def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") 
     policy's (each pooled over its seeds, as in :func:`comparison_table`), plus how many scenes rose or fell."""
     from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scene_changes
 
-    groups = _pool_seeds([(_label(result := _read(folder), folder), result) for folder in folders])
-    if len(groups) < 2:
-        raise DataFormatError(f"--scene-changes needs runs of two policies; got one ({groups[0][0]!r}). Pass the "
-                              "folders of a first and a second model.")
-    (first, before_runs), (last, after_runs) = groups[0], groups[-1]
+    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--scene-changes")
     before, after = pooled_per_scene(before_runs, key), pooled_per_scene(after_runs, key)
     changes = scene_changes(before, after)
     rose = sum(1 for row in changes if row.change > 0)
@@ -121,13 +117,79 @@ def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") 
     return "\n".join(lines)
 
 
+INTERVAL_KEYS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
+                 ("offroad_rate", "off-road rate"))
+
+
+def _first_and_last(folders: list[str], option: str) -> tuple[tuple[str, list[dict]], tuple[str, list[dict]]]:
+    groups = _pool_seeds([(_label(result := _read(folder), folder), result) for folder in folders])
+    if len(groups) < 2:
+        raise DataFormatError(f"{option} needs runs of two policies; got one ({groups[0][0]!r}). Pass the "
+                              "folders of a first and a second model.")
+    return groups[0], groups[-1]
+
+
+def change_interval_table(folders: list[str], level: float = 0.95, resamples: int = 10_000,
+                          target: float | None = None) -> str:
+    """Markdown table of the relative change from the first policy's runs to the last policy's (each pooled over
+    its seeds) in the failure, collision and off-road rates, each with a paired bootstrap interval over scenes
+    (:func:`~trafficrlhf_sdk.scene_breakdown.paired_change_interval`). ``target``: a relative change such as
+    -0.7; adds the share of bootstrap draws at or below it."""
+    from trafficrlhf_sdk.scene_breakdown import paired_change_interval, pooled_per_scene
+
+    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--interval")
+    seeds = f"{len(before_runs)} / {len(after_runs)} seed(s)"
+    extra = "" if target is None else f" share of draws <= {100 * target:+.0f} % |"
+    lines = [f"{first} -> {last} ({seeds}); {100 * level:.0f} % paired bootstrap interval over scenes", "",
+             f"| metric | {first} | {last} | change | interval |{extra}",
+             "|---|---|---|---|---|" + ("---|" if target is not None else "")]
+    scenes = draws = None
+    for key, name in INTERVAL_KEYS:
+        if not all(key in (r.get("per_scene") or {}) for r in before_runs + after_runs):
+            continue
+        before, after = pooled_per_scene(before_runs, key), pooled_per_scene(after_runs, key)
+        if not any(value > 0 for _, value in before.values()):
+            after_mean = sum(value for _, value in after.values()) / max(len(after), 1)
+            lines.append(f"| {name} | 0.0000 | {after_mean:.4f} | n/a: 0 before | |" + (" |" if extra else ""))
+            continue
+        ci = paired_change_interval(before, after, level=level, resamples=resamples, target=target)
+        row = (f"| {name} | {ci.before:.4f} | {ci.after:.4f} | {100 * ci.change:+.1f} % | "
+               f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} % |")
+        if ci.share_meeting_target is not None:
+            row += f" {ci.share_meeting_target:.2f} |"
+        lines.append(row)
+        scenes, draws = ci.scenes, ci.resamples
+    if len(lines) == 4 or scenes is None:
+        raise DataFormatError("no per-scene failure, collision or off-road rates in these results; re-run "
+                              "`trafficrlhf evaluate --out` with this version to write them.")
+    lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like these "
+                  "(and the seeds' noise inside each scene's mean), not a change of data set."]
+    return "\n".join(lines)
+
+
 @cli.command("compare")
 @click.argument("folders", nargs=-1, required=True)
 @click.option("--scene-changes", type=click.IntRange(min=0), default=0, show_default=True,
               help="Also list the N scenes whose failure rate changed most from the first model to the last.")
-def compare_command(folders: tuple[str, ...], scene_changes: int) -> None:
+@click.option("--interval", is_flag=True,
+              help="Also print the relative change from the first model to the last in the failure, collision and "
+                   "off-road rates, with a paired bootstrap interval over scenes.")
+@click.option("--level", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.95, show_default=True,
+              help="With --interval: the interval's coverage.")
+@click.option("--target", type=click.FloatRange(-100.0, 1000.0), default=None,
+              help="With --interval: a relative change in percent (e.g. -70); adds the share of bootstrap draws at "
+                   "or below it.")
+def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool, level: float,
+                    target: float | None) -> None:
     """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json)."""
+    if target is not None and not interval:
+        raise click.BadParameter(f"--target {target:g} only acts with --interval; add --interval.",
+                                 param_hint="--target")
     click.echo(comparison_table(list(folders)))
     if scene_changes:
         click.echo("")
         click.echo(scene_change_table(list(folders), scene_changes))
+    if interval:
+        click.echo("")
+        click.echo(change_interval_table(list(folders), level=level,
+                                         target=None if target is None else target / 100.0))
