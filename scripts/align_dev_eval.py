@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import click
 import pydantic
@@ -78,13 +79,19 @@ def held_out_scenes(holdout_every: int | None, first: int | None = None, split: 
 
 
 def held_out_report(model: str, checkpoint: str | None, guidance: str | None, scenario: ScenarioTensor,
-                    seed: int, options: dict[str, object] | None = None) -> dict[str, float]:
+                    seed: int, options: dict[str, object] | None = None, out_dir: str | None = None,
+                    metadata: dict[str, object] | None = None) -> dict[str, float]:
     """Closed-loop metrics of ``model`` (optionally ``checkpoint``, and ``options`` as `--model-option` gives
     them) on ``scenario``; failure rates are shares of controlled agents, realism deviations Wasserstein
-    distances (m/s^2, m/s^3)."""
+    distances (m/s^2, m/s^3). ``out_dir``: also write the full report there as ``results.json`` (the format of
+    `trafficrlhf evaluate --out`, per-scene values included, ``metadata`` added), for `trafficrlhf compare`."""
     torch.manual_seed(seed)
     policy = build_policy(model, {**(options or {}), "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=seed))
+    if out_dir is not None:
+        report.metadata.update({"model": model, "guidance": guidance, "checkpoint": checkpoint, "seed": seed,
+                                "model_options": options or {}, **(metadata or {})})
+        report.save(out_dir, plot=False)
     return {"wall_s": round(report.wall_time_s, 1), **{k: round(report.values[k], 4) for k in KEYS}}
 
 
@@ -156,6 +163,10 @@ def main() -> None:
                              "imitated, and alignment only with --mirror-scenes.")
     parser.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                         help="A model option, as in `trafficrlhf evaluate --model-option` (repeatable).")
+    parser.add_argument("--out", default=None, metavar="DIR",
+                        help="Also write each seed's full report to DIR/seed_S/results.json (per-scene values "
+                             "included), so that `trafficrlhf compare DIR_A/seed_* DIR_B/seed_* --interval` can "
+                             "pair two models scene by scene.")
     seeds = parser.add_mutually_exclusive_group()
     seeds.add_argument("--seed", type=int, default=0)
     seeds.add_argument("--seeds", type=seed_list, default=None, metavar="LIST",
@@ -176,7 +187,10 @@ def main() -> None:
     reports = []
     for seed in tqdm(args.seeds or [args.seed], desc="seeds", unit="run", disable=not args.seeds):
         try:
-            report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, seed, options)
+            report = held_out_report(args.model, args.checkpoint, args.guidance, scenario, seed, options,
+                                     out_dir=args.out and os.path.join(args.out, f"seed_{seed}"),
+                                     metadata={"scene_ids": ids, "split": args.split, "mirror": args.mirror,
+                                               "source": "nuscenes_pred"})
         except (TrafficRLHFError, pydantic.ValidationError, OSError) as error:  # one line, as the CLI gives it
             parser.exit(2, f"Error: {format_error(error)}\n")
         reports.append(report)

@@ -512,7 +512,7 @@ def test_development_evaluation_over_several_seeds_prints_each_then_their_mean(l
         with pytest.raises(argparse.ArgumentTypeError, match="--seeds"):
             dev.seed_list(bad)
 
-    def fake_report(model, checkpoint, guidance, scenario, seed, options=None):  # type: ignore[no-untyped-def]
+    def fake_report(model, checkpoint, guidance, scenario, seed, options=None, **saving):  # type: ignore[no-untyped-def]
         return {"wall_s": 1.0, "failure_rate": 0.01 * (seed + 1), "collision_rate": 0.0}
 
     monkeypatch.setattr(dev, "held_out_report", fake_report)
@@ -527,3 +527,26 @@ def test_development_evaluation_over_several_seeds_prints_each_then_their_mean(l
     with pytest.raises(SystemExit) as exit_info:
         dev.main()
     assert exit_info.value.code == 2
+
+
+def test_development_reports_saved_with_out_pair_up_in_compare(load_script, monkeypatch, val_scenes,
+                                                                tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.cli import get_cli
+    from trafficrlhf_sdk.cli.evaluate import build_policy
+
+    dev = load_script("align_dev_eval")
+    monkeypatch.setattr(dev, "build_policy", lambda model, options: build_policy(model, {}))
+    ids = [f"scene-{i}" for i in range(val_scenes.num_scenes)]
+    for model in ("constant_velocity", "log_replay"):
+        report = dev.held_out_report(model, None, None, val_scenes, 0, out_dir=str(tmp_path / model / "seed_0"),
+                                     metadata={"scene_ids": ids, "mirror": False})
+        saved = json.loads((tmp_path / model / "seed_0" / "results.json").read_text())
+        assert saved["metadata"]["scene_ids"] == ids and saved["metadata"]["model"] == model
+        assert saved["metrics"]["failure_rate"] == pytest.approx(report["failure_rate"], abs=5e-5)
+        assert len(saved["per_scene"]["failure_rate"]) == len(ids)
+    out = CliRunner().invoke(get_cli(), ["compare", str(tmp_path / "constant_velocity" / "seed_0"),
+                                         str(tmp_path / "log_replay" / "seed_0"), "--interval"])
+    assert out.exit_code == 0, out.output
+    assert "constant_velocity -> log_replay (1 / 1 seed(s))" in out.output

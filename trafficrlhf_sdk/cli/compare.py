@@ -159,11 +159,12 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
             row += f" {ci.share_meeting_target:.2f} |"
         lines.append(row)
         scenes, draws = ci.scenes, ci.resamples
-    if len(lines) == 4 or scenes is None:
+    if len(lines) == 4:
         raise DataFormatError("no per-scene failure, collision or off-road rates in these results; re-run "
                               "`trafficrlhf evaluate --out` with this version to write them.")
-    lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like these "
-                  "(and the seeds' noise inside each scene's mean), not a change of data set."]
+    if scenes is not None:
+        lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like "
+                      "these (and the seeds' noise inside each scene's mean), not a change of data set."]
     return "\n".join(lines)
 
 
