@@ -1,4 +1,5 @@
-"""Which scenes carry a scene-averaged metric, and which scenes changed between two evaluations.
+"""Which scenes carry a scene-averaged metric, which scenes changed between two evaluations, and how sure the
+change is (a paired bootstrap over scenes).
 
 The failure rate is a mean over scenes of per-scene shares of agents, so a scene with one controlled agent that
 fails weighs as much as a scene where all twenty fail; a few small scenes can carry most of it. These helpers
@@ -104,7 +105,6 @@ def scene_changes(before: dict[str, tuple[int, float]], after: dict[str, tuple[i
     rows = [SceneChange(s, before[s][0], before[s][1], after[s][1]) for s in before if s in after]
     rows.sort(key=lambda row: (-abs(row.change), row.scene_id))
     return rows[: len(rows) if top is None else top]
-
 
 
 @dataclass(frozen=True)
