@@ -65,7 +65,9 @@ def _pool_seeds(runs: list[tuple[str, dict]]) -> list[tuple[str, list[dict]]]:
                 break
         else:
             groups.append((label, [result]))
-    return groups
+    # within a policy, in seed order (a shell glob lists seed_10 before seed_9)
+    return [(label, sorted(members, key=lambda m: m.get("metadata", {}).get("seed") or 0))
+            for label, members in groups]
 
 
 def comparison_table(folders: list[str]) -> str:
@@ -175,22 +177,22 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
 @click.option("--interval", is_flag=True,
               help="Also print the relative change from the first model to the last in the failure, collision and "
                    "off-road rates, with a paired bootstrap interval over scenes.")
-@click.option("--level", type=click.FloatRange(0.5, 1.0, max_open=True), default=0.95, show_default=True,
-              help="With --interval: the interval's coverage.")
+@click.option("--level", type=click.FloatRange(0.5, 1.0, max_open=True), default=None,
+              help="With --interval: the interval's coverage (default 0.95).")
 @click.option("--target", type=click.FloatRange(-100.0, 1000.0), default=None,
               help="With --interval: a relative change in percent (e.g. -70); adds the share of bootstrap draws at "
                    "or below it.")
-def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool, level: float,
+def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool, level: float | None,
                     target: float | None) -> None:
     """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json)."""
-    if target is not None and not interval:
-        raise click.BadParameter(f"--target {target:g} only acts with --interval; add --interval.",
-                                 param_hint="--target")
+    for name, value in (("--target", target), ("--level", level)):
+        if value is not None and not interval:
+            raise click.BadParameter(f"{name} {value:g} only acts with --interval; add --interval.", param_hint=name)
     click.echo(comparison_table(list(folders)))
     if scene_changes:
         click.echo("")
         click.echo(scene_change_table(list(folders), scene_changes))
     if interval:
         click.echo("")
-        click.echo(change_interval_table(list(folders), level=level,
+        click.echo(change_interval_table(list(folders), level=0.95 if level is None else level,
                                          target=None if target is None else target / 100.0))
