@@ -184,3 +184,29 @@ def test_model_options_reach_the_model_and_unknown_ones_are_named(has_data, cli)
                                      "--model-option", "noise=2"])
     assert isinstance(wrong.exception, TrafficRLHFError)
     assert "'noise'" in str(wrong.exception) and "position_noise_m" in str(wrong.exception)
+
+
+def test_compare_interval_reads_the_saved_realism_histograms(has_data, cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.evaluation import load_scene_histograms
+    from trafficrlhf_sdk.scene_breakdown import realism_deviation_draws
+
+    folders, reported = [], {}
+    for model in ("constant_velocity", "noisy_log"):
+        result = CliRunner().invoke(cli, ["evaluate", "--model", model, "--scenes", "4", "--seeds", "0,1",
+                                          "--out", str(tmp_path / model)])
+        assert result.exit_code == 0, (result.output, result.exception)
+        runs = [json.loads((tmp_path / model / f"seed_{s}" / "results.json").read_text()) for s in (0, 1)]
+        for s, run in enumerate(runs):
+            counts = load_scene_histograms(str(tmp_path / model / f"seed_{s}" / "scene_histograms.npz"))
+            for preset in ("ctg", "body"):
+                assert counts[preset]["jerk"]["simulated"].shape == (4, 20)
+                everything = realism_deviation_draws(counts[preset], np.ones((1, 4)))[0]
+                assert everything == pytest.approx(run["metrics"][f"realism_{preset}"], abs=1e-12)
+        reported[model] = {p: np.mean([r["metrics"][f"realism_{p}"] for r in runs]) for p in ("ctg", "body")}
+        folders += [str(tmp_path / model / f"seed_{s}") for s in (0, 1)]
+    out = CliRunner().invoke(cli, ["compare", *folders, "--interval"])
+    assert out.exit_code == 0, (out.output, out.exception)
+    for preset in ("ctg", "body"):  # the bootstrap's full-sample point is the deviation evaluate reported
+        before, after = reported["constant_velocity"][preset], reported["noisy_log"][preset]
+        assert f"| realism dev. ({preset}) | {before:.4f} | {after:.4f} | {100 * (after / before - 1):+.1f} % |" \
+            in out.output

@@ -13,7 +13,9 @@ from hypothesis import strategies as st
 from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.scene_breakdown import (
     paired_change_interval,
+    paired_realism_interval,
     pooled_per_scene,
+    realism_deviation_draws,
     scene_changes,
     scenes_carrying,
     worst_scenes,
@@ -173,3 +175,82 @@ def test_compare_interval_prints_the_change_with_its_interval(tmp_path) -> None:
     # seeds given out of order are listed in seed order
     reordered = CliRunner().invoke(get_cli(), ["compare", folders[1], folders[0], folders[2]])
     assert "base, seeds 0 / 1" in reordered.output, reordered.output
+
+
+def _counts(rng, scenes=12, bins=20, empty=()):  # type: ignore[no-untyped-def]
+    run = {}
+    for q in ("lon_acc", "lat_acc", "jerk", "pace"):
+        run[q] = {side: rng.integers(0, 6, size=(scenes, bins)) for side in ("simulated", "logged")}
+        for scene in empty:
+            run[q]["simulated"][scene] = 0
+    return run
+
+
+def test_realism_draws_match_scipy_on_the_drawn_scenes() -> None:
+    from scipy.stats import wasserstein_distance
+
+    from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS
+
+    rng = np.random.default_rng(3)
+    run = _counts(rng, empty=(4,))
+    weights = rng.multinomial(12, np.full(12, 1 / 12), size=5).astype(float)
+    draws = realism_deviation_draws(run, np.vstack([np.ones((1, 12)), weights]))
+    for row, w in zip(draws, np.vstack([np.ones((1, 12)), weights])):
+        distances = []
+        for q in QUANTITIES:
+            spec = SPECS[q]
+            centres = spec.low + (np.arange(spec.num_bins) + 0.5) * (spec.high - spec.low) / spec.num_bins
+            picked = np.repeat(np.arange(12), w.astype(int))  # the drawn scenes, repeats included
+            shares = {}
+            for side in ("simulated", "logged"):
+                c = run[q][side][picked].astype(float)
+                totals = c.sum(1, keepdims=True)
+                shares[side] = np.where(totals > 0, c / np.maximum(totals, 1), 0).mean(0)
+            distances.append(wasserstein_distance(centres, centres, shares["logged"], shares["simulated"]))
+        assert row == pytest.approx(np.mean(distances), abs=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(scale=st.integers(1, 9), scene=st.integers(0, 11), seed=st.integers(0, 2**16))
+def test_realism_weighs_each_scene_once_whatever_its_sample_count(scale, scene, seed) -> None:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(seed)
+    run = _counts(rng)
+    scaled = {q: {side: c.copy() for side, c in sides.items()} for q, sides in run.items()}
+    for q in scaled:
+        scaled[q]["simulated"][scene] *= scale
+    w = rng.multinomial(12, np.full(12, 1 / 12), size=20).astype(float)
+    np.testing.assert_allclose(realism_deviation_draws(scaled, w), realism_deviation_draws(run, w), atol=1e-12)
+    same = paired_realism_interval([run], [run], resamples=200)
+    assert same.change == 0.0 and same.low == 0.0 and same.high == 0.0
+
+
+def test_realism_interval_pools_seeds_and_refuses_what_it_cannot_measure() -> None:
+    rng = np.random.default_rng(5)
+    before, after = [_counts(rng), _counts(rng)], [_counts(rng)]
+    ci = paired_realism_interval(before, after, resamples=500, level=0.9)
+    ones = np.ones((1, 12))
+    x = np.mean([realism_deviation_draws(run, ones)[0] for run in before])
+    assert ci.before == pytest.approx(x) and ci.change == pytest.approx(ci.after / x - 1)
+    assert ci.low <= ci.change <= ci.high and ci.scenes == 12 and ci.level == 0.9
+    with pytest.raises(DataFormatError, match="different numbers of scenes"):
+        paired_realism_interval(before, [_counts(rng, scenes=11)], resamples=200)
+    missing = _counts(rng)
+    del missing["jerk"]
+    with pytest.raises(DataFormatError, match="lack 'jerk'"):
+        paired_realism_interval(before, [missing], resamples=200)
+    with pytest.raises(ValueError, match="level"):
+        paired_realism_interval(before, after, level=1.0)
+
+
+def test_scene_histograms_round_trip_and_a_bad_file_is_named(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.evaluation import load_scene_histograms, save_scene_histograms
+
+    run = _counts(np.random.default_rng(0))
+    path = save_scene_histograms({"ctg": run}, str(tmp_path / "h.npz"))
+    loaded = load_scene_histograms(path)
+    for q, sides in run.items():
+        for side, counts in sides.items():
+            np.testing.assert_array_equal(loaded["ctg"][q][side], counts)
+    (tmp_path / "bad.npz").write_text("not a zip")
+    with pytest.raises(DataFormatError, match=r"bad\.npz: not a per-scene histogram archive"):
+        load_scene_histograms(str(tmp_path / "bad.npz"))

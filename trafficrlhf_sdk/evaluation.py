@@ -6,21 +6,26 @@ import json
 import os
 import platform
 import time
+import zipfile
 from dataclasses import dataclass, field
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.metrics.base import Metric
 from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS, RealismMetric
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import ClosedLoopPolicy
 from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_rollout, simulate
 
-__all__ = ["EvaluationConfig", "EvaluationReport", "evaluate_policy", "plot_histograms", "run_batched"]
+__all__ = ["SCENE_HISTOGRAMS", "EvaluationConfig", "EvaluationReport", "evaluate_policy", "load_scene_histograms",
+           "plot_histograms", "run_batched", "save_scene_histograms"]
 
+SCENE_HISTOGRAMS = "scene_histograms.npz"
 DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives", "speed")
 
 
@@ -50,6 +55,9 @@ class EvaluationReport:
     # per scene, in the order of ``metadata["scene_ids"]``: "controlled_agents" and every metric value that is a
     # mean over scenes (failure, collision, off-road, speed...); None where a scene has no controlled agent
     per_scene: dict[str, list[float | None]] = field(default_factory=dict)
+    # per realism preset and quantity: per-scene bin counts {"simulated", "logged"} of shape (B, num_bins), in
+    # the order of ``metadata["scene_ids"]``; saved as scene_histograms.npz for a bootstrap over scenes
+    scene_histograms: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     # the closed-loop rollout itself (not saved): for drawing scenes, e.g. with render_failures.save_failure_png
     rollout: Rollout | None = field(default=None, repr=False, compare=False)
 
@@ -69,11 +77,14 @@ class EvaluationReport:
         }
 
     def save(self, directory: str, plot: bool = True) -> list[str]:
-        """Write ``results.json`` (and ``histograms.png``) into ``directory``; returns the written paths."""
+        """Write ``results.json`` (plus ``scene_histograms.npz`` and ``histograms.png`` when there are realism
+        histograms) into ``directory``; returns the written paths."""
         os.makedirs(directory, exist_ok=True)
         paths = [os.path.join(directory, "results.json")]
         with open(paths[0], "w", encoding="utf-8") as handle:
             json.dump(self.to_json(), handle, indent=2)
+        if self.scene_histograms:
+            paths.append(save_scene_histograms(self.scene_histograms, os.path.join(directory, SCENE_HISTOGRAMS)))
         if plot and self.histograms:
             paths.append(plot_histograms(self.histograms, os.path.join(directory, "histograms.png"),
                                          title=str(self.metadata.get("model", ""))))
@@ -105,11 +116,13 @@ def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: Eval
     return rollout, reference
 
 
-def compute_metrics(rollout: Rollout, metrics: Sequence[Metric],
-                    per_scene: dict[str, list[float | None]] | None = None) -> tuple[dict[str, float], dict[str, Any]]:
+def compute_metrics(rollout: Rollout, metrics: Sequence[Metric], per_scene: dict[str, list[float | None]] | None = None,
+                    scene_histograms: dict[str, Any] | None = None) -> tuple[dict[str, float], dict[str, Any]]:
     """All scalar values of ``metrics`` on ``rollout`` and the realism histograms (simulated and logged).
 
-    ``per_scene``, if given, receives each metric's per-scene values ``(B,)`` as lists (NaN written as None)."""
+    ``per_scene``, if given, receives each metric's per-scene values ``(B,)`` as lists (NaN written as None);
+    ``scene_histograms`` receives each realism preset's per-scene bin counts
+    (:attr:`EvaluationReport.scene_histograms`)."""
     values: dict[str, float] = {}
     histograms: dict[str, Any] = {}
     for metric in metrics:
@@ -124,6 +137,12 @@ def compute_metrics(rollout: Rollout, metrics: Sequence[Metric],
                     "low": SPECS[q].low, "high": SPECS[q].high}
                 for q in QUANTITIES
             }
+            if scene_histograms is not None:
+                counts = result.extras["scene_counts"]
+                scene_histograms[metric.preset] = {
+                    q: {side: counts[side][q].round().to(torch.int32).numpy() for side in ("simulated", "logged")}
+                    for q in (*QUANTITIES, "pace")
+                }
     return values, histograms
 
 
@@ -152,7 +171,8 @@ def evaluate_policy(
     began = time.perf_counter()
     rollout, reference = run_batched(policy, scenario, config, progress)
     per_scene: dict[str, list[float | None]] = {"controlled_agents": rollout.controlled.sum(-1).tolist()}
-    values, histograms = compute_metrics(rollout, metrics, per_scene)
+    scene_histograms: dict[str, Any] = {}
+    values, histograms = compute_metrics(rollout, metrics, per_scene, scene_histograms)
     logged_values, _ = compute_metrics(reference, metrics)
     info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed}
     info.update(metadata or {})
@@ -166,8 +186,39 @@ def evaluate_policy(
         metadata=info,
         histograms=histograms,
         per_scene=per_scene,
+        scene_histograms=scene_histograms,
         rollout=rollout,
     )
+
+
+def save_scene_histograms(scene_histograms: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
+    """Write :attr:`EvaluationReport.scene_histograms` to ``path`` (``.npz``, one ``preset/quantity/side`` array
+    of int32 counts ``(B, num_bins)`` each); returns ``path``."""
+    arrays = {f"{preset}/{q}/{side}": np.asarray(counts, dtype=np.int32)
+              for preset, by_quantity in scene_histograms.items()
+              for q, sides in by_quantity.items() for side, counts in sides.items()}
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def load_scene_histograms(path: str) -> dict[str, dict[str, dict[str, Any]]]:
+    """Read a :func:`save_scene_histograms` file back into ``{preset: {quantity: {side: int array (B, bins)}}}``.
+
+    Raises DataFormatError for a file that is not such an archive."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {key: archive[key] for key in archive.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise DataFormatError(f"{path}: not a per-scene histogram archive ({exc}); re-run "
+                              "`trafficrlhf evaluate --out` to write it again.") from exc
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for key, array in arrays.items():
+        parts = key.split("/")
+        if len(parts) != 3 or array.ndim != 2:
+            raise DataFormatError(f"{path}: unexpected entry {key!r} of shape {array.shape}; expected "
+                                  "'preset/quantity/side' arrays of shape (scenes, bins).")
+        out.setdefault(parts[0], {}).setdefault(parts[1], {})[parts[2]] = array
+    return out
 
 
 def plot_histograms(histograms: dict[str, Any], path: str, title: str = "") -> str:

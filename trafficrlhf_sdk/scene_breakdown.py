@@ -1,5 +1,5 @@
 """Which scenes carry a scene-averaged metric, which scenes changed between two evaluations, and how sure the
-change is (a paired bootstrap over scenes).
+change is (a paired bootstrap over scenes), for the failure rates and for the realism deviations.
 
 The failure rate is a mean over scenes of per-scene shares of agents, so a scene with one controlled agent that
 fails weighs as much as a scene where all twenty fail; a few small scenes can carry most of it. These helpers
@@ -10,7 +10,7 @@ read the ``per_scene`` part of ``trafficrlhf evaluate``'s ``results.json`` (list
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,8 +18,8 @@ import numpy as np
 
 from trafficrlhf_sdk.errors import DataFormatError
 
-__all__ = ["ChangeInterval", "SceneChange", "SceneShare", "paired_change_interval", "pooled_per_scene", "scene_changes",
-           "scenes_carrying", "worst_scenes"]
+__all__ = ["ChangeInterval", "SceneChange", "SceneShare", "paired_change_interval", "paired_realism_interval",
+           "pooled_per_scene", "realism_deviation_draws", "scene_changes", "scenes_carrying", "worst_scenes"]
 
 
 @dataclass(frozen=True)
@@ -161,3 +161,77 @@ def paired_change_interval(before: dict[str, tuple[int, float]], after: dict[str
     return ChangeInterval(before=float(x.mean()), after=float(y.mean()), change=float(y.sum() / x.sum() - 1.0),
                           low=float(low), high=float(high), level=level, scenes=len(scenes),
                           resamples=int(ok.sum()), target=target, share_meeting_target=share)
+
+
+SceneCounts = Mapping[str, Mapping[str, np.ndarray]]
+"""One run's per-scene bin counts of one realism preset: ``{quantity: {"simulated"|"logged": (scenes, bins)}}``,
+as saved in ``scene_histograms.npz`` by ``trafficrlhf evaluate --out``."""
+
+
+def realism_deviation_draws(run: SceneCounts, weights: np.ndarray) -> np.ndarray:
+    """The realism deviation (mean over lon_acc, lat_acc and jerk of the Wasserstein-1 distance between the
+    logged and simulated scene-normalized histograms) of ``run`` for each row of ``weights (R, scenes)``: how
+    many times each scene is drawn. A row of ones gives the deviation ``trafficrlhf evaluate`` reports.
+    Returns ``(R,)``; NaN where a draw has no sample of a quantity."""
+    from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS
+
+    total = np.zeros(weights.shape[0])
+    for q in QUANTITIES:
+        if q not in run or {"simulated", "logged"} - set(run[q]):
+            raise DataFormatError(f"per-scene histograms lack {q!r} (simulated and logged); found {sorted(run)}.")
+        hists = []
+        for side in ("logged", "simulated"):
+            counts = np.asarray(run[q][side], dtype=np.float64)
+            if counts.ndim != 2 or counts.shape[0] != weights.shape[1]:
+                raise DataFormatError(f"{q}/{side} counts have shape {counts.shape}; expected ({weights.shape[1]}, "
+                                      "bins): one row per scene of the evaluation.")
+            rows = counts.sum(1, keepdims=True)
+            shares = np.divide(counts, rows, out=np.zeros_like(counts), where=rows > 0)
+            drawn = weights @ shares
+            sums = drawn.sum(1, keepdims=True)
+            hists.append(np.divide(drawn, sums, out=np.full_like(drawn, np.nan), where=sums > 0))
+        spec = SPECS[q]
+        width = (spec.high - spec.low) / spec.num_bins
+        total += np.abs(np.cumsum(hists[0] - hists[1], 1)[:, :-1]).sum(1) * width
+    return total / len(QUANTITIES)
+
+
+def paired_realism_interval(before: Sequence[SceneCounts], after: Sequence[SceneCounts], level: float = 0.95,
+                            resamples: int = 10_000, seed: int = 0) -> ChangeInterval:
+    """Relative change of one realism deviation between two evaluations of the same scenes, with a percentile
+    interval from ``resamples`` paired bootstrap draws of the scenes.
+
+    ``before``/``after``: one :data:`SceneCounts` per evaluation seed; a draw's deviation is the mean over the
+    seeds of each seed's deviation on the drawn scenes (as ``trafficrlhf compare`` averages seeds). Unlike the
+    failure rate, the deviation is a distance between histograms pooled over scenes, not a mean of per-scene
+    values, so each draw rebuilds the histograms from the drawn scenes' counts.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}.")
+    if resamples < 100:
+        raise ValueError(f"resamples must be at least 100 for a percentile interval, got {resamples!r}.")
+    if not before or not after:
+        raise ValueError("before and after each need at least one run's per-scene histograms.")
+    scenes = {np.asarray(run[q][side]).shape[0] for run in (*before, *after) for q in run for side in run[q]}
+    if len(scenes) != 1:
+        raise DataFormatError(f"the per-scene histograms cover different numbers of scenes ({sorted(scenes)}); "
+                              "compare runs of the same --split/--scenes.")
+    n = scenes.pop()
+    if n < 2:
+        raise DataFormatError(f"a paired interval needs at least 2 scenes; the runs have {n}.")
+    everything = np.ones((1, n))
+    weights = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=resamples).astype(np.float64)
+
+    def mean_over_seeds(runs: Sequence[SceneCounts], w: np.ndarray) -> np.ndarray:
+        return np.mean([realism_deviation_draws(run, w) for run in runs], axis=0)
+
+    x0, y0 = float(mean_over_seeds(before, everything)[0]), float(mean_over_seeds(after, everything)[0])
+    if not x0 > 0:
+        raise DataFormatError(f"the first evaluation's realism deviation is {x0}; a relative change needs it > 0.")
+    x, y = mean_over_seeds(before, weights), mean_over_seeds(after, weights)
+    ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
+    changes = y[ok] / x[ok] - 1.0
+    tail = (1.0 - level) / 2.0
+    low, high = np.quantile(changes, [tail, 1.0 - tail])
+    return ChangeInterval(before=x0, after=y0, change=y0 / x0 - 1.0, low=float(low), high=float(high), level=level,
+                          scenes=n, resamples=int(ok.sum()))

@@ -46,9 +46,24 @@ def _read(folder: str) -> dict:
                                 "`trafficrlhf evaluate --out`.")
     try:
         with open(path, encoding="utf-8") as handle:
-            return json.load(handle)
+            result = json.load(handle)
     except json.JSONDecodeError as exc:
         raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
+    result["_folder"] = folder  # where scene_histograms.npz lies, read only by --interval
+    return result
+
+
+def _scene_counts(runs: list[dict], preset: str) -> list | None:
+    """Each run's per-scene realism counts of ``preset`` (None if any run lacks them: older results)."""
+    from trafficrlhf_sdk.evaluation import SCENE_HISTOGRAMS, load_scene_histograms
+
+    counts = []
+    for run in runs:
+        path = os.path.join(run["_folder"], SCENE_HISTOGRAMS)
+        if not os.path.isfile(path):
+            return None
+        counts.append(load_scene_histograms(path).get(preset))
+    return None if any(c is None for c in counts) else counts
 
 
 def _pool_seeds(runs: list[tuple[str, dict]]) -> list[tuple[str, list[dict]]]:
@@ -121,6 +136,7 @@ def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") 
 
 INTERVAL_KEYS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
                  ("offroad_rate", "off-road rate"))
+REALISM_INTERVAL_KEYS = (("ctg", "realism dev. (ctg)"), ("body", "realism dev. (body)"))
 
 
 def _first_and_last(folders: list[str], option: str) -> tuple[tuple[str, list[dict]], tuple[str, list[dict]]]:
@@ -135,9 +151,10 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
                           target: float | None = None) -> str:
     """Markdown table of the relative change from the first policy's runs to the last policy's (each pooled over
     its seeds) in the failure, collision and off-road rates, each with a paired bootstrap interval over scenes
-    (:func:`~trafficrlhf_sdk.scene_breakdown.paired_change_interval`). ``target``: a relative change such as
-    -0.7; adds the share of bootstrap draws at or below it."""
-    from trafficrlhf_sdk.scene_breakdown import paired_change_interval, pooled_per_scene
+    (:func:`~trafficrlhf_sdk.scene_breakdown.paired_change_interval`), and in the two realism deviations where
+    every run's folder has ``scene_histograms.npz`` (:func:`~trafficrlhf_sdk.scene_breakdown.paired_realism_interval`).
+    ``target``: a relative change such as -0.7; adds the share of the failure-rate draws at or below it."""
+    from trafficrlhf_sdk.scene_breakdown import paired_change_interval, paired_realism_interval, pooled_per_scene
 
     (first, before_runs), (last, after_runs) = _first_and_last(folders, "--interval")
     seeds = f"{len(before_runs)} / {len(after_runs)} seed(s)"
@@ -164,6 +181,15 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
     if len(lines) == 4:
         raise DataFormatError("no per-scene failure, collision or off-road rates in these results; re-run "
                               "`trafficrlhf evaluate --out` with this version to write them.")
+    same_scenes = (before_runs[0].get("metadata", {}).get("scene_ids")
+                   == after_runs[0].get("metadata", {}).get("scene_ids"))
+    for preset, name in REALISM_INTERVAL_KEYS:
+        before_counts, after_counts = _scene_counts(before_runs, preset), _scene_counts(after_runs, preset)
+        if not same_scenes or before_counts is None or after_counts is None:
+            continue
+        ci = paired_realism_interval(before_counts, after_counts, level=level, resamples=resamples)
+        lines.append(f"| {name} | {ci.before:.4f} | {ci.after:.4f} | {100 * ci.change:+.1f} % | "
+                     f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} % |" + (" |" if extra else ""))
     if scenes is not None:
         lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like "
                       "these (and the seeds' noise inside each scene's mean), not a change of data set."]
@@ -176,7 +202,7 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
               help="Also list the N scenes whose failure rate changed most from the first model to the last.")
 @click.option("--interval", is_flag=True,
               help="Also print the relative change from the first model to the last in the failure, collision and "
-                   "off-road rates, with a paired bootstrap interval over scenes.")
+                   "off-road rates and the realism deviations, with a paired bootstrap interval over scenes.")
 @click.option("--level", type=click.FloatRange(0.5, 1.0, max_open=True), default=None,
               help="With --interval: the interval's coverage (default 0.95).")
 @click.option("--target", type=click.FloatRange(-100.0, 1000.0), default=None,

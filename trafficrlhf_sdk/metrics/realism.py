@@ -35,10 +35,12 @@ __all__ = [
     "HistogramSpec",
     "RealismMetric",
     "agent_kinematics",
+    "grouped_counts",
     "grouped_histogram",
     "histogram_distance",
     "kinematics",
     "scene_histogram",
+    "scene_normalized",
 ]
 
 Preset = Literal["ctg", "body"]
@@ -154,20 +156,33 @@ def scene_histogram(values: torch.Tensor, mask: torch.Tensor, spec: HistogramSpe
     return grouped_histogram(values.reshape(-1), mask.reshape(-1), scene, b, spec)
 
 
-def grouped_histogram(
+def grouped_counts(
     values: torch.Tensor, mask: torch.Tensor, scene: torch.Tensor, num_scenes: int, spec: HistogramSpec
 ) -> torch.Tensor:
-    """:func:`scene_histogram` for flat ``values (N,)`` with ``mask (N,)`` belonging to scenes ``scene (N,)``
-    (ints in ``[0, num_scenes)``); scenes without values count as empty."""
+    """Bin counts of flat ``values (N,)`` with ``mask (N,)`` per scene ``scene (N,)`` (ints in
+    ``[0, num_scenes)``): float64 ``(num_scenes, num_bins)``; values outside ``[low, high]`` are dropped."""
     flat = values.double()
     keep = mask & (flat >= spec.low) & (flat <= spec.high)
     index = ((flat - spec.low) / (spec.high - spec.low) * spec.num_bins).floor().long().clamp(0, spec.num_bins - 1)
     counts = torch.zeros(num_scenes * spec.num_bins, dtype=torch.float64, device=values.device)
     counts.scatter_add_(0, (scene * spec.num_bins + index)[keep], torch.ones_like(flat[keep]))
-    counts = counts.reshape(num_scenes, spec.num_bins)
-    totals = counts.sum(1, keepdim=True)
+    return counts.reshape(num_scenes, spec.num_bins)
+
+
+def scene_normalized(counts: torch.Tensor) -> torch.Tensor:
+    """Each row of ``counts (..., num_scenes, num_bins)`` divided by its total (empty scenes stay 0), averaged
+    over scenes: ``(..., num_bins)``. This is how the realism histograms weigh scenes (module docstring)."""
+    totals = counts.sum(-1, keepdim=True)
     per_scene = torch.where(totals > 0, counts / totals.clamp_min(1), torch.zeros_like(counts))
-    return per_scene.sum(0) / max(num_scenes, 1)
+    return per_scene.sum(-2) / max(counts.shape[-2], 1)
+
+
+def grouped_histogram(
+    values: torch.Tensor, mask: torch.Tensor, scene: torch.Tensor, num_scenes: int, spec: HistogramSpec
+) -> torch.Tensor:
+    """:func:`scene_histogram` for flat ``values (N,)`` with ``mask (N,)`` belonging to scenes ``scene (N,)``
+    (ints in ``[0, num_scenes)``); scenes without values count as empty."""
+    return scene_normalized(grouped_counts(values, mask, scene, num_scenes, spec))
 
 
 def histogram_distance(reference: torch.Tensor, other: torch.Tensor, spec: HistogramSpec) -> float:
@@ -191,30 +206,37 @@ class RealismMetric(Metric):
         self.preset = preset
         self.name = f"realism_{preset}"  # type: ignore[misc]
 
-    def histograms(self, window: ScenarioTensor, controlled: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Histograms ``(num_bins,)`` of every quantity for the controlled, moving agents of ``window`` on
-        :data:`SPECS`, and ``pace``: speed on :data:`PACE_SPEC`."""
+    def scene_counts(self, window: ScenarioTensor, controlled: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Per-scene bin counts ``(B, num_bins)`` of every quantity for the controlled, moving agents of
+        ``window`` on :data:`SPECS`, and ``pace``: speed on :data:`PACE_SPEC`."""
         scene, agent = controlled.nonzero(as_tuple=True)  # only controlled agents count: skip padding early
         quantities, sample_valid, moving = agent_kinematics(
             window.xy[scene, agent], window.yaw[scene, agent], window.valid[scene, agent], window.dt, self.preset
         )
         mask = (sample_valid & moving[:, None]).reshape(-1)
         per_sample_scene = scene[:, None].expand_as(sample_valid).reshape(-1)
-        histograms = {
-            name: grouped_histogram(values.reshape(-1), mask, per_sample_scene, window.num_scenes, SPECS[name])
+        counts = {
+            name: grouped_counts(values.reshape(-1), mask, per_sample_scene, window.num_scenes, SPECS[name])
             for name, values in quantities.items()
         }
-        histograms["pace"] = grouped_histogram(quantities["speed"].reshape(-1), mask, per_sample_scene,
-                                               window.num_scenes, PACE_SPEC)
-        return histograms
+        counts["pace"] = grouped_counts(quantities["speed"].reshape(-1), mask, per_sample_scene, window.num_scenes,
+                                        PACE_SPEC)
+        return counts
+
+    def histograms(self, window: ScenarioTensor, controlled: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Scene-normalized histograms ``(num_bins,)`` of :meth:`scene_counts`."""
+        return {name: scene_normalized(counts) for name, counts in self.scene_counts(window, controlled).items()}
 
     def compute(self, rollout: Rollout) -> MetricResult:
         """``realism_<preset>`` (mean of the three distances), each quantity's distance, and
-        ``realism_<preset>_speed`` (speed histograms, m/s; not in the mean)."""
-        simulated = self.histograms(rollout.window("simulated"), rollout.controlled)
-        logged = self.histograms(rollout.window("logged"), rollout.controlled)
+        ``realism_<preset>_speed`` (speed histograms, m/s; not in the mean). Extras: the histograms, and
+        ``scene_counts[side][quantity]`` ``(B, num_bins)`` for a bootstrap over scenes."""
+        counts = {side: self.scene_counts(rollout.window(side), rollout.controlled) for side in ("simulated", "logged")}
+        simulated = {name: scene_normalized(c) for name, c in counts["simulated"].items()}
+        logged = {name: scene_normalized(c) for name, c in counts["logged"].items()}
         distances = {q: histogram_distance(logged[q], simulated[q], SPECS[q]) for q in QUANTITIES}
         values = {f"{self.name}_{q}": d for q, d in distances.items()}
         values[self.name] = sum(distances.values()) / len(distances)
         values[f"{self.name}_speed"] = histogram_distance(logged["pace"], simulated["pace"], PACE_SPEC)
-        return MetricResult(values=values, extras={"simulated": simulated, "logged": logged, "specs": SPECS})
+        return MetricResult(values=values, extras={"simulated": simulated, "logged": logged, "specs": SPECS,
+                                                          "scene_counts": counts})
