@@ -107,6 +107,13 @@ def scene_changes(before: dict[str, tuple[int, float]], after: dict[str, tuple[i
     return rows[: len(rows) if top is None else top]
 
 
+def _check_bootstrap(level: float, resamples: int) -> None:
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}.")
+    if resamples < 100:
+        raise ValueError(f"resamples must be at least 100 for a percentile interval, got {resamples!r}.")
+
+
 @dataclass(frozen=True)
 class ChangeInterval:
     """The relative change of a scene-averaged metric between two evaluations of the same scenes, with a paired
@@ -137,10 +144,7 @@ def paired_change_interval(before: dict[str, tuple[int, float]], after: dict[str
     scene's value is already a mean over seeds (:func:`pooled_per_scene`). ``before``/``after``: as returned by
     :func:`pooled_per_scene`. ``target`` (e.g. -0.7): also report the share of draws at or below it.
     """
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level!r}.")
-    if resamples < 100:
-        raise ValueError(f"resamples must be at least 100 for a percentile interval, got {resamples!r}.")
+    _check_bootstrap(level, resamples)
     scenes = sorted(s for s in before if s in after)
     if len(scenes) < 2:
         raise DataFormatError(f"the two evaluations share {len(scenes)} scene(s) with controlled agents; a paired "
@@ -173,7 +177,7 @@ def realism_deviation_draws(run: SceneCounts, weights: np.ndarray) -> np.ndarray
     logged and simulated scene-normalized histograms) of ``run`` for each row of ``weights (R, scenes)``: how
     many times each scene is drawn. A row of ones gives the deviation ``trafficrlhf evaluate`` reports.
     Returns ``(R,)``; NaN where a draw has no sample of a quantity."""
-    from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS
+    from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS  # imports torch: only when realism is asked for
 
     total = np.zeros(weights.shape[0])
     for q in QUANTITIES:
@@ -206,10 +210,7 @@ def paired_realism_interval(before: Sequence[SceneCounts], after: Sequence[Scene
     failure rate, the deviation is a distance between histograms pooled over scenes, not a mean of per-scene
     values, so each draw rebuilds the histograms from the drawn scenes' counts.
     """
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level!r}.")
-    if resamples < 100:
-        raise ValueError(f"resamples must be at least 100 for a percentile interval, got {resamples!r}.")
+    _check_bootstrap(level, resamples)
     if not before or not after:
         raise ValueError("before and after each need at least one run's per-scene histograms.")
     scenes = {np.asarray(run[q][side]).shape[0] for run in (*before, *after) for q in run for side in run[q]}
