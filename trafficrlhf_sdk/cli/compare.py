@@ -53,17 +53,15 @@ def _read(folder: str) -> dict:
     return result
 
 
-def _scene_counts(runs: list[dict], preset: str) -> list | None:
-    """Each run's per-scene realism counts of ``preset`` (None if any run lacks them: older results)."""
+def _scene_counts(runs: list[dict]) -> list[dict] | None:
+    """Each run's per-scene realism counts ``{preset: ...}``, each archive read once (None if any run lacks
+    them: results written before session 45)."""
     from trafficrlhf_sdk.evaluation import SCENE_HISTOGRAMS, load_scene_histograms
 
-    counts = []
-    for run in runs:
-        path = os.path.join(run["_folder"], SCENE_HISTOGRAMS)
-        if not os.path.isfile(path):
-            return None
-        counts.append(load_scene_histograms(path).get(preset))
-    return None if any(c is None for c in counts) else counts
+    paths = [os.path.join(run["_folder"], SCENE_HISTOGRAMS) for run in runs]
+    if not all(os.path.isfile(path) for path in paths):
+        return None
+    return [load_scene_histograms(path) for path in paths]
 
 
 def _pool_seeds(runs: list[tuple[str, dict]]) -> list[tuple[str, list[dict]]]:
@@ -183,11 +181,15 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
                               "`trafficrlhf evaluate --out` with this version to write them.")
     same_scenes = (before_runs[0].get("metadata", {}).get("scene_ids")
                    == after_runs[0].get("metadata", {}).get("scene_ids"))
+    before_counts = _scene_counts(before_runs) if same_scenes else None
+    after_counts = _scene_counts(after_runs) if before_counts is not None else None
     for preset, name in REALISM_INTERVAL_KEYS:
-        before_counts, after_counts = _scene_counts(before_runs, preset), _scene_counts(after_runs, preset)
-        if not same_scenes or before_counts is None or after_counts is None:
+        if before_counts is None or after_counts is None:
+            break
+        if any(preset not in run for run in before_counts + after_counts):
             continue
-        ci = paired_realism_interval(before_counts, after_counts, level=level, resamples=resamples)
+        ci = paired_realism_interval([run[preset] for run in before_counts], [run[preset] for run in after_counts],
+                                     level=level, resamples=resamples)
         lines.append(f"| {name} | {ci.before:.4f} | {ci.after:.4f} | {100 * ci.change:+.1f} % | "
                      f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} % |" + (" |" if extra else ""))
     if scenes is not None:
