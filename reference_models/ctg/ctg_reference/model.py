@@ -1,6 +1,8 @@
 """A compact CTG (Controllable Traffic Generation, Zhong et al. 2023) in plain PyTorch.
 
-This module knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and returns per-agent tensors.
+This package knows nothing of the TrafficRLHF SDK: it takes per-agent tensors and returns per-agent tensors.
+This module holds the configuration and the diffusion model; the networks are in :mod:`ctg_reference.networks`
+and the sampler's steering head in :mod:`ctg_reference.steering`.
 
 * Context encoder: a small CNN over an agent-centric map crop, an MLP over the agent's recent history (and its
   box size), an MLP + max-pool over its nearest neighbours, fused into a conditioning vector.
@@ -40,6 +42,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ctg_reference.networks import CoDenoiseMixer, ContextEncoder, TemporalUNet
+from ctg_reference.steering import MAP_BEHIND_FRACTION, SteerHead, neighbour_proximity, road_profile
+
 __all__ = ["MAP_BEHIND_FRACTION", "CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead",
            "TemporalUNet", "cosine_alphas_bar", "neighbour_proximity", "road_profile", "unicycle_from_origin"]
 
@@ -47,7 +52,6 @@ LOG_2PI = math.log(2 * math.pi)
 # a reading steering head's inputs, per row: drivable crop (N, 1, G, G) and speed v0 (N,); with steer_neighbours
 # also the neighbours (N, K, 7) as in the features, their valid mask (N, K) and the row's own extent (N, 2)
 SteerMap = tuple[torch.Tensor, ...]
-MAP_BEHIND_FRACTION = 0.25  # share of the map crop's rows behind the agent (the rest is ahead)
 
 
 @dataclass
@@ -155,294 +159,11 @@ def unicycle_from_origin(actions: torch.Tensor, v0: torch.Tensor, dt: float) -> 
     return torch.stack([x, y, v, yaw], -1)
 
 
-def _mlp(sizes: list[int]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2:
-            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
-    return nn.Sequential(*layers)
-
-
-# --------------------------------------------------------------------------------------------- encoder
-class ContextEncoder(nn.Module):
-    """Map crop CNN + history MLP + neighbour MLP/max-pool -> conditioning vector ``(N, cond_dim)``.
-
-    Inputs (all in the agent frame):
-        map ``(N, C, S, S)`` in {0, 1}; history ``(N, Th, 5)`` (x, y, speed, cos, sin of relative yaw) with
-        ``history_valid (N, Th)``; extent ``(N, 2)`` (length, width); neighbours ``(N, K, 7)`` (x, y, cos, sin,
-        speed, length, width) with ``neighbour_valid (N, K)``; optionally the neighbours' planned positions
-        ``neighbour_plan (N, [S,] K, F, 2)`` (m) with ``neighbour_plan_valid (N, [S,] K, F)``, F =
-        ``len(cfg.neighbour_plan_steps)``; with the sample axis S the output is ``(N, S, cond_dim)``.
-    """
-
-    def __init__(self, cfg: CTGConfig) -> None:
-        super().__init__()
-        c, w = cfg.map_channels, cfg.cnn_width
-        self.cnn = nn.Sequential(
-            nn.Conv2d(c, w, 3, stride=2, padding=1), nn.GroupNorm(4, w), nn.Mish(),
-            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.GroupNorm(4, 2 * w), nn.Mish(),
-            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 4 * w), nn.Mish(),
-            nn.Conv2d(4 * w, 8 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 8 * w), nn.Mish(),
-            nn.Flatten(),
-        )
-        with torch.no_grad():
-            flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
-        self.map_head = nn.Sequential(nn.Linear(flat, cfg.map_dim), nn.Mish())
-        self.history = _mlp([cfg.history_steps * 6 + 2, 128, 64])
-        self.num_plan_steps = len(cfg.neighbour_plan_steps)
-        self.neighbour = _mlp([8 + 3 * self.num_plan_steps, 64, 64])
-        self.fuse = _mlp([cfg.map_dim + 64 + 64, 256, cfg.cond_dim])
-        # fixed input scales (m, m/s): keep inputs O(1)
-        self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
-        self.register_buffer("neighbour_scale", torch.tensor([20.0, 20.0, 1.0, 1.0, 10.0, 5.0, 2.0]),
-                             persistent=False)
-
-    def forward(self, map_crop: torch.Tensor, history: torch.Tensor, history_valid: torch.Tensor,
-                extent: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
-                neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
-                ) -> torch.Tensor:
-        """Conditioning ``(N, cond_dim)``, or ``(N, S, cond_dim)`` for a plan with a sample axis."""
-        m, h = self.own(map_crop, history, history_valid, extent)
-        return self.combine(m, h, neighbours, neighbour_valid, neighbour_plan, neighbour_plan_valid)
-
-    def own(self, map_crop: torch.Tensor, history: torch.Tensor, history_valid: torch.Tensor, extent: torch.Tensor
-            ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The parts that do not depend on the neighbours: map ``(N, map_dim)`` and history ``(N, 64)`` features
-        (computed once when the neighbours' plans change between denoising steps)."""
-        m = self.map_head(self.cnn(map_crop.float()))
-        hv = history_valid.float()
-        h = torch.cat([history / self.history_scale * hv[..., None], hv[..., None]], -1).flatten(1)
-        return m, self.history(torch.cat([h, extent / 5.0], -1))
-
-    def neighbour_input(self, neighbours: torch.Tensor, neighbour_valid: torch.Tensor) -> torch.Tensor:
-        """Scaled neighbour features with their validity flag, ``(N, K, 8)``."""
-        return torch.cat([neighbours / self.neighbour_scale, neighbour_valid.float()[..., None]], -1)
-
-    def combine(self, m: torch.Tensor, h: torch.Tensor, neighbours: torch.Tensor, neighbour_valid: torch.Tensor,
-                neighbour_plan: torch.Tensor | None = None, neighbour_plan_valid: torch.Tensor | None = None
-                ) -> torch.Tensor:
-        """Conditioning from :meth:`own`'s features and the neighbours (see :meth:`forward`)."""
-        n_in = self.neighbour_input(neighbours, neighbour_valid)  # (N, K, 8)
-        valid = neighbour_valid
-        per_sample = neighbour_plan is not None and neighbour_plan.dim() == 5
-        if self.num_plan_steps:
-            n, k, f = neighbours.shape[0], neighbours.shape[1], self.num_plan_steps
-            if neighbour_plan is None or neighbour_plan_valid is None:  # nobody's plan known
-                neighbour_plan = neighbours.new_zeros(n, k, f, 2)
-                neighbour_plan_valid = torch.zeros(n, k, f, dtype=torch.bool, device=neighbours.device)
-            pv = neighbour_plan_valid.float()
-            plan = torch.cat([neighbour_plan / 20.0 * pv[..., None], pv[..., None]], -1).flatten(-2)  # (.., K, 3F)
-            if per_sample:
-                n_in = n_in[:, None].expand(n, plan.shape[1], k, n_in.shape[-1])
-                valid = valid[:, None].expand(n, plan.shape[1], k)
-            n_in = torch.cat([n_in, plan], -1)
-        nb = self.neighbour(n_in)  # (N, [S,] K, 64)
-        nb = torch.where(valid[..., None], nb, torch.full_like(nb, -1e4)).amax(-2)
-        nb = torch.where(valid.any(-1, keepdim=True), nb, torch.zeros_like(nb))
-        if per_sample:
-            m, h = (t[:, None].expand(t.shape[0], nb.shape[1], t.shape[-1]) for t in (m, h))
-        return self.fuse(torch.cat([m, h, nb], -1))
-
-
-# --------------------------------------------------------------------------------------------- denoiser
-class SinusoidalEmbedding(nn.Module):
-    """Sinusoidal embedding of the (integer) diffusion step."""
-
-    def __init__(self, dim: int) -> None:
-        super().__init__()
-        self.dim = dim
-
-    def forward(self, t: torch.Tensor) -> torch.Tensor:
-        """``(N,)`` -> ``(N, dim)``."""
-        half = self.dim // 2
-        freq = torch.exp(-math.log(10000) * torch.arange(half, device=t.device, dtype=torch.float32) / (half - 1))
-        arg = t.float()[:, None] * freq[None]
-        return torch.cat([arg.sin(), arg.cos()], -1)
-
-
-class ResBlock1d(nn.Module):
-    """Two Conv1d + GroupNorm + Mish with the embedding added as a per-channel bias, plus a residual path."""
-
-    def __init__(self, cin: int, cout: int, emb_dim: int, kernel: int, groups: int) -> None:
-        super().__init__()
-        self.conv1 = nn.Conv1d(cin, cout, kernel, padding=kernel // 2)
-        self.norm1 = nn.GroupNorm(groups, cout)
-        self.conv2 = nn.Conv1d(cout, cout, kernel, padding=kernel // 2)
-        self.norm2 = nn.GroupNorm(groups, cout)
-        self.emb = nn.Sequential(nn.Mish(), nn.Linear(emb_dim, cout))
-        self.skip = nn.Conv1d(cin, cout, 1) if cin != cout else nn.Identity()
-
-    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
-        """``(N, cin, L)`` -> ``(N, cout, L)``."""
-        h = F.mish(self.norm1(self.conv1(x))) + self.emb(emb)[..., None]
-        h = F.mish(self.norm2(self.conv2(h)))
-        return h + self.skip(x)
-
-
-class TemporalUNet(nn.Module):
-    """1-D temporal U-Net with one down/up level over ``(N, 2, H)`` normalized actions."""
-
-    def __init__(self, cfg: CTGConfig) -> None:
-        super().__init__()
-        d1, d2 = cfg.unet_dims
-        k, g = cfg.kernel_size, cfg.groups
-        self.time = nn.Sequential(SinusoidalEmbedding(cfg.time_dim), nn.Linear(cfg.time_dim, 64), nn.Mish(),
-                                  nn.Linear(64, cfg.time_dim))
-        emb = cfg.time_dim + cfg.cond_dim
-        self.down1 = ResBlock1d(2, d1, emb, k, g)
-        self.down2 = ResBlock1d(d1, d1, emb, k, g)
-        self.downsample = nn.Conv1d(d1, d1, 3, stride=2, padding=1)
-        self.mid1 = ResBlock1d(d1, d2, emb, k, g)
-        self.mid2 = ResBlock1d(d2, d2, emb, k, g)
-        self.upsample = nn.ConvTranspose1d(d2, d2, 4, stride=2, padding=1)
-        self.up1 = ResBlock1d(d2 + d1, d1, emb, k, g)
-        self.up2 = ResBlock1d(d1, d1, emb, k, g)
-        self.out = nn.Sequential(nn.Conv1d(d1, d1, k, padding=k // 2), nn.GroupNorm(g, d1), nn.Mish(),
-                                 nn.Conv1d(d1, 2, 1))
-
-    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        """x ``(N, H, 2)``, t ``(N,)`` int, cond ``(N, cond_dim)`` -> x0 prediction ``(N, H, 2)``."""
-        emb = torch.cat([self.time(t), cond], -1)
-        h = x.transpose(1, 2)
-        length = h.shape[-1]
-        h = self.down2(self.down1(h, emb), emb)
-        skip = h
-        h = self.downsample(h)
-        h = self.mid2(self.mid1(h, emb), emb)
-        h = self.upsample(h)[..., :length]
-        h = self.up2(self.up1(torch.cat([h, skip], 1), emb), emb)
-        return self.out(h).transpose(1, 2)
-
-
-# --------------------------------------------------------------------------------------------- scene-level denoising
-class CoDenoiseMixer(nn.Module):
-    """What an agent reads, at one denoising step, from the noisy samples of the neighbours denoised with it.
-
-    Per neighbour: its noisy normalized actions ``(H, 2)`` (frame-free), its pose and size in the agent's frame
-    (the encoder's neighbour input) and the noise level; an MLP, a max-pool over the co-denoised neighbours and a
-    zero-initialized projection whose output is added to the conditioning vector (so an untrained mixer changes
-    nothing).
-    """
-
-    def __init__(self, cfg: CTGConfig) -> None:
-        super().__init__()
-        self.steps = cfg.diffusion_steps
-        self.net = _mlp([cfg.horizon * 2 + 8 + 1, 128, 64])
-        self.out = nn.Linear(64, cfg.cond_dim)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, x: torch.Tensor, k: torch.Tensor | int, neighbour_in: torch.Tensor, neighbour_row: torch.Tensor
-                ) -> torch.Tensor:
-        """x ``(N, S, H, 2)`` every row's current noisy sample at step ``k`` (int or ``(N,)``), neighbour_in
-        ``(N, K, 8)``, neighbour_row ``(N, K)`` long (the row denoised as that neighbour, -1: none) ->
-        ``(N, S, cond_dim)``."""
-        n, s = x.shape[:2]
-        kk = neighbour_row.shape[1]
-        known = neighbour_row >= 0
-        picked = x[neighbour_row.clamp_min(0)].transpose(1, 2) * known[:, None, :, None, None]  # (N, S, K, H, 2)
-        level = (torch.as_tensor(k, device=x.device, dtype=x.dtype) / self.steps).reshape(-1, 1, 1, 1)
-        features = torch.cat([picked.flatten(-2), neighbour_in[:, None].expand(n, s, kk, 8),
-                              level.expand(n, s, kk, 1)], -1)
-        mixed = self.net(features)  # (N, S, K, 64)
-        mixed = torch.where(known[:, None, :, None], mixed, torch.full_like(mixed, -1e4)).amax(-2)
-        mixed = torch.where(known.any(-1)[:, None, None], mixed, torch.zeros_like(mixed))
-        return self.out(mixed)
-
 
 # --------------------------------------------------------------------------------------------- model
 SceneRows = tuple[torch.Tensor, torch.Tensor]  # (neighbour_in (N, K, 8), neighbour_row (N, K)), see CoDenoiseMixer
 GuidanceFn = Callable[[torch.Tensor, int], torch.Tensor]
 CondFn = Callable[[int, torch.Tensor], torch.Tensor]
-
-
-class SteerHead(nn.Module):
-    """Learned steering of the sampler: per DDIM step, a shift of the step's mean by ``sigma_k * tanh(g)``, with
-    ``g = MLP(cond, x0_k, k[, road])`` read from the conditioning, the step's clean prediction, the step and, with
-    ``steer_road``, the drivable layer along that prediction (:func:`road_profile`).
-
-    Its output layer starts at zero, so a model with a fresh head samples exactly as without one; fine-tuning the
-    head alone is policy optimization in the sampler's noise space (each step's shift is bounded by its own noise
-    scale), with the trained encoder and denoiser frozen."""
-
-    def __init__(self, cfg: CTGConfig) -> None:
-        super().__init__()
-        self.horizon, self.x0_clip = cfg.horizon, cfg.x0_clip
-        self.step_embedding = SinusoidalEmbedding(cfg.time_dim)
-        road = 3 * cfg.horizon * (int(cfg.steer_road) + int(cfg.steer_neighbours))
-        self.net = _mlp([cfg.cond_dim + 2 * cfg.horizon + cfg.time_dim + road, cfg.steer_hidden, cfg.steer_hidden,
-                         2 * cfg.horizon])
-        last = self.net[-1]
-        assert isinstance(last, nn.Linear)
-        nn.init.zeros_(last.weight)
-        nn.init.zeros_(last.bias)
-
-    def forward(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
-                road: torch.Tensor | None = None) -> torch.Tensor:
-        """Shift in units of the step's sigma, in (-1, 1): ``(M, H, 2)`` from ``cond (M, D)``, normalized clean
-        prediction ``x0 (M, H, 2)``, step ``k`` (int or ``(M,)``) and, for a head that reads the plan's
-        surroundings, ``road (M, H, 3)`` or ``(M, H, 6)`` in [0, 1]: :func:`road_profile` and/or
-        :func:`neighbour_proximity`, concatenated in that order."""
-        m = x0.shape[0]
-        if not isinstance(k, torch.Tensor):
-            k = torch.full((m,), int(k), dtype=torch.long, device=x0.device)
-        inputs = [cond, x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k)]
-        if road is not None:
-            inputs.append(road.reshape(m, -1))
-        return torch.tanh(self.net(torch.cat(inputs, -1))).reshape(m, self.horizon, 2)
-
-
-def road_profile(drivable: torch.Tensor, states: torch.Tensor, resolution: float, offset: float) -> torch.Tensor:
-    """The drivable layer along plans: ``(N, S, H, 3)`` in [0, 1], bilinear in the crop, at each planned position
-    and ``offset`` m to its left and right (across the planned heading); 0 outside the crop.
-
-    Args:
-        drivable: ``(N, 1, G, G)`` the rows' map crops (:data:`MAP_BEHIND_FRACTION` of the rows behind the agent,
-            ``resolution`` m per cell, x ahead along rows and y to the left along columns).
-        states: agent-frame plans ``(N, S, H, 4)`` (x, y, speed, yaw), e.g. :meth:`CTGModel.rollout`.
-    """
-    n, s, h, _ = states.shape
-    xy, yaw = states[..., :2], states[..., 3]
-    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1) * offset
-    points = torch.stack([xy, xy + left, xy - left], 3)  # (N, S, H, 3, 2)
-    size = drivable.shape[-1] * resolution
-    # grid_sample's (x, y) are (column, row) in [-1, 1] over the crop's extent (align_corners=False)
-    column = 2 * points[..., 1] / size
-    row = 2 * points[..., 0] / size + 2 * MAP_BEHIND_FRACTION - 1
-    grid = torch.stack([column, row], -1).reshape(n, 1, s * h * 3, 2)
-    values = F.grid_sample(drivable.to(states.dtype), grid, mode="bilinear", padding_mode="zeros",
-                           align_corners=False)
-    return values.reshape(n, s, h, 3)
-
-
-def neighbour_proximity(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor,
-                        states: torch.Tensor, dt: float, offset: float, scale: float) -> torch.Tensor:
-    """How close the nearest neighbour comes to plans: ``(N, S, H, 3)`` in [0, 1], at each planned position and
-    ``offset`` m to its left and right, ``exp(-clearance / scale)`` with clearance (m) the centre distance less
-    both agents' mean half-extent ((length + width) / 4 each), 0 below it; 0 where no neighbour is valid.
-
-    Args:
-        neighbours: ``(N, K, 7)`` in the row's agent frame now (x, y in m, cos and sin of relative yaw, speed in
-            m/s, length and width in m), each driven on at constant velocity: plan step h (0-based) is
-            ``(h + 1) * dt`` s ahead.
-        neighbour_valid: ``(N, K)`` bool.
-        extent: ``(N, 2)`` the row's own length and width (m).
-        states: agent-frame plans ``(N, S, H, 4)`` (x, y, speed, yaw).
-    """
-    h = states.shape[2]
-    ahead = torch.arange(1, h + 1, dtype=states.dtype, device=states.device) * dt  # (H,) s
-    heading = neighbours[..., 2:4].to(states.dtype)
-    moved = neighbours[:, :, None, :2] + (neighbours[..., 4:5] * heading)[:, :, None] * ahead[:, None]  # (N, K, H, 2)
-    xy, yaw = states[..., :2], states[..., 3]
-    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1) * offset
-    probes = torch.stack([xy, xy + left, xy - left], 3)  # (N, S, H, 3, 2)
-    gap = probes[:, :, :, :, None] - moved.permute(0, 2, 1, 3)[:, None, :, None]  # (N, S, H, 3, K, 2)
-    reach = (extent.sum(-1, keepdim=True) + neighbours[..., 5:7].sum(-1)) / 4  # (N, K)
-    clearance = (torch.linalg.vector_norm(gap, dim=-1) - reach[:, None, None, None]).clamp_min(0)
-    proximity = torch.exp(-clearance / scale) * neighbour_valid[:, None, None, None]
-    return proximity.amax(-1) if proximity.shape[-1] else proximity.new_zeros(proximity.shape[:-1])
-
 
 class CTGModel(nn.Module):
     """Encoder + denoiser + diffusion utilities. Actions are normalized with the config's mean/std."""
