@@ -153,8 +153,9 @@ class AlignConfig(BaseModel):
                                         "the one whose sample caused it. Costs one scenario per sampled agent "
                                         "and sample.")
     selection_credit: bool = Field(False, description="For models whose planner executes the best of K samples "
-                                   "by its own score (BITS): replace each sample's reward by its best-of-K return "
-                                   "(`trafficrlhf_sdk.align.selection`) before the advantages, so PPO improves "
+                                   "by its own score (BITS; CTG with a guidance): replace each sample's reward by "
+                                   "its best-of-K return (`trafficrlhf_sdk.align.selection`) before the "
+                                   "advantages, so PPO improves "
                                    "what the planner executes rather than single samples. Needs an adapter whose "
                                    "`selection_scores` ranks its samples; per agent with credit='agent' (exact "
                                    "for per-agent selection, an approximation under scene-level guidance), on "
