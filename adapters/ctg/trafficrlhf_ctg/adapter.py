@@ -343,9 +343,9 @@ class CTGAdapter(TrafficModelAdapter):
         score is minus that loss; for a scene-level guidance (``no_collision``) it is the scene's total over its
         controlled agents, the same for each of them, as :func:`~trafficrlhf_sdk.guidance.select_samples` sums
         it. Without a guidance the planner executes its one sample: zeros and ``k = 1``."""
-        controlled = context.controlled[:, None].to(output.futures.dtype)  # (B, 1, A)
         if guidance is None:
             return torch.zeros_like(output.futures[..., 0, 0]), 1
+        controlled = context.controlled[:, None].to(output.futures.dtype)  # (B, 1, A)
         loss = guidance.loss(output.futures.detach(), context.current_index, context)  # (B, S, A)
         if guidance.scene_level:
             loss = (loss * controlled).sum(-1, keepdim=True).expand_as(loss)
