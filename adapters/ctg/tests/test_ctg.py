@@ -777,3 +777,105 @@ def test_widening_a_saved_road_head_to_read_the_traffic_keeps_its_output_until_f
         str(blind))
     with pytest.raises(TrafficRLHFError, match="widens a road-reading head only"):
         CTGAdapter(checkpoint=str(blind), steer_neighbours=True)
+
+
+def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
+    """:func:`lead_gaps` against a plain Python loop (neighbours at constant velocity; in the path = ahead along the
+    planned heading and within half of both widths plus the margin to the side; gap bumper to bumper, clipped;
+    closing speed against the lead's speed along the heading; hazard against the desired gap), and one case by
+    hand: a car 20 m ahead at 5 m/s, the plan at a steady 10 m/s straight on."""
+    from ctg_reference.steering import LEAD_GAP_CLIP, lead_gaps
+
+    gen = torch.Generator().manual_seed(1)
+    n, k, s, h, dt, margin, s0, headway = 3, 5, 2, 6, 0.1, 0.5, 2.0, 1.5
+    yaw_n = torch.rand(n, k, generator=gen) * 0.6 - 0.3
+    neighbours = torch.cat([torch.rand(n, k, 1, generator=gen) * 40 - 5, torch.randn(n, k, 1, generator=gen) * 2,
+                            torch.cos(yaw_n)[..., None], torch.sin(yaw_n)[..., None],
+                            torch.rand(n, k, 1, generator=gen) * 12, 3 + torch.rand(n, k, 1, generator=gen) * 2,
+                            1.5 + torch.rand(n, k, 1, generator=gen)], -1)
+    valid = torch.rand(n, k, generator=gen) > 0.2
+    valid[2] = False
+    extent = torch.tensor([[4.5, 1.9], [4.0, 1.8], [5.0, 2.0]])
+    states = torch.cat([torch.rand(n, s, h, 1, generator=gen) * 10, torch.randn(n, s, h, 1, generator=gen),
+                        torch.rand(n, s, h, 1, generator=gen) * 12, torch.randn(n, s, h, 1, generator=gen) * 0.2], -1)
+    got = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway)
+    assert got.shape == (n, s, h, 3)
+    for i in range(n):
+        for j in range(s):
+            for t in range(h):
+                x, y, v, yaw = states[i, j, t].tolist()
+                best, lead_speed = LEAD_GAP_CLIP, v
+                for m in range(k):
+                    nx, ny, c, sn, speed, length, width = neighbours[i, m].tolist()
+                    cx, cy = nx + speed * c * (t + 1) * dt, ny + speed * sn * (t + 1) * dt
+                    along = (cx - x) * math.cos(yaw) + (cy - y) * math.sin(yaw)
+                    across = abs(-(cx - x) * math.sin(yaw) + (cy - y) * math.cos(yaw))
+                    if not valid[i, m] or along <= 0 or across > (extent[i, 1].item() + width) / 2 + margin:
+                        continue
+                    gap = min(max(along - (extent[i, 0].item() + length) / 2, 0.0), LEAD_GAP_CLIP)
+                    if gap < best:
+                        best = gap
+                        lead_speed = speed * (c * math.cos(yaw) + sn * math.sin(yaw))
+                expected = [best, v - lead_speed, min(max(1 - best / (s0 + headway * v), 0.0), 1.0)]
+                torch.testing.assert_close(got[i, j, t], torch.tensor(expected), atol=1e-4, rtol=1e-4)
+    assert torch.all(got[2, ..., 0] == LEAD_GAP_CLIP) and torch.all(got[2, ..., 2] == 0)
+
+    ahead = torch.tensor([[[20.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9], [20.0, 3.5, 1.0, 0.0, 5.0, 4.5, 1.9],
+                           [-8.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9]]])  # in the lane, one lane over, behind
+    t = torch.arange(1, 4) * dt
+    plan = torch.stack([10 * t, torch.zeros(3), torch.full((3,), 10.0), torch.zeros(3)], -1)[None, None]
+    one = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                    headway)[0, 0]
+    gap = 20 + 5 * t - 10 * t - 4.5
+    torch.testing.assert_close(one, torch.stack([gap, torch.full((3,), 5.0), 1 - gap / 17.0], -1))
+
+
+@needs_data
+def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_and_saves(
+        scenes, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``follow=True`` on the committed gated model adds a zero gap-keeping head next to its steering head: same
+    guided futures and log-probabilities under one generator, every saved tensor kept; it is the ``follow`` group.
+    With a non-zero output layer its shift is exactly 0 for rows with nobody ahead (the gate), non-zero behind a
+    close lead and on the acceleration channel only; the guided log-probability stays exact, a log-probability's
+    gradient reaches the head, and the head survives save_pretrained/from_pretrained without the option."""
+    from ctg_reference.model import CTGConfig, CTGModel
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    base, follow = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, follow=True)
+    assert follow.cfg.follow and follow.cfg.steer_gate and "follow" not in base.parameter_groups()
+    assert set(follow.parameter_groups()) == {"encoder", "decoder", "steer", "follow"}
+    for name, tensor in base.model.state_dict().items():
+        assert torch.equal(tensor, follow.model.state_dict()[name]), name
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    b = follow.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a.futures, b.futures)
+    torch.testing.assert_close(a.log_prob, b.log_prob)
+
+    model = CTGModel(CTGConfig(horizon=8, follow=True))
+    with torch.no_grad():
+        model.follow.net[-1].weight.normal_(0, 0.5)
+        model.follow.net[-1].bias.fill_(0.5)
+    x0 = torch.zeros(2, 8, 2)  # two rows, one sample each: about 0.1 m/s^2 (the normalization's mean)
+    lead = torch.tensor([[[8.0, 0.0, 1.0, 0.0, 2.0, 4.5, 1.9]], [[8.0, 0.0, 1.0, 0.0, 2.0, 4.5, 1.9]]])
+    steer_map = (torch.ones(2, 1, 48, 48), torch.full((2,), 8.0), lead, torch.tensor([[True], [False]]),
+                 torch.tensor([[4.5, 1.9], [4.5, 1.9]]))
+    shift = model._follow_shift(x0, 3, steer_map, 2)
+    assert shift[0, :, 0].abs().min() > 0 and torch.all(shift[1] == 0) and torch.all(shift[..., 1] == 0)
+
+    with torch.no_grad():
+        follow.model.follow.net[-1].weight.normal_(0, 0.05)
+        follow.model.follow.net[-1].bias.fill_(-0.5)  # brake wherever the gate opens
+    out = follow.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    assert not torch.equal(out.futures, a.futures)
+    recomputed = follow.log_prob(scenes, out.trace.detach())
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-3, rtol=1e-4)
+    recomputed.sum().backward()
+    head = follow.parameter_groups()["follow"]
+    assert head[-2].grad is not None and head[-2].grad.abs().sum() > 0
+    follow.save_pretrained(str(tmp_path))
+    loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
+    assert loaded.cfg.follow and loaded.cfg.steer_gate
+    again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(again.futures, out.futures)

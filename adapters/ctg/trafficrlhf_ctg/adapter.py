@@ -92,6 +92,11 @@ class CTGOptions(AdapterOptions):
                                    "plan (ctg_reference.neighbour_proximity); combines with `steer_road`. On a "
                                    "saved road head it widens the head: the new inputs start with zero weights, so "
                                    "the head's output is unchanged until fine-tuned.")
+    follow: bool = Field(False, description="Add a zero-initialized gap-keeping head (ctg_reference.FollowHead) to "
+                         "a checkpoint that has none, offered as the parameter group 'follow'. It shifts only the "
+                         "acceleration channel, reads the gap to the agent ahead in each denoising step's clean plan "
+                         "(ctg_reference.lead_gaps) and acts only where that gap is below 2 m + 1.5 s x the planned "
+                         "speed; any steering head is kept. Checkpoints saved with one load it without this option.")
     steer_gate: bool | None = Field(None, description="Scale a reading head's shift by its plan's hazard (the "
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
@@ -130,6 +135,8 @@ class CTGAdapter(TrafficModelAdapter):
             self._add_steer_head(opts.steer_road, opts.steer_neighbours)
         elif opts.steer_neighbours and not self.cfg.steer_neighbours:
             self._widen_steer_head()
+        if opts.follow and not self.cfg.follow:
+            self._add_follow_head()
         head = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset,
                 "steer_gate_traffic": opts.steer_gate_traffic, "steer_lateral_only": opts.steer_lateral_only}
         head = {key: value for key, value in head.items() if value is not None}
@@ -169,6 +176,17 @@ class CTGAdapter(TrafficModelAdapter):
         assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
         self.cfg, self.model = cfg, model
 
+    def _add_follow_head(self) -> None:
+        """Rebuild the model with a fresh (zero) gap-keeping head, keeping every trained weight (the steering head's
+        too); its hidden layers are one fixed draw (seed 0), as for :meth:`_add_steer_head`."""
+        cfg = dataclasses.replace(self.cfg, follow=True)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(STEER_INIT_SEED)
+            model = CTGModel(cfg).to(self.options.device)
+        missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
+        assert not unexpected and all(key.startswith("follow.") for key in missing), (missing, unexpected)
+        self.cfg, self.model = cfg, model
+
     def _widen_steer_head(self) -> None:
         """Give a saved road-reading head the neighbour inputs of :func:`ctg_reference.neighbour_proximity`: the
         first layer gains ``3 * horizon`` columns with zero weights (interleaved per step after the road profile, as
@@ -203,13 +221,16 @@ class CTGAdapter(TrafficModelAdapter):
 
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
         """``encoder`` (map CNN, history and neighbour MLPs, fusion), ``decoder`` (the temporal U-Net, and the
-        co-denoising mixer of scene-denoising models) and, with a steering head, ``steer``."""
+        co-denoising mixer of scene-denoising models) and, with a steering head, ``steer``; with a gap-keeping
+        head, ``follow``."""
         decoder = list(self.model.denoiser.parameters())
         if self.model.mixer is not None:
             decoder += list(self.model.mixer.parameters())
         groups = {"encoder": list(self.model.encoder.parameters()), "decoder": decoder}
         if self.model.steer is not None:
             groups["steer"] = list(self.model.steer.parameters())
+        if self.model.follow is not None:
+            groups["follow"] = list(self.model.follow.parameters())
         return groups
 
     # ------------------------------------------------------------ helpers
@@ -243,9 +264,9 @@ class CTGAdapter(TrafficModelAdapter):
             return self.model.encode(with_plans, own)
 
         steer_map: SteerMap | None = None
-        if self.cfg.steer_road or self.cfg.steer_neighbours:
+        if self.cfg.steer_road or self.cfg.steer_neighbours or self.cfg.follow:
             steer_map = (rows["map"][:, :1], rows["v0"])
-            if self.cfg.steer_neighbours:
+            if self.cfg.steer_neighbours or self.cfg.follow:
                 steer_map += (rows["neighbours"], rows["neighbour_valid"], rows["extent"])
         return encode, self.model.scene_rows(rows), steer_map
 

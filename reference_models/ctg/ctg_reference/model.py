@@ -24,6 +24,9 @@ and the sampler's steering head in :mod:`ctg_reference.steering`.
   starts at zero; fine-tuned alone it moves where the sampler goes through the frozen denoiser. With
   ``steer_road`` it also reads the drivable layer along ``x0_k``'s plan (:func:`road_profile`); with
   ``steer_neighbours``, how close the other agents come to that plan (:func:`neighbour_proximity`).
+* Gap keeping (``follow``): a :class:`FollowHead` adds ``sigma_k * gate * tanh(g)`` to the acceleration channel
+  only, reading the gap to the agent ahead in ``x0_k``'s path (:func:`lead_gaps`); the gate is the plan's
+  largest headway hazard, 0 unless someone is ahead closer than the desired gap.
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -43,10 +46,19 @@ import torch.nn.functional as F
 from torch import nn
 
 from ctg_reference.networks import CoDenoiseMixer, ContextEncoder, TemporalUNet
-from ctg_reference.steering import MAP_BEHIND_FRACTION, SteerHead, neighbour_proximity, road_profile
+from ctg_reference.steering import (
+    LEAD_GAP_CLIP,
+    MAP_BEHIND_FRACTION,
+    FollowHead,
+    SteerHead,
+    lead_gaps,
+    neighbour_proximity,
+    road_profile,
+)
 
-__all__ = ["MAP_BEHIND_FRACTION", "CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "SteerHead",
-           "TemporalUNet", "cosine_alphas_bar", "neighbour_proximity", "road_profile", "unicycle_from_origin"]
+__all__ = ["MAP_BEHIND_FRACTION", "CTGConfig", "CTGModel", "CoDenoiseMixer", "ContextEncoder", "FollowHead",
+           "SteerHead", "TemporalUNet", "cosine_alphas_bar", "lead_gaps", "neighbour_proximity", "road_profile",
+           "unicycle_from_origin"]
 
 LOG_2PI = math.log(2 * math.pi)
 # a reading steering head's inputs, per row: drivable crop (N, 1, G, G) and speed v0 (N,); with steer_neighbours
@@ -114,6 +126,15 @@ class CTGConfig:
     # the head shifts the yaw-rate channel only; acceleration is drawn as the frozen model draws it (a head that
     # moves the speed profile too can close gaps to the agent ahead)
     steer_lateral_only: bool = False
+    # gap keeping (FollowHead): a second head, acceleration channel only, reading the gap to the agent ahead in
+    # each step's clean plan (lead_gaps: neighbours at constant velocity) and gated by the headway hazard
+    # clamp(1 - gap / (follow_standstill + follow_headway * speed), 0, 1); zero until fine-tuned, and exactly
+    # zero for plans with nobody ahead closer than that desired gap
+    follow: bool = False
+    follow_hidden: int = 64
+    follow_lane_margin: float = 0.5  # m beyond half of both widths to the side that still counts as in the path
+    follow_standstill: float = 2.0  # m: desired bumper-to-bumper gap at standstill
+    follow_headway: float = 1.5  # s: desired time gap at the planned speed
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -175,6 +196,7 @@ class CTGModel(nn.Module):
         self.denoiser = TemporalUNet(self.cfg)
         self.mixer = CoDenoiseMixer(self.cfg) if self.cfg.scene_denoising else None
         self.steer = SteerHead(self.cfg) if self.cfg.steer else None
+        self.follow = FollowHead(self.cfg) if self.cfg.follow else None
         self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
@@ -287,6 +309,37 @@ class CTGModel(nn.Module):
         gate = torch.cat(hazards, -1).amax((-2, -1)).reshape(-1, 1, 1)  # (M, 1, 1) in [0, 1]
         return gate * shift
 
+    def _follow_shift(self, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
+                      n: int) -> torch.Tensor:
+        """The gap-keeping head's gated shift ``(M, H, 2)`` (yaw-rate channel 0) for ``M = n * R`` rows ordered
+        row-major by the ``n`` conditioning rows."""
+        assert self.follow is not None
+        cfg = self.cfg
+        if steer_map is None or len(steer_map) < 5:
+            raise ValueError("this CTG model's gap-keeping head (follow) reads the agents ahead: pass steer_map="
+                             "(drivable crop (N, 1, G, G), v0 (N,), neighbours (N, K, 7), neighbour_valid (N, K), "
+                             "extent (N, 2)).")
+        v0 = steer_map[1]
+        plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
+        states = self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
+        lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
+                         cfg.follow_headway)  # (N, R, H, 3)
+        gate = lead[..., 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
+        features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
+        v_rows = v0[:, None].expand(plans.shape[:2]).reshape(-1)
+        return gate * self.follow(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))
+
+    def _head_shifts(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
+                     steer_map: SteerMap | None, n: int) -> torch.Tensor | None:
+        """The sum of the steering and gap-keeping heads' shifts ``(M, H, 2)``, or None for a model with neither."""
+        shift = None
+        if self.steer is not None:
+            shift = self._steer_shift(cond, x0, k, steer_map, n)
+        if self.follow is not None:
+            follow = self._follow_shift(x0, k, steer_map, n)
+            shift = follow if shift is None else shift + follow
+        return shift
+
     # ------------------------------------------------------------ training
     def loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor,
              target_states: torch.Tensor | None = None, generator: torch.Generator | None = None,
@@ -360,8 +413,8 @@ class CTGModel(nn.Module):
             scene: for a scene-denoising model, :meth:`scene_rows` of the rows: every step of row i's sample s
                 reads the current noisy samples s of the rows denoised as its neighbours.
             steer_map: for a ``steer_road`` head, the rows' drivable crop ``(N, 1, G, G)`` and speed ``v0 (N,)``;
-                a ``steer_neighbours`` head also needs the rows' neighbours ``(N, K, 7)``, their valid mask
-                ``(N, K)`` and the rows' extent ``(N, 2)`` (see :data:`SteerMap`).
+                a ``steer_neighbours`` head or a ``follow`` head also needs the rows' neighbours ``(N, K, 7)``,
+                their valid mask ``(N, K)`` and the rows' extent ``(N, 2)`` (see :data:`SteerMap`).
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
@@ -380,8 +433,9 @@ class CTGModel(nn.Module):
             c_step = c if scene is None else self._mixed(c.reshape(n, s, -1), x.reshape(n, s, h, 2), k,
                                                           scene).reshape(n * s, -1)
             mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
-            if self.steer is not None:
-                mean = mean + sigma * self._steer_shift(c_step, x0, k, steer_map, n)
+            shift = self._head_shifts(c_step, x0, k, steer_map, n)
+            if shift is not None:
+                mean = mean + sigma * shift
             delta = torch.zeros_like(mean)
             if guidance_fn is not None and i < len(schedule) - 1:
                 with torch.enable_grad():
@@ -426,8 +480,9 @@ class CTGModel(nn.Module):
         k_prev = schedule[:, 1].repeat(n * s)
         x = chain[:, :, :-1].reshape(-1, h, 2)
         mean, sigma, x0 = self._transition(x, k, k_prev, c, with_x0=True)  # one batched call for all steps
-        if self.steer is not None:
-            mean = mean + sigma * self._steer_shift(c, x0, k, steer_map, n)
+        shift = self._head_shifts(c, x0, k, steer_map, n)
+        if shift is not None:
+            mean = mean + sigma * shift
         if guide_delta is not None:
             mean = mean + guide_delta.reshape(-1, h, 2)
         log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean, sigma)
