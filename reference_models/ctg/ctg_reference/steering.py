@@ -137,7 +137,8 @@ class FollowHead(nn.Module):
         m = x0.shape[0]
         if not isinstance(k, torch.Tensor):
             k = torch.full((m,), int(k), dtype=torch.long, device=x0.device)
-        inputs = [x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k), v0.reshape(m, 1) / 10.0, lead.reshape(m, -1)]
+        inputs = [x0.reshape(m, -1) / self.x0_clip, self.step_embedding(k), v0.reshape(m, 1) / 10.0,
+                  lead.reshape(m, -1)]
         acceleration = torch.tanh(self.net(torch.cat(inputs, -1)))
         return torch.stack([acceleration, torch.zeros_like(acceleration)], -1)
 
