@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward
+from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward, time_to_collision
 from trafficrlhf_sdk.cli.align_commands import load_reward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
@@ -146,10 +146,51 @@ def test_realism_reward_takes_the_margin_settings(jittered: ScenarioTensor) -> N
     ({"corner_weight": 1.5}, "corner_weight"),
     ({"near_weight": -0.1}, "near_weight"),
     ({"near_buffer_m": (0.5, -1.0)}, "near_buffer_m"),
+    ({"ttc_weight": 1.5}, "ttc_weight"),
+    ({"ttc_threshold_s": 0.0}, "ttc_threshold_s"),
 ])
 def test_bad_margin_settings_name_the_argument(kwargs: dict, match: str) -> None:
     with pytest.raises(TrafficRLHFError, match=match):
         FailureReward(margins=True, **kwargs)
+    with pytest.raises(TrafficRLHFError, match="ttc_weight"):
+        FailureReward(ttc_weight=0.5)  # a margin term without margins
+
+
+def test_time_to_collision_matches_a_pairwise_loop(jittered: ScenarioTensor) -> None:
+    """Against a plain loop over scenes, agents, others and steps (in the path: ahead along the heading and within
+    half of both widths plus 0.5 m to the side; bumper-to-bumper gap over the closing speed), on jittered real
+    scenes with random speeds, and one follower by hand: 10 m/s, 5 m behind a 5 m/s car -> 1 s."""
+    gen = torch.Generator().manual_seed(5)
+    states = jittered.states.clone()
+    states[..., 2] = torch.rand(states[..., 2].shape, generator=gen) * 15
+    scene = jittered.replace_unchecked(states=states).time_slice(0, 6)
+    got = time_to_collision(scene)
+    xy, yaw, v, ext, ok = scene.xy, scene.yaw, scene.states[..., 2], scene.extent, scene.valid
+    expected = torch.full(got.shape, math.inf)
+    for b, i, j, t in np.ndindex(*xy.shape[:2], xy.shape[1], xy.shape[2]):
+        if i == j or not (ok[b, i, t] and ok[b, j, t]):
+            continue
+        c, s_ = math.cos(yaw[b, i, t]), math.sin(yaw[b, i, t])
+        dx, dy = (xy[b, j, t] - xy[b, i, t]).tolist()
+        along, across = dx * c + dy * s_, abs(-dx * s_ + dy * c)
+        closing = float(v[b, i, t]) - float(v[b, j, t]) * math.cos(yaw[b, j, t] - yaw[b, i, t])
+        if along <= 0 or across > (ext[b, i, 1] + ext[b, j, 1]) / 2 + 0.5 or closing <= 0:
+            continue
+        gap = max(along - float(ext[b, i, 0] + ext[b, j, 0]) / 2, 0.0)
+        expected[b, i, t] = min(expected[b, i, t].item(), gap / closing)
+    finite = torch.isfinite(expected)
+    assert finite.sum() > 5 and torch.equal(finite, torch.isfinite(got))
+    torch.testing.assert_close(got[finite], expected[finite], atol=1e-4, rtol=1e-4)
+
+    lane = torch.tensor([[[[0.0, 0.0, 10.0, 0.0]], [[9.5, 0.0, 5.0, 0.0]], [[9.5, 3.5, 0.0, 0.0]]]])
+    pair = ScenarioTensor(states=lane, valid=torch.ones(1, 3, 1, dtype=torch.bool),
+                          extent=torch.tensor([[[4.5, 1.9], [4.5, 1.9], [4.5, 1.9]]]),
+                          agent_type=torch.ones(1, 3, dtype=torch.long), controlled=torch.ones(1, 3, dtype=torch.bool))
+    ttc = time_to_collision(pair)[0, :, 0]
+    assert math.isclose(float(ttc[0]), 1.0, rel_tol=1e-5) and torch.isinf(ttc[1:]).all()
+    cost, _ = FailureReward(margins=True, collision=True, offroad=False, near_weight=0.0, corner_weight=0.0,
+                            ttc_weight=0.6, ttc_threshold_s=1.5)._failures(pair)
+    assert math.isclose(float(cost[0, 0, 0]), 0.6 / 3, rel_tol=1e-5) and float(cost[0, 1:].sum()) == 0
 
 
 def test_builtin_reward_names() -> None:

@@ -7,6 +7,8 @@ learned reward model did under the same optimization).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from trafficrlhf_sdk.dynamics import wrap_angle
@@ -16,7 +18,8 @@ from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
 from trafficrlhf_sdk.metrics.realism import STAT_DT, HistogramSpec, kinematics
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["FailureReward", "PessimisticReward", "RandomReward", "RealismReward", "kinematic_log_ratio"]
+__all__ = ["FailureReward", "PessimisticReward", "RandomReward", "RealismReward", "kinematic_log_ratio",
+           "time_to_collision"]
 
 
 class FailureReward:
@@ -32,19 +35,34 @@ class FailureReward:
     controlled agent-steps have a corner off the drivable layer, 0.8 % are near misses at (0.5, 0.25) m and
     0.03 % have the centre off-road; the mean cost per step is 0.011 with the defaults.
 
+    With ``ttc_weight > 0`` the margins also price closing in on the agent ahead before any box is touched:
+    ``ttc_weight * clamp(1 - TTC / ttc_threshold_s, 0, 1)`` per step, TTC the smallest time to collision
+    (:func:`time_to_collision`) with an agent in the path ahead. A step at half the threshold costs half the
+    weight; an agent keeping its gap or pulling away costs nothing. Logged driving (120 nuScenes train scenes)
+    is below 1.5 s on 0.46 % of the controlled agent-steps, at a mean cost of 0.0020 per step and unit weight.
+
     Args:
         collision: count collisions; offroad: count off-road centres; margins: add the near-failure terms;
-        corner_weight, near_weight: their costs per step (in [0, 1]); near_buffer_m: the growth of each box.
+        corner_weight, near_weight, ttc_weight: their costs per step (in [0, 1]); near_buffer_m: the growth of
+        each box; ttc_threshold_s: the time to collision (s) from which closing in starts to cost.
     """
 
     def __init__(self, collision: bool = True, offroad: bool = True, margins: bool = False,
                  corner_weight: float = 0.5, near_weight: float = 0.5,
-                 near_buffer_m: tuple[float, float] = (0.5, 0.25)) -> None:
-        for name, value in (("corner_weight", corner_weight), ("near_weight", near_weight)):
+                 near_buffer_m: tuple[float, float] = (0.5, 0.25), ttc_weight: float = 0.0,
+                 ttc_threshold_s: float = 1.5) -> None:
+        for name, value in (("corner_weight", corner_weight), ("near_weight", near_weight),
+                            ("ttc_weight", ttc_weight)):
             if not 0 <= value <= 1:
                 raise TrafficRLHFError(f"`{name}` is {value}; use a cost per step in [0, 1].")
         if min(near_buffer_m) < 0:
             raise TrafficRLHFError(f"`near_buffer_m` is {near_buffer_m}; give non-negative (ahead, sideways) metres.")
+        if not ttc_threshold_s > 0:
+            raise TrafficRLHFError(f"`ttc_threshold_s` is {ttc_threshold_s}; give a time in seconds > 0 (e.g. 1.5).")
+        if ttc_weight and not margins:
+            raise TrafficRLHFError(f"`ttc_weight` is {ttc_weight} but margins are off; use a '-margins' reward "
+                                   "(e.g. builtin:realism-margins) or leave ttc_weight at 0.")
+        self.ttc_weight, self.ttc_threshold_s = ttc_weight, ttc_threshold_s
         self.collision = collision
         self.offroad = offroad
         self.margins = margins
@@ -71,6 +89,9 @@ class FailureReward:
                 near += self.near_weight * pairwise_collisions(scenario.xy, scenario.yaw, grown, scenario.valid)
             if has_map and self.corner_weight:
                 near += self.corner_weight * offroad_corner_share(scenario)
+            if self.collision and self.ttc_weight:
+                ttc = time_to_collision(scenario)
+                near += self.ttc_weight * (1 - ttc / self.ttc_threshold_s).clamp(0, 1)
             cost = torch.maximum(cost, near.clamp_max(1))
         return cost * mask, mask
 
@@ -87,6 +108,32 @@ class FailureReward:
         future = slice(scenario.current_index + 1, None)
         cost, mask = cost[:, :, future], mask[:, :, future]
         return -(cost.sum(-1) / mask.sum(-1).clamp_min(1))
+
+
+def time_to_collision(scenario: ScenarioTensor, lane_margin_m: float = 0.5) -> torch.Tensor:
+    """``(B, A, T)`` seconds: per agent and step, the smallest time to collision with an agent in its path ahead,
+    ``inf`` where none is closing in (or the agent is not valid).
+
+    Another agent is in the path when its centre lies ahead along the agent's heading and at most half of both
+    widths plus ``lane_margin_m`` to the side. The gap is bumper to bumper (centre distance along the heading less
+    half of both lengths, 0 when they already touch); the closing speed is the agent's speed less the other's
+    velocity along that heading; TTC = gap / closing speed where the latter is positive.
+    """
+    xy, yaw, speed, valid = scenario.xy, scenario.yaw, scenario.states[..., 2], scenario.valid
+    forward = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)  # (B, A, T, 2)
+    offset = xy[:, None] - xy[:, :, None]  # (B, A_self, A_other, T, 2)
+    along = (offset * forward[:, :, None]).sum(-1)
+    across = (offset[..., 1] * forward[:, :, None, :, 0] - offset[..., 0] * forward[:, :, None, :, 1]).abs()
+    width, length = scenario.extent[..., 1], scenario.extent[..., 0]  # (B, A)
+    reach_side = (width[:, :, None] + width[:, None, :]) / 2 + lane_margin_m  # (B, A, A)
+    reach_along = (length[:, :, None] + length[:, None, :]) / 2
+    others = ~torch.eye(xy.shape[1], dtype=torch.bool, device=xy.device)[None, :, :, None]
+    in_path = (along > 0) & (across <= reach_side[..., None]) & valid[:, :, None] & valid[:, None] & others
+    other_along = speed[:, None] * torch.cos(yaw[:, None] - yaw[:, :, None])  # the other's speed along my heading
+    closing = speed[:, :, None] - other_along
+    gap = (along - reach_along[..., None]).clamp_min(0)
+    ttc = torch.where(in_path & (closing > 0), gap / closing.clamp_min(1e-6), torch.full_like(gap, math.inf))
+    return ttc.amin(2) if ttc.shape[2] else torch.full_like(speed, math.inf)
 
 
 class RandomReward:
@@ -198,8 +245,8 @@ class RealismReward(FailureReward):
       asks for the logged turn itself rather than for a recovery at the road edge. Angles in radians. Measured
       on the 4 s CTG (session 36) it removes fewer failures than the plain margins reward.
 
-    ``corner_weight``, ``near_weight`` and ``near_buffer_m`` set the margins as in :class:`FailureReward`
-    (``--reward-option near_weight=1`` on ``builtin:realism-margins``).
+    ``corner_weight``, ``near_weight``, ``near_buffer_m``, ``ttc_weight`` and ``ttc_threshold_s`` set the margins
+    as in :class:`FailureReward` (``--reward-option near_weight=1`` on ``builtin:realism-margins``).
 
     Without it, aligning CTG on failures alone made agents slow down (mean speed 7.3 -> 4.2 m/s over 10 s,
     39 of 196 agents stopped at the end against 6 in the log): fewer failures, less realism.
@@ -213,9 +260,10 @@ class RealismReward(FailureReward):
                  kinematics_weight: float = 0.0, kinematics_samples: int | None = None,
                  heading_weight: float = 0.0, heading_tolerance: float = 0.05, heading_scale: float = 0.5,
                  corner_weight: float = 0.5, near_weight: float = 0.5,
-                 near_buffer_m: tuple[float, float] = (0.5, 0.25)) -> None:
+                 near_buffer_m: tuple[float, float] = (0.5, 0.25), ttc_weight: float = 0.0,
+                 ttc_threshold_s: float = 1.5) -> None:
         super().__init__(margins=margins, corner_weight=corner_weight, near_weight=near_weight,
-                         near_buffer_m=near_buffer_m)
+                         near_buffer_m=near_buffer_m, ttc_weight=ttc_weight, ttc_threshold_s=ttc_threshold_s)
         for name, value in (("speed_weight", speed_weight), ("speed_tolerance", speed_tolerance),
                             ("kinematics_weight", kinematics_weight), ("heading_weight", heading_weight),
                             ("heading_tolerance", heading_tolerance)):
