@@ -165,26 +165,24 @@ class CTGAdapter(TrafficModelAdapter):
 
     def _add_steer_head(self, road: bool, neighbours: bool = False) -> None:
         """Rebuild the model with a fresh (zero) steering head (reading the road with ``road``, the other agents
-        with ``neighbours``), keeping every trained weight. The head's hidden layers are one fixed draw (seed 0),
-        so every run starts from the same weights: runs with different seeds can be averaged, and a run repeats
-        exactly."""
-        cfg = dataclasses.replace(self.cfg, steer=True, steer_road=road, steer_neighbours=neighbours)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(STEER_INIT_SEED)
-            model = CTGModel(cfg).to(self.options.device)
-        missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
-        assert not unexpected and all(key.startswith("steer.") for key in missing), (missing, unexpected)
-        self.cfg, self.model = cfg, model
+        with ``neighbours``), keeping every trained weight (:meth:`_add_head`)."""
+        self._add_head(dataclasses.replace(self.cfg, steer=True, steer_road=road, steer_neighbours=neighbours),
+                       "steer.")
 
     def _add_follow_head(self) -> None:
-        """Rebuild the model with a fresh (zero) gap-keeping head, keeping every trained weight (the steering head's
-        too); its hidden layers are one fixed draw (seed 0), as for :meth:`_add_steer_head`."""
-        cfg = dataclasses.replace(self.cfg, follow=True)
+        """Rebuild the model with a fresh (zero) gap-keeping head, keeping every trained weight, the steering
+        head's too (:meth:`_add_head`)."""
+        self._add_head(dataclasses.replace(self.cfg, follow=True), "follow.")
+
+    def _add_head(self, cfg: CTGConfig, prefix: str) -> None:
+        """Rebuild the model as ``cfg``, whose only new tensors are those under ``prefix``, copying every other
+        weight. The new head's hidden layers are one fixed draw (seed 0), so every run starts from the same
+        weights: runs with different seeds can be averaged, and a run repeats exactly."""
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(STEER_INIT_SEED)
             model = CTGModel(cfg).to(self.options.device)
         missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
-        assert not unexpected and all(key.startswith("follow.") for key in missing), (missing, unexpected)
+        assert not unexpected and all(key.startswith(prefix) for key in missing), (missing, unexpected)
         self.cfg, self.model = cfg, model
 
     def _widen_steer_head(self) -> None:
