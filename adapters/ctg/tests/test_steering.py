@@ -1,0 +1,354 @@
+"""Tests of the compact CTG's sampler heads through the ``ctg`` adapter: the steering head (road and traffic
+readings, gate, lateral-only, widening a saved head) and the gap-keeping follow head with its lead readings.
+
+Data-dependent tests are skipped when ``trafficrlhf_sdk.scenario.default_data_root()`` lacks nuscenes_pred.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.scenario import default_data_root
+
+HAS_DATA = os.path.isdir(os.path.join(default_data_root(), "nuscenes_pred", "label"))
+needs_data = pytest.mark.skipif(not HAS_DATA, reason="nuscenes_pred data not found")
+REPO = Path(__file__).resolve().parents[3]
+
+
+@needs_data
+@pytest.mark.parametrize("options", [("steer",), ("steer_road",), ("steer_road", "steer_neighbours")])
+def test_a_fresh_steering_head_samples_as_the_base_and_trains_alone(scenes, tmp_path, options) -> None:  # type: ignore[no-untyped-def]
+    """``steer=True`` (or ``steer_road=True``, a head that also reads the road, with ``steer_neighbours`` the
+    traffic too) adds a zero head: same guided
+    futures and log-probabilities as the base under one generator; it is the ``steer`` group and gets the only
+    gradient of a log-probability once its output layer is non-zero; the head then changes the sampled futures
+    and the guided log-probability stays exact; it survives save_pretrained/from_pretrained without the option."""
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
+    flags = dict.fromkeys(options, True)
+    base, steered = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, **flags)
+    assert steered.cfg.steer_road == ("steer_road" in options)
+    assert steered.cfg.steer_neighbours == ("steer_neighbours" in options)
+    torch.manual_seed(123)  # whatever the global generator holds, a fresh head is the same draw
+    again = CTGAdapter(checkpoint=path, seed=1, **flags)
+    for name, tensor in steered.model.steer.state_dict().items():
+        assert torch.equal(tensor, again.model.steer.state_dict()[name]), name
+    assert "steer" not in base.parameter_groups() and set(steered.parameter_groups()) == {"encoder", "decoder", "steer"}
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    b = steered.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a.futures, b.futures)
+    torch.testing.assert_close(a.log_prob, b.log_prob)
+
+    with torch.no_grad():
+        steered.model.steer.net[-1].weight.normal_(0, 0.05)
+    out = steered.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    agents = out.trace.agents
+    moved = (out.futures - a.futures)[:, :, :, :, :2].norm(dim=-1).amax(-1)  # (B, S, A)
+    assert moved.masked_select(agents[:, None]).min() > 0
+    recomputed = steered.log_prob(scenes, out.trace.detach())
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-3, rtol=1e-4)
+    for group in steered.parameter_groups().values():
+        for p in group:
+            p.grad = None
+    recomputed.sum().backward()
+    head = steered.parameter_groups()["steer"]
+    assert all(p.grad is not None for p in head[-2:]) and head[-2].grad.abs().sum() > 0
+
+    steered.save_pretrained(str(tmp_path))
+    loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
+    assert loaded.cfg.steer and loaded.cfg.steer_road == ("steer_road" in options)
+    assert loaded.cfg.steer_neighbours == ("steer_neighbours" in options)
+    again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(again.futures, out.futures)
+
+
+def test_neighbour_proximity_matches_a_per_point_loop_and_ignores_missing_neighbours() -> None:
+    """Against a plain Python loop over rows, samples, steps, probes and neighbours: each neighbour driven on at
+    its current velocity, clearance = centre distance less both mean half-extents, proximity exp(-clearance /
+    scale) (1 when the footprints overlap), the largest over valid neighbours; 0 with none."""
+    from ctg_reference.model import neighbour_proximity
+
+    gen = torch.Generator().manual_seed(0)
+    n, k, s, h, dt, offset, scale = 3, 4, 2, 5, 0.1, 1.0, 2.0
+    yaw_n = torch.rand(n, k, generator=gen) * 6.28
+    neighbours = torch.cat([torch.randn(n, k, 2, generator=gen) * 6, torch.cos(yaw_n)[..., None],
+                            torch.sin(yaw_n)[..., None], torch.rand(n, k, 1, generator=gen) * 10,
+                            3 + torch.rand(n, k, 1, generator=gen) * 2, 1.5 + torch.rand(n, k, 1, generator=gen)], -1)
+    valid = torch.rand(n, k, generator=gen) > 0.3
+    valid[2] = False  # a row without neighbours
+    extent = torch.tensor([[4.5, 1.9], [4.0, 1.8], [5.0, 2.0]])
+    states = torch.randn(n, s, h, 4, generator=gen) * 5
+    got = neighbour_proximity(neighbours, valid, extent, states, dt, offset, scale)
+    assert got.shape == (n, s, h, 3)
+    expected = torch.zeros(n, s, h, 3)
+    for i in range(n):
+        for j in range(s):
+            for t in range(h):
+                x, y, _, yaw = states[i, j, t].tolist()
+                probes = [(x, y), (x - math.sin(yaw) * offset, y + math.cos(yaw) * offset),
+                          (x + math.sin(yaw) * offset, y - math.cos(yaw) * offset)]
+                for p, (px, py) in enumerate(probes):
+                    for m in range(k):
+                        if not valid[i, m]:
+                            continue
+                        nx, ny, c, sn, v, length, width = neighbours[i, m].tolist()
+                        cx, cy = nx + v * c * (t + 1) * dt, ny + v * sn * (t + 1) * dt
+                        reach = (extent[i].sum().item() + length + width) / 4
+                        clearance = max(math.hypot(px - cx, py - cy) - reach, 0.0)
+                        expected[i, j, t, p] = max(expected[i, j, t, p].item(), math.exp(-clearance / scale))
+    torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+    assert torch.all(got[2] == 0)
+    assert neighbour_proximity(neighbours[:, :0], valid[:, :0], extent, states, dt, offset, scale).abs().sum() == 0
+
+
+def test_the_steering_gate_leaves_plans_on_a_clear_road_alone_and_scales_others_by_their_hazard() -> None:
+    """``steer_gate``: the head's shift is multiplied by the plan's largest hazard (off-road share inside the
+    crop, neighbour proximity): all road and nobody near gives no shift at all; no road gives the ungated shift;
+    a neighbour on the plan gives it too; past the crop's edge the missing map is no hazard."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=8, steer=True, steer_road=True, steer_neighbours=True, steer_gate=True))
+    with torch.no_grad():
+        model.steer.net[-1].weight.normal_(0, 0.1)
+    n, r, g = 2, 3, model.cfg.map_size
+    cond = torch.randn(n * r, model.cfg.cond_dim)
+    x0 = torch.randn(n * r, 8, 2) * 0.3
+    v0 = torch.full((n,), 2.0)
+    neighbours = torch.zeros(n, 1, 7)
+    neighbours[..., 2], neighbours[..., 5], neighbours[..., 6] = 1.0, 4.5, 1.9
+    far = torch.zeros(n, 1, dtype=torch.bool)
+    extent = torch.tensor([[4.5, 1.9]] * n)
+
+    def shift(drivable: torch.Tensor, valid: torch.Tensor, gate: bool) -> torch.Tensor:
+        model.cfg.steer_gate = gate
+        return model._steer_shift(cond, x0, 2, (drivable, v0, neighbours, valid, extent), n)
+
+    road, no_road = torch.ones(n, 1, g, g), torch.zeros(n, 1, g, g)
+    assert torch.all(shift(road, far, gate=True) == 0)
+    assert shift(road, far, gate=False).abs().amin() > 0
+    torch.testing.assert_close(shift(no_road, far, gate=True), shift(no_road, far, gate=False))
+    near = torch.ones(n, 1, dtype=torch.bool)  # a neighbour standing where every plan starts
+    torch.testing.assert_close(shift(road, near, gate=True), shift(road, near, gate=False))
+    v0.fill_(80.0)  # plans that leave the 48 m crop within 0.5 s: the unmapped rest is not off-road
+    assert torch.all(shift(road, far, gate=True) == 0)
+
+
+def test_a_lateral_only_head_shifts_the_yaw_rate_and_leaves_acceleration_to_the_base() -> None:
+    """``steer_lateral_only``: the acceleration channel of the shift is exactly 0, the yaw-rate channel is the
+    full head's."""
+    from ctg_reference.model import CTGConfig, CTGModel
+
+    torch.manual_seed(0)
+    model = CTGModel(CTGConfig(horizon=8, steer=True, steer_road=True))
+    with torch.no_grad():
+        model.steer.net[-1].weight.normal_(0, 0.1)
+    n, r, g = 2, 3, model.cfg.map_size
+    cond, x0 = torch.randn(n * r, model.cfg.cond_dim), torch.randn(n * r, 8, 2) * 0.3
+    steer_map = (torch.zeros(n, 1, g, g), torch.full((n,), 2.0))
+    full = model._steer_shift(cond, x0, 2, steer_map, n)
+    model.cfg.steer_lateral_only = True
+    lateral = model._steer_shift(cond, x0, 2, steer_map, n)
+    assert full[..., 0].abs().amin() > 0 and torch.all(lateral[..., 0] == 0)
+    torch.testing.assert_close(lateral[..., 1], full[..., 1], atol=0, rtol=0)
+
+
+def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_neighbours() -> None:
+    """At agent-frame points on crop-cell centres (``map_crops``' convention: rows ahead, columns to the left,
+    a quarter of the rows behind) the bilinear profile equals those cells' values; the offsets one cell across a
+    plan heading along +x read the cells to its left and right, and a plan heading along +y swaps the axes."""
+    from ctg_reference.model import MAP_BEHIND_FRACTION, road_profile
+
+    g, res = 16, 0.5
+    crop = (torch.rand(2, 1, g, g, generator=torch.Generator().manual_seed(0)) > 0.5).float()
+    u = torch.tensor([[5, 6, 7, 9], [12, 3, 4, 8]])  # rows (ahead)
+    v = torch.tensor([[3, 4, 10, 12], [1, 7, 8, 14]])  # columns (left)
+    x = (u - MAP_BEHIND_FRACTION * g + 0.5) * res
+    y = (v - g / 2 + 0.5) * res
+    heading_x = torch.stack([x, y, torch.zeros_like(x), torch.zeros_like(x)], -1)[:, None]  # (N, S=1, H=4, 4)
+    got = road_profile(crop, heading_x, res, offset=res)[:, 0]  # (N, H, 3)
+    rows = torch.arange(2)[:, None]
+    torch.testing.assert_close(got[..., 0], crop[rows, 0, u, v])
+    torch.testing.assert_close(got[..., 1], crop[rows, 0, u, v + 1])
+    torch.testing.assert_close(got[..., 2], crop[rows, 0, u, v - 1])
+    heading_y = heading_x.clone()
+    heading_y[..., 3] = math.pi / 2  # left of a plan heading along +y is -x: the row behind
+    got = road_profile(crop, heading_y, res, offset=res)[:, 0]
+    torch.testing.assert_close(got[..., 1], crop[rows, 0, u - 1, v], atol=1e-5, rtol=0)
+    torch.testing.assert_close(got[..., 2], crop[rows, 0, u + 1, v], atol=1e-5, rtol=0)
+    far = heading_x.clone()
+    far[..., 0] = 100.0  # beyond the crop
+    assert torch.all(road_profile(crop, far, res, offset=res) == 0)
+
+
+def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_cannot_act() -> None:
+    from trafficrlhf_ctg import CTGAdapter
+
+
+    road = str(REPO / "reference_models/aligned/ctg_4s_road")
+    gated = CTGAdapter(checkpoint=road, steer_gate=True, steer_gate_offset=2.0)
+    assert gated.cfg.steer_gate and gated.model.cfg.steer_gate and gated.model.cfg.steer_gate_offset == 2.0
+    assert not CTGAdapter(checkpoint=road).cfg.steer_gate
+    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    assert CTGAdapter(checkpoint=committed).cfg.steer_gate
+    assert not CTGAdapter(checkpoint=committed, steer_gate=False).cfg.steer_gate
+    with pytest.raises(TrafficRLHFError, match="needs a steering head"):
+        CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_gate=True)
+    with pytest.raises(TrafficRLHFError, match="only acts with a gate"):
+        CTGAdapter(checkpoint=road, steer_gate_offset=2.0)
+    lateral = CTGAdapter(checkpoint=committed, steer_lateral_only=True)
+    assert lateral.model.cfg.steer_lateral_only and lateral.cfg.steer_gate
+    assert not CTGAdapter(checkpoint=committed).cfg.steer_lateral_only
+    with pytest.raises(TrafficRLHFError, match="steer_lateral_only=true needs a steering head"):
+        CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_lateral_only=True)
+
+
+def test_widening_a_saved_road_head_to_read_the_traffic_keeps_its_output_until_fine_tuned(tmp_path: Path) -> None:
+    """``steer_neighbours=true`` on a saved road head: the new neighbour inputs get zero weights, so with the gate
+    reading the road alone (``steer_gate_traffic=false``) the shift equals the saved head's exactly; with the
+    traffic gate a neighbour on the plan opens the gate where the road left it shut."""
+    from trafficrlhf_ctg import CTGAdapter
+
+
+    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    saved = CTGAdapter(checkpoint=committed).model
+    widened = CTGAdapter(checkpoint=committed, steer_neighbours=True, steer_gate_traffic=False).model
+    traffic = CTGAdapter(checkpoint=committed, steer_neighbours=True).model
+    assert widened.cfg.steer_neighbours and not widened.cfg.steer_gate_traffic and traffic.cfg.steer_gate_traffic
+    old_state, new_state = saved.state_dict(), widened.state_dict()
+    assert all(torch.equal(old_state[key], new_state[key]) for key in old_state if key != "steer.net.0.weight")
+    torch.manual_seed(0)
+    n, r, h, g = 3, 4, saved.cfg.horizon, saved.cfg.map_size
+    cond = torch.randn(n * r, saved.cfg.cond_dim)
+    x0 = torch.randn(n * r, h, 2) * 0.5
+    drivable = (torch.rand(n, 1, g, g) > 0.3).float()
+    v0 = torch.tensor([3.0, 6.0, 9.0])
+    neighbours = torch.zeros(n, 2, 7)
+    neighbours[..., 0] = torch.tensor([6.0, 15.0])
+    neighbours[..., 2], neighbours[..., 5], neighbours[..., 6] = 1.0, 4.5, 1.9
+    valid, extent = torch.ones(n, 2, dtype=torch.bool), torch.tensor([[4.5, 1.9]] * n)
+    full_map = (drivable, v0, neighbours, valid, extent)
+    with torch.no_grad():
+        expected = saved._steer_shift(cond, x0, 2, (drivable, v0), n)
+        torch.testing.assert_close(widened._steer_shift(cond, x0, 2, full_map, n), expected, atol=1e-6, rtol=1e-5)
+        clear = torch.ones_like(drivable)
+        assert torch.all(widened._steer_shift(cond, x0, 2, (clear, *full_map[1:]), n) == 0)
+        assert traffic._steer_shift(cond, x0, 2, (clear, *full_map[1:]), n).abs().amax() > 0
+    with pytest.raises(TrafficRLHFError, match="steer_gate_traffic"):
+        CTGAdapter(checkpoint=committed, steer_gate_traffic=False)
+    blind = tmp_path / "blind_head"
+    CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer=True).save_pretrained(
+        str(blind))
+    with pytest.raises(TrafficRLHFError, match="widens a road-reading head only"):
+        CTGAdapter(checkpoint=str(blind), steer_neighbours=True)
+
+
+def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
+    """:func:`lead_gaps` against a plain Python loop (neighbours at constant velocity; in the path = ahead along the
+    planned heading and within half of both widths plus the margin to the side; gap bumper to bumper, clipped;
+    closing speed against the lead's speed along the heading; hazard against the desired gap), and one case by
+    hand: a car 20 m ahead at 5 m/s, the plan at a steady 10 m/s straight on."""
+    from ctg_reference.steering import LEAD_GAP_CLIP, lead_gaps
+
+    gen = torch.Generator().manual_seed(1)
+    n, k, s, h, dt, margin, s0, headway = 3, 5, 2, 6, 0.1, 0.5, 2.0, 1.5
+    yaw_n = torch.rand(n, k, generator=gen) * 0.6 - 0.3
+    neighbours = torch.cat([torch.rand(n, k, 1, generator=gen) * 40 - 5, torch.randn(n, k, 1, generator=gen) * 2,
+                            torch.cos(yaw_n)[..., None], torch.sin(yaw_n)[..., None],
+                            torch.rand(n, k, 1, generator=gen) * 12, 3 + torch.rand(n, k, 1, generator=gen) * 2,
+                            1.5 + torch.rand(n, k, 1, generator=gen)], -1)
+    valid = torch.rand(n, k, generator=gen) > 0.2
+    valid[2] = False
+    extent = torch.tensor([[4.5, 1.9], [4.0, 1.8], [5.0, 2.0]])
+    states = torch.cat([torch.rand(n, s, h, 1, generator=gen) * 10, torch.randn(n, s, h, 1, generator=gen),
+                        torch.rand(n, s, h, 1, generator=gen) * 12, torch.randn(n, s, h, 1, generator=gen) * 0.2], -1)
+    got = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway)
+    assert got.shape == (n, s, h, 3)
+    for i in range(n):
+        for j in range(s):
+            for t in range(h):
+                x, y, v, yaw = states[i, j, t].tolist()
+                best, lead_speed = LEAD_GAP_CLIP, v
+                for m in range(k):
+                    nx, ny, c, sn, speed, length, width = neighbours[i, m].tolist()
+                    cx, cy = nx + speed * c * (t + 1) * dt, ny + speed * sn * (t + 1) * dt
+                    along = (cx - x) * math.cos(yaw) + (cy - y) * math.sin(yaw)
+                    across = abs(-(cx - x) * math.sin(yaw) + (cy - y) * math.cos(yaw))
+                    if not valid[i, m] or along <= 0 or across > (extent[i, 1].item() + width) / 2 + margin:
+                        continue
+                    gap = min(max(along - (extent[i, 0].item() + length) / 2, 0.0), LEAD_GAP_CLIP)
+                    if gap < best:
+                        best = gap
+                        lead_speed = speed * (c * math.cos(yaw) + sn * math.sin(yaw))
+                expected = [best, v - lead_speed, min(max(1 - best / (s0 + headway * v), 0.0), 1.0)]
+                torch.testing.assert_close(got[i, j, t], torch.tensor(expected), atol=1e-4, rtol=1e-4)
+    assert torch.all(got[2, ..., 0] == LEAD_GAP_CLIP) and torch.all(got[2, ..., 2] == 0)
+
+    ahead = torch.tensor([[[20.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9], [20.0, 3.5, 1.0, 0.0, 5.0, 4.5, 1.9],
+                           [-8.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9]]])  # in the lane, one lane over, behind
+    t = torch.arange(1, 4) * dt
+    plan = torch.stack([10 * t, torch.zeros(3), torch.full((3,), 10.0), torch.zeros(3)], -1)[None, None]
+    one = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                    headway)[0, 0]
+    gap = 20 + 5 * t - 10 * t - 4.5
+    torch.testing.assert_close(one, torch.stack([gap, torch.full((3,), 5.0), 1 - gap / 17.0], -1))
+
+
+@needs_data
+def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_and_saves(
+        scenes, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``follow=True`` on the committed gated model adds a zero gap-keeping head next to its steering head: same
+    guided futures and log-probabilities under one generator, every saved tensor kept; it is the ``follow`` group.
+    With a non-zero output layer its shift is exactly 0 for rows with nobody ahead (the gate), non-zero behind a
+    close lead and on the acceleration channel only; the guided log-probability stays exact, a log-probability's
+    gradient reaches the head, and the head survives save_pretrained/from_pretrained without the option."""
+    from ctg_reference.model import CTGConfig, CTGModel
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    base, follow = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, follow=True)
+    assert follow.cfg.follow and follow.cfg.steer_gate and "follow" not in base.parameter_groups()
+    assert set(follow.parameter_groups()) == {"encoder", "decoder", "steer", "follow"}
+    for name, tensor in base.model.state_dict().items():
+        assert torch.equal(tensor, follow.model.state_dict()[name]), name
+    guidance = GuidanceSet.parse("no_collision").fit(scenes)
+    a = base.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    b = follow.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a.futures, b.futures)
+    torch.testing.assert_close(a.log_prob, b.log_prob)
+
+    model = CTGModel(CTGConfig(horizon=8, follow=True))
+    with torch.no_grad():
+        model.follow.net[-1].weight.normal_(0, 0.5)
+        model.follow.net[-1].bias.fill_(0.5)
+    x0 = torch.zeros(2, 8, 2)  # two rows, one sample each: about 0.1 m/s^2 (the normalization's mean)
+    lead = torch.tensor([[[8.0, 0.0, 1.0, 0.0, 2.0, 4.5, 1.9]], [[8.0, 0.0, 1.0, 0.0, 2.0, 4.5, 1.9]]])
+    steer_map = (torch.ones(2, 1, 48, 48), torch.full((2,), 8.0), lead, torch.tensor([[True], [False]]),
+                 torch.tensor([[4.5, 1.9], [4.5, 1.9]]))
+    shift = model._follow_shift(x0, 3, steer_map, 2)
+    assert shift[0, :, 0].abs().min() > 0 and torch.all(shift[1] == 0) and torch.all(shift[..., 1] == 0)
+
+    with torch.no_grad():
+        follow.model.follow.net[-1].weight.normal_(0, 0.05)
+        follow.model.follow.net[-1].bias.fill_(-0.5)  # brake wherever the gate opens
+    out = follow.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    assert not torch.equal(out.futures, a.futures)
+    recomputed = follow.log_prob(scenes, out.trace.detach())
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-3, rtol=1e-4)
+    recomputed.sum().backward()
+    head = follow.parameter_groups()["follow"]
+    assert head[-2].grad is not None and head[-2].grad.abs().sum() > 0
+    follow.save_pretrained(str(tmp_path))
+    loaded = CTGAdapter.from_pretrained(str(tmp_path), seed=0)
+    assert loaded.cfg.follow and loaded.cfg.steer_gate
+    again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(again.futures, out.futures)
