@@ -270,16 +270,22 @@ class CTGModel(nn.Module):
             k = torch.full((x.shape[0],), int(k), dtype=torch.long, device=x.device)
         return self.denoiser(x, k, cond)
 
+    def _plan_states(self, x0: torch.Tensor, v0: torch.Tensor, n: int) -> torch.Tensor:
+        """Agent-frame states ``(N, R, H, 4)`` of the clean plans ``x0 (M, H, 2)``, ``M = n * R`` rows ordered
+        row-major by the ``n`` rows whose speeds are ``v0 (N,)``."""
+        plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
+        return self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
+
     def _steer_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                     n: int) -> torch.Tensor:
+                     n: int, states: torch.Tensor | None = None) -> torch.Tensor:
         """The steering head's shift ``(M, H, 2)`` for ``M = n * R`` rows ordered row-major by the ``n``
         conditioning rows (R samples, or samples x steps, each); 0 on the acceleration channel with
-        ``steer_lateral_only``."""
-        shift = self._head_shift(cond, x0, k, steer_map, n)
+        ``steer_lateral_only``. ``states``: :meth:`_plan_states` of ``x0``, when already computed."""
+        shift = self._head_shift(cond, x0, k, steer_map, n, states)
         return shift * shift.new_tensor([0.0, 1.0]) if self.cfg.steer_lateral_only else shift
 
     def _head_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                    n: int) -> torch.Tensor:
+                    n: int, states: torch.Tensor | None = None) -> torch.Tensor:
         """:meth:`_steer_shift` on both channels."""
         assert self.steer is not None
         cfg = self.cfg
@@ -289,9 +295,8 @@ class CTGModel(nn.Module):
             raise ValueError("this CTG model's steering head reads the plans' surroundings (steer_road / "
                              "steer_neighbours): pass steer_map=(drivable crop (N, 1, G, G), v0 (N,)) and, for "
                              "steer_neighbours, also neighbours (N, K, 7), neighbour_valid (N, K), extent (N, 2).")
-        drivable, v0 = steer_map[0], steer_map[1]
-        plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
-        states = self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
+        drivable = steer_map[0]
+        states = self._plan_states(x0, steer_map[1], n) if states is None else states
         parts = []
         if cfg.steer_road:
             parts.append(road_profile(drivable, states, cfg.map_resolution, cfg.steer_road_offset))
@@ -310,9 +315,9 @@ class CTGModel(nn.Module):
         return gate * shift
 
     def _follow_shift(self, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                      n: int) -> torch.Tensor:
+                      n: int, states: torch.Tensor | None = None) -> torch.Tensor:
         """The gap-keeping head's gated shift ``(M, H, 2)`` (yaw-rate channel 0) for ``M = n * R`` rows ordered
-        row-major by the ``n`` conditioning rows."""
+        row-major by the ``n`` conditioning rows; ``states`` as in :meth:`_steer_shift`."""
         assert self.follow is not None
         cfg = self.cfg
         if steer_map is None or len(steer_map) < 5:
@@ -320,23 +325,24 @@ class CTGModel(nn.Module):
                              "(drivable crop (N, 1, G, G), v0 (N,), neighbours (N, K, 7), neighbour_valid (N, K), "
                              "extent (N, 2)).")
         v0 = steer_map[1]
-        plans = x0.reshape(n, -1, *x0.shape[1:])  # (N, R, H, 2)
-        states = self.rollout(plans, v0[:, None].expand(plans.shape[:2]))
+        states = self._plan_states(x0, v0, n) if states is None else states
         lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
                          cfg.follow_headway)  # (N, R, H, 3)
         gate = lead[..., 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
-        v_rows = v0[:, None].expand(plans.shape[:2]).reshape(-1)
+        v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
         return gate * self.follow(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))
 
     def _head_shifts(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
                      steer_map: SteerMap | None, n: int) -> torch.Tensor | None:
         """The sum of the steering and gap-keeping heads' shifts ``(M, H, 2)``, or None for a model with neither."""
-        shift = None
+        shift, states = None, None
+        if self.follow is not None and steer_map is not None:  # both heads read the same plan rollout
+            states = self._plan_states(x0, steer_map[1], n)
         if self.steer is not None:
-            shift = self._steer_shift(cond, x0, k, steer_map, n)
+            shift = self._steer_shift(cond, x0, k, steer_map, n, states)
         if self.follow is not None:
-            follow = self._follow_shift(x0, k, steer_map, n)
+            follow = self._follow_shift(x0, k, steer_map, n, states)
             shift = follow if shift is None else shift + follow
         return shift
 
