@@ -4,10 +4,16 @@ Runs the standard evaluation (same scenes, seed and batching as ``trafficrlhf ev
 controlled agent that collides, looks at its first contact: is the other box an agent the model drives
 (``controlled``) or one replayed from the log (``replayed``, which cannot react), what type it is, where it is seen
 from the colliding agent (``front`` within 45 degrees of its heading, ``rear`` within 45 degrees of its back,
-``side`` otherwise) and whether it stands (below 0.5 m/s). Each agent is weighted as in the failure rate (one
+``side`` otherwise), whether it stands (below 0.5 m/s) and when the contact comes (``onset``: within the first
+plan's 0.5 s, which no replan could change, up to 3 s, or later). Each agent is weighted as in the failure rate (one
 over its scene's controlled agents, scenes averaged), so the shares of one grouping sum to the collision rate.
 
     python scripts/collision_partners.py --model ctg --checkpoint reference_models/aligned/ctg_4s --seed 0
+
+The development sets of ``scripts/align_dev_eval.py`` work too (``--split``, ``--first``, ``--holdout-every``,
+``--mirror``); without any of them it drives the reported val scenes. All 442 train scenes mirrored (MA):
+
+    python scripts/collision_partners.py --model ctg --checkpoint DIR --split train --first 0 --mirror --seed 2
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
 STANDING_SPEED = 0.5  # m/s: below this the partner counts as standing
+FIRST_PLAN_S = 0.5  # s: the first plan runs this long before the closed loop replans (2 Hz)
+EARLY_S = 3.0  # s: contacts up to this are "early", after it "late"
 
 
 def first_contacts(rollout: Rollout) -> list[dict[str, Any]]:
@@ -57,6 +65,7 @@ def first_contacts(rollout: Rollout) -> list[dict[str, Any]]:
             "scene": b, "agent": a, "step": t, "partner": o, "partner_controlled": bool(controlled[b, o]),
             "partner_type": AgentType(int(window.agent_type[b, o])).name.lower(), "bearing": bearing,
             "speed": float(window.states[b, a, t, 2]), "partner_speed": float(window.states[b, o, t, 2]),
+            "time_s": (t + 1) * rollout.simulated.dt,
             "weight": 1.0 / (int(counts[b]) * scenes_with_agents),
         })
     return records
@@ -72,7 +81,15 @@ def group(record: dict[str, Any]) -> dict[str, str]:
         "where": side,
         "partner_standing": "standing" if abs(record["partner_speed"]) < STANDING_SPEED else "moving",
         "partner_and_where": ("controlled" if record["partner_controlled"] else "replayed") + "/" + side,
+        "onset": onset(record["time_s"]),
     }
+
+
+def onset(time_s: float) -> str:
+    """When a contact comes, ``time_s`` seconds into the closed loop: within the first plan, up to 3 s, or later."""
+    if time_s <= FIRST_PLAN_S + 1e-9:
+        return "first plan (<= 0.5 s)"
+    return "early (<= 3 s)" if time_s <= EARLY_S + 1e-9 else "late (> 3 s)"
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -93,26 +110,53 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
 
 def main() -> None:
     """Command-line entry point."""
+    import importlib.util
+    from pathlib import Path
+
+    import pydantic
+
     from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.cli import format_error
     from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", required=True)
     parser.add_argument("--checkpoint", default=None)
     parser.add_argument("--guidance", default="no_collision", help="Guidance preset (default no_collision).")
-    parser.add_argument("--split", default="val")
-    parser.add_argument("--scenes", type=int, default=100)
+    parser.add_argument("--split", choices=("train", "val"), default="val")
+    parser.add_argument("--scenes", type=int, default=100,
+                        help="Without a development-set option: the split's first N long-enough scenes (default "
+                             "100, the reported val scenes).")
+    parser.add_argument("--first", type=int, default=None,
+                        help="A development set: the split's scenes [first:], as in scripts/align_dev_eval.py.")
+    parser.add_argument("--holdout-every", type=int, default=None,
+                        help="A development set: every K-th train scene, as `align --holdout-every K` holds out.")
+    parser.add_argument("--mirror", action="store_true", help="Drive the chosen scenes mirrored.")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    torch.set_num_threads(1)
     torch.manual_seed(args.seed)
-    policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint, "seed": args.seed})
-    source = get_scenario_source("nuscenes_pred")
-    ids = source.scene_ids(args.split)[: args.scenes]
-    report = evaluate_policy(policy, source.load_batch(args.split, scene_ids=ids),
-                             EvaluationConfig(batch_size=50, seed=args.seed))
+    try:
+        policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint,
+                                           "seed": args.seed})
+        if args.first is not None or args.holdout_every or args.mirror:
+            spec = importlib.util.spec_from_file_location("align_dev_eval",
+                                                          Path(__file__).with_name("align_dev_eval.py"))
+            assert spec is not None and spec.loader is not None
+            dev = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(dev)
+            _, scenario = dev.held_out_scenes(args.holdout_every, args.first, args.split, args.mirror)
+        else:
+            source = get_scenario_source("nuscenes_pred")
+            scenario = source.load_batch(args.split, scene_ids=source.scene_ids(args.split)[: args.scenes])
+        report = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=50, seed=args.seed))
+    except (TrafficRLHFError, pydantic.ValidationError, OSError, ValueError) as error:  # one line, as the CLI
+        parser.exit(2, f"Error: {format_error(error)}\n")
     summary = summarize(first_contacts(report.rollout))
     print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "seed": args.seed,
+                      "split": args.split, "mirror": args.mirror, "scenes": scenario.num_scenes,
                       "failure_rate": round(report.values["failure_rate"], 4),
                       "collision_rate_metric": round(report.values["collision_rate"], 4), **summary}, indent=1))
 

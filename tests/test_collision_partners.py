@@ -32,6 +32,7 @@ def test_weights_sum_to_the_collision_rate_and_contacts_are_first(rollout, load_
     for r in records:
         b, a, o, t = r["scene"], r["agent"], r["partner"], r["step"]
         assert int(steps[b, a].nonzero()[0]) == t  # the first colliding step
+        assert math.isclose(r["time_s"], (t + 1) * rollout.simulated.dt)
         assert r["partner_controlled"] == bool(rollout.controlled[b, o])
         box_a = box_polygon(*window.xy[b, a, t].tolist(), float(window.yaw[b, a, t]), *window.extent[b, a].tolist())
         box_o = box_polygon(*window.xy[b, o, t].tolist(), float(window.yaw[b, o, t]), *window.extent[b, o].tolist())
@@ -44,9 +45,16 @@ def test_weights_sum_to_the_collision_rate_and_contacts_are_first(rollout, load_
 
 def test_where_the_partner_is_seen_from(load_script) -> None:  # type: ignore[no-untyped-def]
     group = load_script("collision_partners").group
-    base = {"partner_controlled": False, "partner_type": "vehicle", "partner_speed": 0.0}
+    base = {"partner_controlled": False, "partner_type": "vehicle", "partner_speed": 0.0, "time_s": 1.0}
     assert group({**base, "bearing": 0.1})["where"] == "front"
     assert group({**base, "bearing": -3.0})["where"] == "rear"
     assert group({**base, "bearing": 1.5})["where"] == "side"
     assert group({**base, "bearing": 0.0})["partner_and_where"] == "replayed/front"
     assert group({**base, "bearing": 0.0, "partner_speed": 3.0})["partner_standing"] == "moving"
+
+
+def test_onset_separates_the_first_plan_from_later_contacts(load_script) -> None:  # type: ignore[no-untyped-def]
+    script = load_script("collision_partners")
+    assert script.onset(0.1) == script.onset(0.5) == "first plan (<= 0.5 s)"
+    assert script.onset(0.6) == script.onset(3.0) == "early (<= 3 s)"
+    assert script.onset(3.1) == script.onset(10.0) == "late (> 3 s)"
