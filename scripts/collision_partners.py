@@ -158,7 +158,9 @@ def main() -> None:
     print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "seed": args.seed,
                       "split": args.split, "mirror": args.mirror, "scenes": scenario.num_scenes,
                       "failure_rate": round(report.values["failure_rate"], 4),
-                      "collision_rate_metric": round(report.values["collision_rate"], 4), **summary}, indent=1))
+                      "collision_rate_metric": round(report.values["collision_rate"], 4),
+                      **{key: round(report.values[key], 4) for key in ("offroad_rate", "realism_ctg", "realism_body")
+                         if key in report.values}, **summary}, indent=1))
 
 
 if __name__ == "__main__":

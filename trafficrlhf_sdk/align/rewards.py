@@ -14,7 +14,7 @@ import torch
 from trafficrlhf_sdk.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
-from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
+from trafficrlhf_sdk.metrics.geometry import pairwise_collisions, path_gaps
 from trafficrlhf_sdk.metrics.realism import STAT_DT, HistogramSpec, kinematics
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
@@ -114,24 +114,12 @@ def time_to_collision(scenario: ScenarioTensor, lane_margin_m: float = 0.5) -> t
     """``(B, A, T)`` seconds: per agent and step, the smallest time to collision with an agent in its path ahead,
     ``inf`` where none is closing in (or the agent is not valid).
 
-    Another agent is in the path when its centre lies ahead along the agent's heading and at most half of both
-    widths plus ``lane_margin_m`` to the side. The gap is bumper to bumper (centre distance along the heading less
-    half of both lengths, 0 when they already touch); the closing speed is the agent's speed less the other's
-    velocity along that heading; TTC = gap / closing speed where the latter is positive.
+    Who is in the path, the bumper gap and the closing speed are as :func:`~trafficrlhf_sdk.metrics.path_gaps`
+    defines them; TTC = gap / closing speed where the latter is positive.
     """
-    xy, yaw, speed, valid = scenario.xy, scenario.yaw, scenario.states[..., 2], scenario.valid
-    forward = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)  # (B, A, T, 2)
-    offset = xy[:, None] - xy[:, :, None]  # (B, A_self, A_other, T, 2)
-    along = (offset * forward[:, :, None]).sum(-1)
-    across = (offset[..., 1] * forward[:, :, None, :, 0] - offset[..., 0] * forward[:, :, None, :, 1]).abs()
-    width, length = scenario.extent[..., 1], scenario.extent[..., 0]  # (B, A)
-    reach_side = (width[:, :, None] + width[:, None, :]) / 2 + lane_margin_m  # (B, A, A)
-    reach_along = (length[:, :, None] + length[:, None, :]) / 2
-    others = ~torch.eye(xy.shape[1], dtype=torch.bool, device=xy.device)[None, :, :, None]
-    in_path = (along > 0) & (across <= reach_side[..., None]) & valid[:, :, None] & valid[:, None] & others
-    other_along = speed[:, None] * torch.cos(yaw[:, None] - yaw[:, :, None])  # the other's speed along my heading
-    closing = speed[:, :, None] - other_along
-    gap = (along - reach_along[..., None]).clamp_min(0)
+    speed = scenario.states[..., 2]
+    gap, closing, in_path = path_gaps(scenario.xy, scenario.yaw, speed, scenario.extent, scenario.valid,
+                                      lane_margin_m)
     ttc = torch.where(in_path & (closing > 0), gap / closing.clamp_min(1e-6), torch.full_like(gap, math.inf))
     return ttc.amin(2) if ttc.shape[2] else torch.full_like(speed, math.inf)
 

@@ -4,7 +4,14 @@ reward cost."""
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_corner_share, offroad_per_step
 from trafficrlhf_sdk.metrics.guidance_objectives import GuidanceObjectivesMetric
-from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap, colliding_pairs, pairwise_collisions
+from trafficrlhf_sdk.metrics.geometry import (
+    box_corners,
+    boxes_overlap,
+    colliding_pairs,
+    following_gaps,
+    pairwise_collisions,
+    path_gaps,
+)
 from trafficrlhf_sdk.metrics.realism import (
     HistogramSpec,
     RealismMetric,
@@ -29,10 +36,12 @@ __all__ = [
     "boxes_overlap",
     "colliding_pairs",
     "collisions_per_step",
+    "following_gaps",
     "histogram_distance",
     "kinematics",
     "offroad_corner_share",
     "offroad_per_step",
     "pairwise_collisions",
+    "path_gaps",
     "scene_histogram",
 ]

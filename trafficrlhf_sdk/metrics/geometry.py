@@ -1,10 +1,13 @@
-"""Oriented-box geometry, batched: corners and separating-axis overlap tests."""
+"""Oriented-box geometry, batched: corners and separating-axis overlap tests, and the agents in each agent's path
+ahead (gaps, closing speeds)."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "pairwise_collisions"]
+__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "following_gaps", "pairwise_collisions", "path_gaps"]
 
 
 def box_corners(xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
@@ -89,3 +92,37 @@ def pairwise_collisions(
     hit[scene, i, step] = True
     hit[scene, j, step] = True
     return hit
+
+
+def path_gaps(xy: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, extent: torch.Tensor, valid: torch.Tensor,
+              lane_margin_m: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every other agent as seen along each agent's path: ``(gap, closing, in_path)``, each ``(B, A_self, A_other,
+    T)``, from positions ``xy (B, A, T, 2)`` m, headings ``yaw (B, A, T)`` rad, speeds ``(B, A, T)`` m/s, ``extent
+    (B, A, 2)`` (length, width) m and ``valid (B, A, T)``.
+
+    The other agent is in the path when its centre lies ahead along the agent's heading and at most half of both
+    widths plus ``lane_margin_m`` to the side (both valid, never the agent itself). ``gap`` is bumper to bumper (m:
+    the centre distance along the heading less half of both lengths, 0 when they already touch); ``closing`` is
+    the agent's speed less the other's velocity along that heading (m/s, positive when closing in)."""
+    forward = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)  # (B, A, T, 2)
+    offset = xy[:, None] - xy[:, :, None]  # (B, A_self, A_other, T, 2)
+    along = (offset * forward[:, :, None]).sum(-1)
+    across = (offset[..., 1] * forward[:, :, None, :, 0] - offset[..., 0] * forward[:, :, None, :, 1]).abs()
+    width, length = extent[..., 1], extent[..., 0]  # (B, A)
+    reach_side = (width[:, :, None] + width[:, None, :]) / 2 + lane_margin_m  # (B, A, A)
+    reach_along = (length[:, :, None] + length[:, None, :]) / 2
+    others = ~torch.eye(xy.shape[1], dtype=torch.bool, device=xy.device)[None, :, :, None]
+    in_path = (along > 0) & (across <= reach_side[..., None]) & valid[:, :, None] & valid[:, None] & others
+    other_along = speed[:, None] * torch.cos(yaw[:, None] - yaw[:, :, None])  # the other's speed along my heading
+    closing = speed[:, :, None] - other_along
+    gap = (along - reach_along[..., None]).clamp_min(0)
+    return gap, closing, in_path
+
+
+def following_gaps(xy: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, extent: torch.Tensor,
+                   valid: torch.Tensor, lane_margin_m: float = 0.5) -> torch.Tensor:
+    """``(B, A, T)`` m: the bumper gap to the nearest agent in each agent's path ahead (:func:`path_gaps`, same
+    arguments), ``inf`` where there is none or the agent is not valid."""
+    gap, _, in_path = path_gaps(xy, yaw, speed, extent, valid, lane_margin_m)
+    gap = torch.where(in_path, gap, torch.full_like(gap, math.inf))
+    return gap.amin(2) if gap.shape[2] else torch.full_like(speed, math.inf)

@@ -352,3 +352,27 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
     assert loaded.cfg.follow and loaded.cfg.steer_gate
     again = loaded.sample(scenes, 2, guidance, torch.Generator().manual_seed(3))
     torch.testing.assert_close(again.futures, out.futures)
+
+
+def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None:
+    """``follow_brake`` sets a new head's output bias (weights stay zero); ``follow_standstill`` / ``follow_headway``
+    override the desired gap (a new head: 1.5 m + 0.5 s, the logged 5 % calibration); each refuses to act without
+    the head it configures, naming the option."""
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    plain = CTGAdapter(checkpoint=path, seed=0, follow=True)
+    assert (plain.cfg.follow_standstill, plain.cfg.follow_headway) == (1.5, 0.5)
+    braking = CTGAdapter(checkpoint=path, seed=0, follow=True, follow_brake=-3.0, follow_standstill=2.0,
+                         follow_headway=1.0)
+    last = braking.model.follow.net[-1]
+    assert torch.all(last.bias == -3.0) and torch.all(last.weight == 0)
+    assert (braking.cfg.follow_standstill, braking.cfg.follow_headway) == (2.0, 1.0)
+    assert braking.model.cfg is braking.cfg
+    for name, tensor in plain.model.state_dict().items():
+        if not name.startswith("follow.net.6"):
+            assert torch.equal(tensor, braking.model.state_dict()[name]), name
+    with pytest.raises(TrafficRLHFError, match="follow_brake=-3.0"):
+        CTGAdapter(checkpoint=path, seed=0, follow_brake=-3.0)
+    with pytest.raises(TrafficRLHFError, match="follow_headway=1.0"):
+        CTGAdapter(checkpoint=path, seed=0, follow_headway=1.0)

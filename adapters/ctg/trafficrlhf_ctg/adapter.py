@@ -95,8 +95,21 @@ class CTGOptions(AdapterOptions):
     follow: bool = Field(False, description="Add a zero-initialized gap-keeping head (ctg_reference.FollowHead) to "
                          "a checkpoint that has none, offered as the parameter group 'follow'. It shifts only the "
                          "acceleration channel, reads the gap to the agent ahead in each denoising step's clean plan "
-                         "(ctg_reference.lead_gaps) and acts only where that gap is below 2 m + 1.5 s x the planned "
-                         "speed; any steering head is kept. Checkpoints saved with one load it without this option.")
+                         "(ctg_reference.lead_gaps) and acts only where that gap is below follow_standstill + "
+                         "follow_headway x the planned speed; any steering head is kept. Checkpoints saved with one "
+                         "load it without this option.")
+    follow_standstill: float | None = Field(None, gt=0, description="The gap-keeping head's desired gap at "
+                                            "standstill (m); None keeps the checkpoint's setting (a new head: "
+                                            "1.5 m).")
+    follow_headway: float | None = Field(None, ge=0, description="The gap-keeping head's desired time gap at the "
+                                         "planned speed (s); None keeps the checkpoint's setting (a new head: "
+                                         "0.5 s, which with 1.5 m holds 5 % of the logged following steps, "
+                                         "scripts/following_gaps.py).")
+    follow_brake: float | None = Field(None, description="Start a new gap-keeping head (follow=true) braking: "
+                                       "its output layer's bias, so a plan inside the desired gap has its "
+                                       "acceleration mean shifted by sigma_k x gate x tanh(follow_brake) per "
+                                       "denoising step (negative brakes; -3 is nearly the head's full authority). "
+                                       "None: a zero head, sampling as without one.")
     steer_gate: bool | None = Field(None, description="Scale a reading head's shift by its plan's hazard (the "
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
@@ -136,7 +149,17 @@ class CTGAdapter(TrafficModelAdapter):
         elif opts.steer_neighbours and not self.cfg.steer_neighbours:
             self._widen_steer_head()
         if opts.follow and not self.cfg.follow:
-            self._add_follow_head()
+            self._add_follow_head(opts.follow_brake)
+        elif opts.follow_brake is not None:
+            raise TrafficRLHFError(f"follow_brake={opts.follow_brake} sets a new gap-keeping head's start; add "
+                                   "follow=true to a checkpoint without one (a saved head keeps its weights).")
+        gaps = {"follow_standstill": opts.follow_standstill, "follow_headway": opts.follow_headway}
+        gaps = {key: value for key, value in gaps.items() if value is not None}
+        if gaps and not self.cfg.follow:
+            raise TrafficRLHFError(f"{', '.join(f'{k}={v}' for k, v in gaps.items())} sets the gap-keeping head's "
+                                   "desired gap; add follow=true (or load a checkpoint saved with that head).")
+        if gaps:
+            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **gaps)
         head = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset,
                 "steer_gate_traffic": opts.steer_gate_traffic, "steer_lateral_only": opts.steer_lateral_only}
         head = {key: value for key, value in head.items() if value is not None}
@@ -169,10 +192,16 @@ class CTGAdapter(TrafficModelAdapter):
         self._add_head(dataclasses.replace(self.cfg, steer=True, steer_road=road, steer_neighbours=neighbours),
                        "steer.")
 
-    def _add_follow_head(self) -> None:
-        """Rebuild the model with a fresh (zero) gap-keeping head, keeping every trained weight, the steering
-        head's too (:meth:`_add_head`)."""
+    def _add_follow_head(self, brake: float | None = None) -> None:
+        """Rebuild the model with a fresh gap-keeping head, keeping every trained weight, the steering head's too
+        (:meth:`_add_head`); the head is zero, or with ``brake`` its output bias (weights still zero)."""
         self._add_head(dataclasses.replace(self.cfg, follow=True), "follow.")
+        if brake is not None:
+            assert self.model.follow is not None
+            last = self.model.follow.net[-1]
+            assert isinstance(last, torch.nn.Linear)
+            with torch.no_grad():
+                last.bias.fill_(brake)
 
     def _add_head(self, cfg: CTGConfig, prefix: str) -> None:
         """Rebuild the model as ``cfg``, whose only new tensors are those under ``prefix``, copying every other
