@@ -372,7 +372,7 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None
     for name, tensor in plain.model.state_dict().items():
         if not name.startswith("follow.net.6"):
             assert torch.equal(tensor, braking.model.state_dict()[name]), name
-    with pytest.raises(TrafficRLHFError, match="follow_brake=-3.0"):
+    with pytest.raises(TrafficRLHFError, match=r"follow_brake=-3\.0"):
         CTGAdapter(checkpoint=path, seed=0, follow_brake=-3.0)
-    with pytest.raises(TrafficRLHFError, match="follow_headway=1.0"):
+    with pytest.raises(TrafficRLHFError, match=r"follow_headway=1\.0"):
         CTGAdapter(checkpoint=path, seed=0, follow_headway=1.0)
