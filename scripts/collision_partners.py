@@ -113,10 +113,11 @@ def main() -> None:
     import importlib.util
     from pathlib import Path
 
+    import click
     import pydantic
 
     from trafficrlhf_sdk import get_scenario_source
-    from trafficrlhf_sdk.cli import format_error
+    from trafficrlhf_sdk.cli import format_error, parse_key_values
     from trafficrlhf_sdk.cli.evaluate import build_policy
     from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
@@ -134,12 +135,18 @@ def main() -> None:
     parser.add_argument("--holdout-every", type=int, default=None,
                         help="A development set: every K-th train scene, as `align --holdout-every K` holds out.")
     parser.add_argument("--mirror", action="store_true", help="Drive the chosen scenes mirrored.")
+    parser.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="A model option, as in `trafficrlhf evaluate --model-option` (repeatable).")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    try:
+        options = parse_key_values(args.model_option, "--model-option")
+    except click.BadParameter as error:
+        parser.error(f"--model-option: {error.message}")
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     try:
-        policy = build_policy(args.model, {"guidance": args.guidance, "checkpoint": args.checkpoint,
+        policy = build_policy(args.model, {**options, "guidance": args.guidance, "checkpoint": args.checkpoint,
                                            "seed": args.seed})
         if args.first is not None or args.holdout_every or args.mirror:
             spec = importlib.util.spec_from_file_location("align_dev_eval",
@@ -155,7 +162,7 @@ def main() -> None:
     except (TrafficRLHFError, pydantic.ValidationError, OSError, ValueError) as error:  # one line, as the CLI
         parser.exit(2, f"Error: {format_error(error)}\n")
     summary = summarize(first_contacts(report.rollout))
-    print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "seed": args.seed,
+    print(json.dumps({"model": args.model, "checkpoint": args.checkpoint, "model_options": options, "seed": args.seed,
                       "split": args.split, "mirror": args.mirror, "scenes": scenario.num_scenes,
                       "failure_rate": round(report.values["failure_rate"], 4),
                       "collision_rate_metric": round(report.values["collision_rate"], 4),
