@@ -565,3 +565,29 @@ def test_failure_figure_names_who_failed_and_when(case, tmp_path) -> None:  # ty
         assert ("collision at" in title) or ("off-road at" in title)
     path = save_failure_png(case.rollout, index, tmp_path / "x.png", failures=found)
     assert open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_collisions_split_by_partner_kind(case) -> None:  # type: ignore[no-untyped-def]
+    """``collision_rate_own`` / ``collision_rate_replayed``: per controlled agent, whether any overlapping partner
+    (listed pair by pair, the list checked against shapely above) is driven by the policy or replayed; every
+    collision has one kind or both."""
+    rollout = case.rollout
+    result = FailureMetric().compute(rollout)
+    window = _window(rollout)
+    controlled = rollout.controlled
+    own = np.zeros(tuple(controlled.shape), dtype=bool)
+    replayed = np.zeros_like(own)
+    for b, i, j, _ in zip(*(t.tolist() for t in colliding_pairs(window.xy, window.yaw, window.extent, window.valid))):
+        for me, other in ((i, j), (j, i)):
+            (own if controlled[b, other] else replayed)[b, me] = True
+    mask = controlled.numpy()
+    collided = result.extras["collided"].numpy() & mask
+    assert np.array_equal((own | replayed) & mask, collided)
+    for key, flags in (("collision_rate_own", own), ("collision_rate_replayed", replayed)):
+        per_scene = [float((flags[b] & mask[b]).sum() / mask[b].sum()) if mask[b].any() else math.nan
+                     for b in range(mask.shape[0])]
+        got = result.per_scene[key].tolist()
+        assert [v != v for v in got] == [v != v for v in per_scene], key
+        assert np.allclose([v for v in got if v == v], [v for v in per_scene if v == v]), key
+    assert result.values["collision_rate_own"] + result.values["collision_rate_replayed"] >= \
+        result.values["collision_rate"] - 1e-12

@@ -15,6 +15,8 @@ __all__ = ["change_interval_table", "comparison_table", "scene_change_table"]
 ROWS = (
     ("failure_rate", "failure rate"),
     ("collision_rate", "collision rate"),
+    ("collision_rate_own", "  with an agent it drives"),
+    ("collision_rate_replayed", "  with a replayed agent"),
     ("offroad_rate", "off-road rate"),
     ("failure_rate_corners", "failure rate (box corners)"),
     ("realism_ctg", "realism dev. (ctg)"),
@@ -133,7 +135,8 @@ def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") 
 
 
 INTERVAL_KEYS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
-                 ("offroad_rate", "off-road rate"))
+                 ("collision_rate_own", "collision with an agent it drives"),
+                 ("collision_rate_replayed", "collision with a replayed agent"), ("offroad_rate", "off-road rate"))
 REALISM_INTERVAL_KEYS = (("ctg", "realism dev. (ctg)"), ("body", "realism dev. (body)"))
 
 

@@ -19,6 +19,8 @@ if TYPE_CHECKING:
 ROWS = (
     ("failure_rate", "failure rate (any)"),
     ("collision_rate", "  collision"),
+    ("collision_rate_own", "    with an agent it drives"),
+    ("collision_rate_replayed", "    with a replayed agent"),
     ("offroad_rate", "  off-road (centre)"),
     ("failure_rate_corners", "failure rate (box corners)"),
     ("realism_ctg", "realism deviation, ctg"),

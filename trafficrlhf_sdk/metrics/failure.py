@@ -8,11 +8,12 @@ from typing import Literal
 import torch
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
-from trafficrlhf_sdk.metrics.geometry import box_corners, pairwise_collisions
+from trafficrlhf_sdk.metrics.geometry import box_corners, colliding_pairs, pairwise_collisions
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["FailureMetric", "collisions_per_step", "offroad_corner_share", "offroad_per_step", "scene_mean"]
+__all__ = ["FailureMetric", "collision_partner_kinds", "collisions_per_step", "offroad_corner_share",
+           "offroad_per_step", "scene_mean"]
 
 OffroadMode = Literal["center", "corners"]
 
@@ -72,9 +73,24 @@ def nanmean(values: torch.Tensor) -> float:
     return math.fsum(finite.double().tolist()) / finite.numel() if finite.numel() else float("nan")
 
 
+def collision_partner_kinds(window: ScenarioTensor, controlled: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """bool ``(B, A)`` each: the agent ever overlaps an agent the policy drives (``controlled (B, A)``), and ever
+    overlaps one replayed from the log (which cannot react), at a valid step of ``window``."""
+    scene, i, j, _ = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
+    own, replayed = torch.zeros_like(controlled), torch.zeros_like(controlled)
+    for me, other in ((i, j), (j, i)):
+        partner_driven = controlled[scene, other]
+        own[scene[partner_driven], me[partner_driven]] = True
+        replayed[scene[~partner_driven], me[~partner_driven]] = True
+    return own, replayed
+
+
 class FailureMetric(Metric):
     """Per scene, the share of controlled agents that collide or go off-road at any simulated 0.1 s step;
-    averaged over scenes. Also the collision-only and off-road-only shares.
+    averaged over scenes. Also the collision-only and off-road-only shares, and the collisions split by partner:
+    ``collision_rate_own`` (ever touching another agent the policy drives) and ``collision_rate_replayed`` (ever
+    touching a log-replayed agent, which cannot react); an agent can be in both, so they may sum to more than
+    ``collision_rate``.
 
     Args:
         offroad_mode: ``"center"`` (upstream: centre pixel on the drivable layer) or ``"corners"`` (all four
@@ -87,7 +103,8 @@ class FailureMetric(Metric):
         self.offroad_mode = offroad_mode
 
     def compute(self, rollout: Rollout) -> MetricResult:
-        """failure_rate, collision_rate, offroad_rate (fractions of agents, mean over scenes)."""
+        """failure_rate, collision_rate, offroad_rate, collision_rate_own, collision_rate_replayed (fractions of
+        agents, mean over scenes)."""
         window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
         collision_steps = collisions_per_step(window) & window.valid
         offroad_steps = offroad_per_step(window, self.offroad_mode)
@@ -98,8 +115,12 @@ class FailureMetric(Metric):
             "collision_rate": scene_mean(collided, mask),
             "offroad_rate": scene_mean(offroad, mask),
         }
+        if self.offroad_mode == "center":
+            own, replayed = collision_partner_kinds(window, mask)
+            per_scene.update(collision_rate_own=scene_mean(own, mask),
+                             collision_rate_replayed=scene_mean(replayed, mask))
         suffix = "" if self.offroad_mode == "center" else "_corners"
-        per_scene = {f"{k}{suffix}" if k != "collision_rate" else k: v for k, v in per_scene.items()}
+        per_scene = {f"{k}{suffix}" if not k.startswith("collision_rate") else k: v for k, v in per_scene.items()}
         return MetricResult(
             values={k: nanmean(v) for k, v in per_scene.items()},
             per_scene=per_scene,
