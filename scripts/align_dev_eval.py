@@ -50,9 +50,9 @@ from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 
-KEYS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_body_lon_acc",
-        "realism_body_lat_acc", "realism_body_jerk", "realism_body_speed",
-        "guidance_target_speed", "speed_ratio", "stopped_share")
+KEYS = ("failure_rate", "collision_rate", "collision_rate_own", "collision_rate_replayed", "offroad_rate",
+        "realism_ctg", "realism_body", "realism_body_lon_acc", "realism_body_lat_acc", "realism_body_jerk",
+        "realism_body_speed", "guidance_target_speed", "speed_ratio", "stopped_share")
 
 
 DEFAULT_FIRST = {"train": 400, "val": 100}
