@@ -73,10 +73,11 @@ def nanmean(values: torch.Tensor) -> float:
     return math.fsum(finite.double().tolist()) / finite.numel() if finite.numel() else float("nan")
 
 
-def collision_partner_kinds(window: ScenarioTensor, controlled: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """bool ``(B, A)`` each: the agent ever overlaps an agent the policy drives (``controlled (B, A)``), and ever
-    overlaps one replayed from the log (which cannot react), at a valid step of ``window``."""
-    scene, i, j, _ = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
+def collision_partner_kinds(scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor, controlled: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """bool ``(B, A)`` each, from the overlapping pairs ``(scene, i, j)`` of :func:`colliding_pairs`: the agent ever
+    overlaps an agent the policy drives (``controlled (B, A)``), and ever overlaps one replayed from the log (which
+    cannot react)."""
     own, replayed = torch.zeros_like(controlled), torch.zeros_like(controlled)
     for me, other in ((i, j), (j, i)):
         partner_driven = controlled[scene, other]
@@ -106,7 +107,11 @@ class FailureMetric(Metric):
         """failure_rate, collision_rate, offroad_rate, collision_rate_own, collision_rate_replayed (fractions of
         agents, mean over scenes)."""
         window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
-        collision_steps = collisions_per_step(window) & window.valid
+        scene, i, j, step = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
+        collision_steps = torch.zeros_like(window.valid)  # as collisions_per_step, from the pairs listed once
+        collision_steps[scene, i, step] = True
+        collision_steps[scene, j, step] = True
+        collision_steps &= window.valid
         offroad_steps = offroad_per_step(window, self.offroad_mode)
         collided, offroad = collision_steps.any(-1), offroad_steps.any(-1)
         mask = rollout.controlled
@@ -116,7 +121,7 @@ class FailureMetric(Metric):
             "offroad_rate": scene_mean(offroad, mask),
         }
         if self.offroad_mode == "center":
-            own, replayed = collision_partner_kinds(window, mask)
+            own, replayed = collision_partner_kinds(scene, i, j, mask)
             per_scene.update(collision_rate_own=scene_mean(own, mask),
                              collision_rate_replayed=scene_mean(replayed, mask))
         suffix = "" if self.offroad_mode == "center" else "_corners"
