@@ -8,7 +8,7 @@ from typing import Literal
 import torch
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
-from trafficrlhf_sdk.metrics.geometry import box_corners, colliding_pairs, pairwise_collisions
+from trafficrlhf_sdk.metrics.geometry import box_corners, colliding_pairs, pair_step_flags, pairwise_collisions
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
@@ -90,8 +90,8 @@ class FailureMetric(Metric):
     """Per scene, the share of controlled agents that collide or go off-road at any simulated 0.1 s step;
     averaged over scenes. Also the collision-only and off-road-only shares, and the collisions split by partner:
     ``collision_rate_own`` (ever touching another agent the policy drives) and ``collision_rate_replayed`` (ever
-    touching a log-replayed agent, which cannot react); an agent can be in both, so they may sum to more than
-    ``collision_rate``.
+    touching a log-replayed agent, which cannot react; with ``offroad_mode="center"``, the default); an agent can
+    be in both, so they may sum to more than ``collision_rate``.
 
     Args:
         offroad_mode: ``"center"`` (upstream: centre pixel on the drivable layer) or ``"corners"`` (all four
@@ -108,10 +108,8 @@ class FailureMetric(Metric):
         agents, mean over scenes)."""
         window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
         scene, i, j, step = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
-        collision_steps = torch.zeros_like(window.valid)  # as collisions_per_step, from the pairs listed once
-        collision_steps[scene, i, step] = True
-        collision_steps[scene, j, step] = True
-        collision_steps &= window.valid
+        # as collisions_per_step, from the pairs listed once (the partner kinds below read them too)
+        collision_steps = pair_step_flags(window.valid, scene, i, j, step) & window.valid
         offroad_steps = offroad_per_step(window, self.offroad_mode)
         collided, offroad = collision_steps.any(-1), offroad_steps.any(-1)
         mask = rollout.controlled

@@ -7,7 +7,8 @@ import math
 
 import torch
 
-__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "following_gaps", "pairwise_collisions", "path_gaps"]
+__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "following_gaps", "pair_step_flags",
+           "pairwise_collisions", "path_gaps"]
 
 
 def box_corners(xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
@@ -87,8 +88,14 @@ def pairwise_collisions(
     Returns:
         bool ``(B, A, T)``: agent overlaps at least one other valid agent at that step.
     """
-    hit = torch.zeros(valid.shape, dtype=torch.bool, device=xy.device)
-    scene, i, j, step = colliding_pairs(xy, yaw, extent, valid)
+    return pair_step_flags(valid, *colliding_pairs(xy, yaw, extent, valid))
+
+
+def pair_step_flags(valid: torch.Tensor, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor,
+                    step: torch.Tensor) -> torch.Tensor:
+    """bool ``(B, A, T)`` shaped as ``valid``: True for both agents of each listed pair ``(scene, i, j, step)``
+    (as :func:`colliding_pairs` returns them) at that step."""
+    hit = torch.zeros(valid.shape, dtype=torch.bool, device=valid.device)
     hit[scene, i, step] = True
     hit[scene, j, step] = True
     return hit
