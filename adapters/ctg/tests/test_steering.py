@@ -272,7 +272,9 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     states = torch.cat([torch.rand(n, s, h, 1, generator=gen) * 10, torch.randn(n, s, h, 1, generator=gen),
                         torch.rand(n, s, h, 1, generator=gen) * 12, torch.randn(n, s, h, 1, generator=gen) * 0.2], -1)
     got = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway)
-    assert got.shape == (n, s, h, 3)
+    ttc = 2.5
+    by_ttc = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, ttc)
+    assert got.shape == by_ttc.shape == (n, s, h, 3)
     for i in range(n):
         for j in range(s):
             for t in range(h):
@@ -291,6 +293,10 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
                         lead_speed = speed * (c * math.cos(yaw) + sn * math.sin(yaw))
                 expected = [best, v - lead_speed, min(max(1 - best / (s0 + headway * v), 0.0), 1.0)]
                 torch.testing.assert_close(got[i, j, t], torch.tensor(expected), atol=1e-4, rtol=1e-4)
+                closing = v - lead_speed
+                ttc_hazard = min(max(1 - best / (ttc * closing), 0.0), 1.0) if closing > 0 else 0.0
+                torch.testing.assert_close(by_ttc[i, j, t], torch.tensor([best, closing, ttc_hazard]), atol=1e-4,
+                                           rtol=1e-4)
     assert torch.all(got[2, ..., 0] == LEAD_GAP_CLIP) and torch.all(got[2, ..., 2] == 0)
 
     ahead = torch.tensor([[[20.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9], [20.0, 3.5, 1.0, 0.0, 5.0, 4.5, 1.9],
@@ -301,6 +307,14 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
                     headway)[0, 0]
     gap = 20 + 5 * t - 10 * t - 4.5
     torch.testing.assert_close(one, torch.stack([gap, torch.full((3,), 5.0), 1 - gap / 17.0], -1))
+    # closing in at 5 m/s from about 15 m: TTC about 3 s, hazard 1 - TTC / 4 s; slower than the lead: none
+    by_ttc = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                       headway, 4.0)[0, 0]
+    torch.testing.assert_close(by_ttc[:, 2], 1 - (gap / 5.0) / 4.0)
+    slow = plan.clone()
+    slow[..., 2] = 4.0
+    assert torch.all(lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), slow, dt,
+                               margin, s0, headway, 4.0)[..., 2] == 0)
 
 
 @needs_data
@@ -376,3 +390,7 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None
         CTGAdapter(checkpoint=path, seed=0, follow_brake=-3.0)
     with pytest.raises(TrafficRLHFError, match=r"follow_headway=1\.0"):
         CTGAdapter(checkpoint=path, seed=0, follow_headway=1.0)
+    with pytest.raises(TrafficRLHFError, match=r"follow_ttc=2\.0"):
+        CTGAdapter(checkpoint=path, seed=0, follow_ttc=2.0)
+    assert plain.cfg.follow_ttc is None
+    assert CTGAdapter(checkpoint=path, seed=0, follow=True, follow_ttc=2.0).cfg.follow_ttc == 2.0

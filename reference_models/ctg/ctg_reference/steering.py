@@ -144,7 +144,8 @@ class FollowHead(nn.Module):
 
 
 def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor, states: torch.Tensor,
-              dt: float, lane_margin: float, standstill: float, headway: float) -> torch.Tensor:
+              dt: float, lane_margin: float, standstill: float, headway: float,
+              ttc: float | None = None) -> torch.Tensor:
     """The agent ahead in each plan's path, per planned step: ``(N, S, H, 3)`` = (gap m, closing speed m/s, headway
     hazard in [0, 1]).
 
@@ -154,6 +155,8 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     half of both lengths, 0 below it), clipped to :data:`LEAD_GAP_CLIP` (also the reading with nobody ahead); the
     closing speed is the planned speed less the lead's speed along the planned heading; the hazard is
     ``clamp(1 - gap / (standstill + headway * planned speed), 0, 1)``: 0 from the desired gap (m, s) on, 1 at contact.
+    With ``ttc`` (s) the hazard is the time-to-collision one instead, ``clamp(1 - (gap / closing speed) / ttc, 0, 1)``
+    while closing in and 0 otherwise: a follower keeping its distance, however short, reads no hazard.
 
     Args:
         neighbours: ``(N, K, 7)`` in the row's agent frame now (x, y in m, cos and sin of relative yaw, speed in
@@ -186,6 +189,9 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
             -2, lead[..., None, None].expand(*lead.shape, 1, 2)).squeeze(-2)
         lead_speed = torch.where(lead_gap < LEAD_GAP_CLIP, (lead_velocity * forward).sum(-1), states[..., 2])
     closing = states[..., 2] - lead_speed
-    desired = standstill + headway * states[..., 2].clamp_min(0)
-    hazard = (1 - lead_gap / desired).clamp(0, 1)
+    if ttc is None:
+        desired = standstill + headway * states[..., 2].clamp_min(0)
+    else:  # the gap covered in ttc s at the closing speed; 0 (no hazard) unless closing in
+        desired = ttc * closing.clamp_min(0)
+    hazard = torch.where(desired > 0, (1 - lead_gap / desired.clamp_min(1e-6)).clamp(0, 1), torch.zeros_like(desired))
     return torch.stack([lead_gap, closing, hazard], -1)
