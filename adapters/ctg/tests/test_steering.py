@@ -275,11 +275,12 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     ttc = 2.5
     by_ttc = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, ttc)
     assert got.shape == by_ttc.shape == (n, s, h, 3)
+    alike = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, None, 0.9)
     for i in range(n):
         for j in range(s):
             for t in range(h):
                 x, y, v, yaw = states[i, j, t].tolist()
-                best, lead_speed = LEAD_GAP_CLIP, v
+                best, lead_speed, best_alike = LEAD_GAP_CLIP, v, LEAD_GAP_CLIP
                 for m in range(k):
                     nx, ny, c, sn, speed, length, width = neighbours[i, m].tolist()
                     cx, cy = nx + speed * c * (t + 1) * dt, ny + speed * sn * (t + 1) * dt
@@ -287,6 +288,9 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
                     across = abs(-(cx - x) * math.sin(yaw) + (cy - y) * math.cos(yaw))
                     if not valid[i, m] or along <= 0 or across > (extent[i, 1].item() + width) / 2 + margin:
                         continue
+                    if c * math.cos(yaw) + sn * math.sin(yaw) >= 0.9:
+                        best_alike = min(best_alike, min(max(along - (extent[i, 0].item() + length) / 2, 0.0),
+                                                         LEAD_GAP_CLIP))
                     gap = min(max(along - (extent[i, 0].item() + length) / 2, 0.0), LEAD_GAP_CLIP)
                     if gap < best:
                         best = gap
@@ -297,6 +301,7 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
                 ttc_hazard = min(max(1 - best / (ttc * closing), 0.0), 1.0) if closing > 0 else 0.0
                 torch.testing.assert_close(by_ttc[i, j, t], torch.tensor([best, closing, ttc_hazard]), atol=1e-4,
                                            rtol=1e-4)
+                assert abs(alike[i, j, t, 0].item() - best_alike) < 1e-4
     assert torch.all(got[2, ..., 0] == LEAD_GAP_CLIP) and torch.all(got[2, ..., 2] == 0)
 
     ahead = torch.tensor([[[20.0, 0.0, 1.0, 0.0, 5.0, 4.5, 1.9], [20.0, 3.5, 1.0, 0.0, 5.0, 4.5, 1.9],
@@ -311,6 +316,13 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     by_ttc = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
                        headway, 4.0)[0, 0]
     torch.testing.assert_close(by_ttc[:, 2], 1 - (gap / 5.0) / 4.0)
+    oncoming = ahead.clone()
+    oncoming[0, 0, 2:5] = torch.tensor([-1.0, 0.0, 5.0])  # the car in the lane drives towards the plan
+    kept = lead_gaps(oncoming, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                     headway)[0, 0]
+    assert torch.all(kept[:, 0] < LEAD_GAP_CLIP)
+    assert torch.all(lead_gaps(oncoming, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt,
+                               margin, s0, headway, None, 0.7)[..., 0] == LEAD_GAP_CLIP)
     slow = plan.clone()
     slow[..., 2] = 4.0
     assert torch.all(lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), slow, dt,
@@ -394,3 +406,6 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None
         CTGAdapter(checkpoint=path, seed=0, follow_ttc=2.0)
     assert plain.cfg.follow_ttc is None
     assert CTGAdapter(checkpoint=path, seed=0, follow=True, follow_ttc=2.0).cfg.follow_ttc == 2.0
+    assert CTGAdapter(checkpoint=path, seed=0, follow=True, follow_heading_cos=0.7).cfg.follow_heading_cos == 0.7
+    with pytest.raises(TrafficRLHFError, match=r"follow_heading_cos=0\.7"):
+        CTGAdapter(checkpoint=path, seed=0, follow_heading_cos=0.7)

@@ -110,6 +110,11 @@ class CTGOptions(AdapterOptions):
                                      "0, 1) while closing in, 0 otherwise (s; logged train driving is below 2 s on "
                                      "1.1 % of the controlled agent-steps, below 3 s on 2.4 %). None keeps the "
                                      "checkpoint's setting (a new head: the desired-gap gate).")
+    follow_heading_cos: float | None = Field(None, ge=-1, le=1, description="Only agents heading the plan's way "
+                                             "lead the gap-keeping head: the cosine of the heading difference at "
+                                             "least this (0.7: within about 45 degrees), so oncoming and crossing "
+                                             "agents driven on at constant velocity do not open its gate. None "
+                                             "keeps the checkpoint's setting (a new head: every agent in the path).")
     follow_brake: float | None = Field(None, description="Start a new gap-keeping head (follow=true) braking: "
                                        "its output layer's bias, so a plan inside the desired gap has its "
                                        "acceleration mean shifted by sigma_k x gate x tanh(follow_brake) per "
@@ -159,7 +164,7 @@ class CTGAdapter(TrafficModelAdapter):
             raise TrafficRLHFError(f"follow_brake={opts.follow_brake} sets a new gap-keeping head's start; add "
                                    "follow=true to a checkpoint without one (a saved head keeps its weights).")
         gaps = {"follow_standstill": opts.follow_standstill, "follow_headway": opts.follow_headway,
-                "follow_ttc": opts.follow_ttc}
+                "follow_ttc": opts.follow_ttc, "follow_heading_cos": opts.follow_heading_cos}
         gaps = {key: value for key, value in gaps.items() if value is not None}
         if gaps and not self.cfg.follow:
             raise TrafficRLHFError(f"{', '.join(f'{k}={v}' for k, v in gaps.items())} sets the gap-keeping head's "

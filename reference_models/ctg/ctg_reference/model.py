@@ -142,6 +142,8 @@ class CTGConfig:
     # clamp(1 - TTC / follow_ttc, 0, 1) while closing in (logged train driving: TTC < 2 s on 1.1 % of the controlled
     # agent-steps, < 3 s on 2.4 %), so steady following at a short gap is left alone
     follow_ttc: float | None = None
+    # if set, only agents heading the plan's way lead (cosine of the heading difference at least this)
+    follow_heading_cos: float | None = None
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -334,7 +336,7 @@ class CTGModel(nn.Module):
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
         lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                         cfg.follow_headway, cfg.follow_ttc)  # (N, R, H, 3)
+                         cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos)  # (N, R, H, 3)
         gate = lead[..., 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)

@@ -145,7 +145,7 @@ class FollowHead(nn.Module):
 
 def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor, states: torch.Tensor,
               dt: float, lane_margin: float, standstill: float, headway: float,
-              ttc: float | None = None) -> torch.Tensor:
+              ttc: float | None = None, min_heading_cos: float | None = None) -> torch.Tensor:
     """The agent ahead in each plan's path, per planned step: ``(N, S, H, 3)`` = (gap m, closing speed m/s, headway
     hazard in [0, 1]).
 
@@ -156,7 +156,9 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     closing speed is the planned speed less the lead's speed along the planned heading; the hazard is
     ``clamp(1 - gap / (standstill + headway * planned speed), 0, 1)``: 0 from the desired gap (m, s) on, 1 at contact.
     With ``ttc`` (s) the hazard is the time-to-collision one instead, ``clamp(1 - (gap / closing speed) / ttc, 0, 1)``
-    while closing in and 0 otherwise: a follower keeping its distance, however short, reads no hazard.
+    while closing in and 0 otherwise: a follower keeping its distance, however short, reads no hazard. With
+    ``min_heading_cos`` only neighbours heading the plan's way count (cosine of the heading difference at least that):
+    oncoming and crossing agents, driven on straight at constant velocity, cut across curved plans they never meet.
 
     Args:
         neighbours: ``(N, K, 7)`` in the row's agent frame now (x, y in m, cos and sin of relative yaw, speed in
@@ -178,6 +180,9 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     half_widths = (extent[:, 1:2] + neighbours[..., 6]) / 2  # (N, K)
     half_lengths = (extent[:, 0:1] + neighbours[..., 5]) / 2
     in_path = (along > 0) & (across <= (half_widths + lane_margin)[:, None, None]) & neighbour_valid[:, None, None]
+    if min_heading_cos is not None:
+        alike = (forward[..., None, :] * heading[:, None, None]).sum(-1)  # (N, S, H, K)
+        in_path = in_path & (alike >= min_heading_cos)
     gap = (along - half_lengths[:, None, None]).clamp(0, LEAD_GAP_CLIP)
     gap = torch.where(in_path, gap, torch.full_like(gap, LEAD_GAP_CLIP))
     if gap.shape[-1] == 0:
