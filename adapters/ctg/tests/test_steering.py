@@ -6,6 +6,7 @@ Data-dependent tests are skipped when ``trafficrlhf_sdk.scenario.default_data_ro
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from pathlib import Path
@@ -276,6 +277,8 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     by_ttc = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, ttc)
     assert got.shape == by_ttc.shape == (n, s, h, 3)
     alike = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, None, 0.9)
+    decel = 1.5
+    by_decel = lead_gaps(neighbours, valid, extent, states, dt, margin, s0, headway, None, None, decel)
     for i in range(n):
         for j in range(s):
             for t in range(h):
@@ -301,6 +304,9 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
                 ttc_hazard = min(max(1 - best / (ttc * closing), 0.0), 1.0) if closing > 0 else 0.0
                 torch.testing.assert_close(by_ttc[i, j, t], torch.tensor([best, closing, ttc_hazard]), atol=1e-4,
                                            rtol=1e-4)
+                required = closing ** 2 / (2 * max(best, 1e-6)) if closing > 0 else 0.0
+                torch.testing.assert_close(by_decel[i, j, t], torch.tensor(
+                    [best, closing, min(max(required / decel - 1, 0.0), 1.0)]), atol=1e-4, rtol=1e-4)
                 assert abs(alike[i, j, t, 0].item() - best_alike) < 1e-4
     assert torch.all(got[2, ..., 0] == LEAD_GAP_CLIP) and torch.all(got[2, ..., 2] == 0)
 
@@ -327,6 +333,23 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     slow[..., 2] = 4.0
     assert torch.all(lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), slow, dt,
                                margin, s0, headway, 4.0)[..., 2] == 0)
+    # closing at 5 m/s from about 15 m needs about 25 / 30 = 0.83 m/s²: no hazard at 1 m/s², some at 0.5 m/s²
+    by_decel = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                         headway, None, None, 1.0)[0, 0]
+    assert torch.all(by_decel[:, 2] == 0)
+    half = lead_gaps(ahead, torch.ones(1, 3, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), plan, dt, margin, s0,
+                     headway, None, None, 0.5)[0, 0]
+    torch.testing.assert_close(half[:, 2], (25 / (2 * gap) / 0.5 - 1).clamp(0, 1))
+    # a plan braking at 2 m/s² from 10 m/s behind a car stopped 25 m ahead (bumper gap): it needs 2 m/s² all the way
+    stopped = torch.tensor([[[25.0 + 4.5, 0.0, 1.0, 0.0, 0.0, 4.5, 1.9]]])
+    tb = torch.arange(1, 41) * dt
+    braking = torch.stack([10 * tb - tb ** 2, torch.zeros(40), 10 - 2 * tb, torch.zeros(40)], -1)[None, None]
+    need = lead_gaps(stopped, torch.ones(1, 1, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), braking, dt, margin,
+                     s0, headway, None, None, 2.5)[0, 0]
+    torch.testing.assert_close(need[:-1, 1] ** 2 / (2 * need[:-1, 0]), torch.full((39,), 2.0), atol=1e-3, rtol=1e-3)
+    assert torch.all(need[:, 2] == 0)
+    assert lead_gaps(stopped, torch.ones(1, 1, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), braking, dt, margin,
+                     s0, headway, 4.0)[0, 0, -5:, 2].min() > 0.5  # while its time to collision goes to 0 at the end
 
 
 @needs_data
@@ -362,6 +385,13 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
                  torch.tensor([[4.5, 1.9], [4.5, 1.9]]))
     shift = model._follow_shift(x0, 3, steer_map, 2)
     assert shift[0, :, 0].abs().min() > 0 and torch.all(shift[1] == 0) and torch.all(shift[..., 1] == 0)
+    far = lead.clone()
+    far[..., 0] = 14.0  # 8.9 m ahead after 0.1 s, inside the 5.5 m desired gap only from the 7th step
+    far_map = (*steer_map[:2], far, *steer_map[3:])
+    assert model._follow_shift(x0, 3, far_map, 2)[0, :, 0].abs().min() > 0
+    model.cfg = dataclasses.replace(model.cfg, follow_gate_steps=5)  # the gate reads the first 0.5 s only
+    assert torch.all(model._follow_shift(x0, 3, far_map, 2) == 0)
+    assert model._follow_shift(x0, 3, steer_map, 2)[0, :, 0].abs().min() > 0
 
     with torch.no_grad():
         follow.model.follow.net[-1].weight.normal_(0, 0.05)
@@ -409,3 +439,10 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None
     assert CTGAdapter(checkpoint=path, seed=0, follow=True, follow_heading_cos=0.7).cfg.follow_heading_cos == 0.7
     with pytest.raises(TrafficRLHFError, match=r"follow_heading_cos=0\.7"):
         CTGAdapter(checkpoint=path, seed=0, follow_heading_cos=0.7)
+    gated = CTGAdapter(checkpoint=path, seed=0, follow=True, follow_decel=1.0, follow_gate_steps=5)
+    assert (gated.cfg.follow_decel, gated.cfg.follow_gate_steps) == (1.0, 5)
+    assert (plain.cfg.follow_decel, plain.cfg.follow_gate_steps) == (None, None)
+    with pytest.raises(TrafficRLHFError, match=r"follow_gate_steps=5"):
+        CTGAdapter(checkpoint=path, seed=0, follow_gate_steps=5)
+    with pytest.raises(TrafficRLHFError, match=r"follow_ttc=2\.0 and follow_decel=1\.0"):
+        CTGAdapter(checkpoint=path, seed=0, follow=True, follow_ttc=2.0, follow_decel=1.0)

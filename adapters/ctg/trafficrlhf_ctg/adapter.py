@@ -115,6 +115,15 @@ class CTGOptions(AdapterOptions):
                                              "least this (0.7: within about 45 degrees), so oncoming and crossing "
                                              "agents driven on at constant velocity do not open its gate. None "
                                              "keeps the checkpoint's setting (a new head: every agent in the path).")
+    follow_decel: float | None = Field(None, gt=0, description="Gate the gap-keeping head by the deceleration that "
+                                       "would stop the closing at contact, closing speed² / (2 gap), as clamp("
+                                       "required / follow_decel - 1, 0, 1) (m/s²), instead of the desired gap or "
+                                       "follow_ttc (set one of the two). A plan already braking at a constant rate "
+                                       "below follow_decel reads no hazard. None keeps the checkpoint's setting.")
+    follow_gate_steps: int | None = Field(None, ge=1, description="The gap-keeping head's gate reads only the first "
+                                          "this many plan steps (0.1 s each; 5 is what runs before the next 2 Hz "
+                                          "replan), while the head still reads them all. None keeps the "
+                                          "checkpoint's setting (a new head: the whole plan).")
     follow_brake: float | None = Field(None, description="Start a new gap-keeping head (follow=true) braking: "
                                        "its output layer's bias, so a plan inside the desired gap has its "
                                        "acceleration mean shifted by sigma_k x gate x tanh(follow_brake) per "
@@ -164,8 +173,12 @@ class CTGAdapter(TrafficModelAdapter):
             raise TrafficRLHFError(f"follow_brake={opts.follow_brake} sets a new gap-keeping head's start; add "
                                    "follow=true to a checkpoint without one (a saved head keeps its weights).")
         gaps = {"follow_standstill": opts.follow_standstill, "follow_headway": opts.follow_headway,
-                "follow_ttc": opts.follow_ttc, "follow_heading_cos": opts.follow_heading_cos}
+                "follow_ttc": opts.follow_ttc, "follow_heading_cos": opts.follow_heading_cos,
+                "follow_decel": opts.follow_decel, "follow_gate_steps": opts.follow_gate_steps}
         gaps = {key: value for key, value in gaps.items() if value is not None}
+        if "follow_ttc" in gaps and "follow_decel" in gaps:
+            raise TrafficRLHFError(f"follow_ttc={opts.follow_ttc} and follow_decel={opts.follow_decel} are two "
+                                   "gates for the gap-keeping head; set one of them.")
         if gaps and not self.cfg.follow:
             raise TrafficRLHFError(f"{', '.join(f'{k}={v}' for k, v in gaps.items())} sets the gap-keeping head's "
                                    "desired gap or gate; add follow=true (or load a checkpoint saved with that head).")

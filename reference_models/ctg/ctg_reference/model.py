@@ -27,7 +27,8 @@ and the sampler's steering head in :mod:`ctg_reference.steering`.
 * Gap keeping (``follow``): a :class:`FollowHead` adds ``sigma_k * gate * tanh(g)`` to the acceleration channel
   only, reading the gap to the agent ahead in ``x0_k``'s path (:func:`lead_gaps`); the gate is the plan's
   largest headway hazard, 0 unless someone is ahead closer than the desired gap (with ``follow_ttc``: the largest
-  time-to-collision hazard, 0 unless closing in on someone ahead).
+  time-to-collision hazard, 0 unless closing in on someone ahead; with ``follow_decel``: the braking one; with
+  ``follow_gate_steps``: read over the plan's first steps only).
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -144,6 +145,13 @@ class CTGConfig:
     follow_ttc: float | None = None
     # if set, only agents heading the plan's way lead (cosine of the heading difference at least this)
     follow_heading_cos: float | None = None
+    # m/s²: if set, the gate reads the deceleration that would stop the closing at contact, closing speed² / (2 gap),
+    # as clamp(required / follow_decel - 1, 0, 1) instead (a plan braking at a constant a <= follow_decel reads none)
+    follow_decel: float | None = None
+    # if set, the gate reads only the first this many plan steps (5 at 0.1 s: what runs before the next 2 Hz replan);
+    # the head still reads them all. Plans that stop in time read a short time to collision at their end, and a gate
+    # over the whole plan braked them too (session 50: open on 8-12 % of plans)
+    follow_gate_steps: int | None = None
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -336,8 +344,8 @@ class CTGModel(nn.Module):
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
         lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                         cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos)  # (N, R, H, 3)
-        gate = lead[..., 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
+                         cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos, cfg.follow_decel)  # (N, R, H, 3)
+        gate = lead[..., :cfg.follow_gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
         return gate * self.follow(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))
