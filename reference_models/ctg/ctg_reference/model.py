@@ -152,6 +152,14 @@ class CTGConfig:
     # the head still reads them all. Plans that stop in time read a short time to collision at their end, and a gate
     # over the whole plan braked them too (session 50: open on 8-12 % of plans)
     follow_gate_steps: int | None = None
+    # yielding to the rear (a second FollowHead, ``rear``): acceleration channel only, reading the agent behind in
+    # each step's clean plan (lead_gaps(behind=True)) and gated by its time to collision, clamp(1 - TTC / rear_ttc,
+    # 0, 1) over the first rear_gate_steps plan steps; same-direction agents only when follow_heading_cos is set.
+    # Agents replayed from the log do not react, so a plan slower than the log is run into from behind (the
+    # largest failure group of the session-51 model on the mirrored train scenes)
+    rear: bool = False
+    rear_ttc: float = 3.0  # s
+    rear_gate_steps: int | None = 5
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -214,6 +222,7 @@ class CTGModel(nn.Module):
         self.mixer = CoDenoiseMixer(self.cfg) if self.cfg.scene_denoising else None
         self.steer = SteerHead(self.cfg) if self.cfg.steer else None
         self.follow = FollowHead(self.cfg) if self.cfg.follow else None
+        self.rear = FollowHead(self.cfg) if self.cfg.rear else None
         self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
@@ -332,35 +341,44 @@ class CTGModel(nn.Module):
         return gate * shift
 
     def _follow_shift(self, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                      n: int, states: torch.Tensor | None = None) -> torch.Tensor:
+                      n: int, states: torch.Tensor | None = None, rear: bool = False) -> torch.Tensor:
         """The gap-keeping head's gated shift ``(M, H, 2)`` (yaw-rate channel 0) for ``M = n * R`` rows ordered
-        row-major by the ``n`` conditioning rows; ``states`` as in :meth:`_steer_shift`."""
-        assert self.follow is not None
+        row-major by the ``n`` conditioning rows; ``states`` as in :meth:`_steer_shift`. With ``rear``, the
+        rear head's, reading the agent behind."""
+        head = self.rear if rear else self.follow
+        assert head is not None
         cfg = self.cfg
         if steer_map is None or len(steer_map) < 5:
-            raise ValueError("this CTG model's gap-keeping head (follow) reads the agents ahead: pass steer_map="
-                             "(drivable crop (N, 1, G, G), v0 (N,), neighbours (N, K, 7), neighbour_valid (N, K), "
-                             "extent (N, 2)).")
+            raise ValueError("this CTG model's gap-keeping head (follow or rear) reads the agents around: pass "
+                             "steer_map=(drivable crop (N, 1, G, G), v0 (N,), neighbours (N, K, 7), "
+                             "neighbour_valid (N, K), extent (N, 2)).")
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
-        lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                         cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos, cfg.follow_decel)  # (N, R, H, 3)
-        gate = lead[..., :cfg.follow_gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1)
+        if rear:
+            lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
+                             cfg.follow_headway, cfg.rear_ttc, cfg.follow_heading_cos, behind=True)
+            gate_steps = cfg.rear_gate_steps
+        else:
+            lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
+                             cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos, cfg.follow_decel)
+            gate_steps = cfg.follow_gate_steps
+        gate = lead[..., :gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1); lead (N, R, H, 3)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
-        return gate * self.follow(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))
+        return gate * head(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))
 
     def _head_shifts(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int,
                      steer_map: SteerMap | None, n: int) -> torch.Tensor | None:
         """The sum of the steering and gap-keeping heads' shifts ``(M, H, 2)``, or None for a model with neither."""
         shift, states = None, None
-        if self.follow is not None and steer_map is not None:  # both heads read the same plan rollout
+        if (self.follow is not None or self.rear is not None) and steer_map is not None:  # all read one rollout
             states = self._plan_states(x0, steer_map[1], n)
         if self.steer is not None:
             shift = self._steer_shift(cond, x0, k, steer_map, n, states)
-        if self.follow is not None:
-            follow = self._follow_shift(x0, k, steer_map, n, states)
-            shift = follow if shift is None else shift + follow
+        for rear, head in ((False, self.follow), (True, self.rear)):
+            if head is not None:
+                extra = self._follow_shift(x0, k, steer_map, n, states, rear)
+                shift = extra if shift is None else shift + extra
         return shift
 
     # ------------------------------------------------------------ training
