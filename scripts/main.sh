@@ -2,7 +2,7 @@
 # Set everything up, then run the main job on the bundled nuScenes data (../shared/data by default, or
 # TRAFFICRLHF_DATA): inspect the val split, render a scene, and evaluate log replay and constant velocity in
 # closed loop on the first 100 long-enough val scenes, then the compact CTG without and with no-collision
-# guidance, the aligned CTG, the 4 s CTG with its three aligned versions, TrafficGen with its aligned-and-extrapolated
+# guidance, the aligned CTG, the 4 s CTG with its four aligned versions, TrafficGen with its aligned-and-extrapolated
 # version, the 4 s TrafficGen with its aligned version and its pace-keeping composition, and BITS with its
 # aligned version; a comparison table closes. Outputs land in out/main/.
 set -euo pipefail
@@ -34,6 +34,9 @@ $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/al
 # (reference_models/aligned/ctg_4s_gated/README.md)
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s_gated --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg4s_gated_no_collision"
+# ... and that model with an untrained braking prior behind a closing lead (reference_models/aligned/ctg_4s_follow/README.md)
+$T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s_follow --source nuscenes_pred \
+  --split val --scenes 100 --out "$OUT/ctg4s_follow_no_collision"
 # TrafficGen and its aligned version extrapolated by 2 (reference_models/aligned/trafficgen_x2/README.md)
 $T evaluate --model trafficgen --guidance no_collision --source nuscenes_pred --split val --scenes 100 \
   --out "$OUT/trafficgen_no_collision"
@@ -56,7 +59,7 @@ $T evaluate --model bits --guidance no_collision --checkpoint reference_models/a
   --split val --scenes 100 --out "$OUT/bits_aligned_no_collision" --worst-scenes 5 --render-worst 3
 $T compare "$OUT/log_replay" "$OUT/constant_velocity" "$OUT/ctg" "$OUT/ctg_no_collision" "$OUT/ctg_aligned_no_collision" \
   "$OUT/ctg4s_no_collision" "$OUT/ctg4s_aligned_no_collision" "$OUT/ctg4s_road_no_collision" \
-  "$OUT/ctg4s_gated_no_collision" "$OUT/trafficgen_no_collision" \
+  "$OUT/ctg4s_gated_no_collision" "$OUT/ctg4s_follow_no_collision" "$OUT/trafficgen_no_collision" \
   "$OUT/trafficgen_x2_no_collision" "$OUT/trafficgen4s_no_collision" \
   "$OUT/trafficgen4s_aligned_no_collision" "$OUT/trafficgen4s_pace_no_collision" \
   "$OUT/bits_no_collision" "$OUT/bits_aligned_no_collision" | tee "$OUT/comparison.md"

@@ -48,6 +48,7 @@ COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1
     "reference_models/aligned/ctg_4s": 40,
     "reference_models/aligned/ctg_4s_road": 40,
     "reference_models/aligned/ctg_4s_gated": 40,
+    "reference_models/aligned/ctg_4s_follow": 40,
 }
 
 
@@ -95,6 +96,26 @@ def test_the_committed_road_steered_ctgs_are_their_base_plus_a_trained_head(name
     assert head and all(k.startswith("steer.") for k in head)
     last = max((k for k in head if k.endswith(".weight")), key=lambda k: int(k.split(".")[2]))
     assert tuned[last].abs().sum() > 0  # the zero-initialized output layer was trained
+
+
+def test_the_committed_follow_model_is_the_gated_model_plus_an_untrained_braking_prior() -> None:
+    """``ctg_4s_follow`` = ``ctg_4s_gated`` bitwise plus a gap-keeping head whose only non-zero tensors are its
+    hidden layers' fixed draw and its output bias of -3 (the braking prior), with the session-51 gate settings."""
+    import json
+
+    from safetensors.torch import load_file
+
+    folder = REPO / "reference_models/aligned/ctg_4s_follow"
+    tuned = load_file(str(folder / "model.safetensors"))
+    start = load_file(str(REPO / "reference_models/aligned/ctg_4s_gated/model.safetensors"))
+    assert all(torch.equal(tuned[k], start[k]) for k in start)
+    head = sorted(set(tuned) - set(start))
+    assert head and all(k.startswith("follow.") for k in head)
+    last = max(int(k.split(".")[2]) for k in head)
+    assert torch.all(tuned[f"follow.net.{last}.weight"] == 0)
+    assert torch.all(tuned[f"follow.net.{last}.bias"] == -3.0)
+    cfg = json.loads((folder / "config.json").read_text())["config"]
+    assert (cfg["follow"], cfg["follow_ttc"], cfg["follow_heading_cos"], cfg["follow_gate_steps"]) == (True, 3.0, 0.7, 5)
 
 
 @needs_data
