@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from trafficrlhf_sdk.metrics import following_gaps, path_gaps
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 
 def loop_following_gaps(xy, yaw, extent, valid, margin):  # type: ignore[no-untyped-def]
@@ -83,3 +84,18 @@ def test_logged_following_keeps_controlled_steps_from_now_on(val_scenes, load_sc
     assert gap.numel() == int(mask.sum()) > 0
     assert torch.equal(gap, full[mask]) and bool((gap < 30).all())
     assert torch.equal(speed, val_scenes.states[..., 2][mask])
+
+
+def test_logged_closing_worked_by_hand(load_script) -> None:  # type: ignore[no-untyped-def]
+    # agent 0 at 10 m/s, 12 m behind agent 1 (centres) at 6 m/s: gap 7.5 m, closing 4 m/s, TTC 1.875 s, needs
+    # 16 / 15 m/s²; agent 1 closes in on nobody; agent 2, 20 m ahead of agent 1 at 8 m/s, is not controlled
+    script = load_script("following_gaps")
+    xy = torch.tensor([[[[0.0, 0.0]], [[12.0, 0.0]], [[32.0, 0.0]]]])
+    scene = ScenarioTensor(states=torch.cat([xy, torch.tensor([[[[10.0, 0.0]], [[6.0, 0.0]], [[8.0, 0.0]]]])], -1),
+                           valid=torch.ones(1, 3, 1, dtype=torch.bool), extent=torch.tensor([[[4.5, 1.8]] * 3]),
+                           agent_type=torch.zeros(1, 3, dtype=torch.long),
+                           controlled=torch.tensor([[True, True, False]]), dt=0.5, current_index=0)
+    ttc, needed = script.logged_closing(scene)
+    assert ttc.shape == needed.shape == (2,)
+    assert ttc[0] == pytest.approx(7.5 / 4.0) and needed[0] == pytest.approx(16.0 / 15.0)
+    assert math.isinf(ttc[1]) and needed[1] == 0
