@@ -115,7 +115,8 @@ def test_the_committed_follow_model_is_the_gated_model_plus_an_untrained_braking
     assert torch.all(tuned[f"follow.net.{last}.weight"] == 0)
     assert torch.all(tuned[f"follow.net.{last}.bias"] == -3.0)
     cfg = json.loads((folder / "config.json").read_text())["config"]
-    assert (cfg["follow"], cfg["follow_ttc"], cfg["follow_heading_cos"], cfg["follow_gate_steps"]) == (True, 3.0, 0.7, 5)
+    gate = (cfg["follow"], cfg["follow_ttc"], cfg["follow_heading_cos"], cfg["follow_gate_steps"])
+    assert gate == (True, 3.0, 0.7, 5)
 
 
 @needs_data
