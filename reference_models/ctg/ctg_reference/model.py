@@ -29,6 +29,8 @@ and the sampler's steering head in :mod:`ctg_reference.steering`.
   largest headway hazard, 0 unless someone is ahead closer than the desired gap (with ``follow_ttc``: the largest
   time-to-collision hazard, 0 unless closing in on someone ahead; with ``follow_decel``: the braking one; with
   ``follow_gate_steps``: read over the plan's first steps only).
+* Yielding to the rear (``rear``): a second :class:`FollowHead`, reading the agent behind in the plan's path
+  (``lead_gaps(..., behind=True)``), gated by that agent's time to close the gap over the plan's first steps.
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
