@@ -34,7 +34,8 @@ $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/al
 # (reference_models/aligned/ctg_4s_gated/README.md)
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s_gated --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg4s_gated_no_collision"
-# ... and that model with an untrained braking prior behind a closing lead (reference_models/aligned/ctg_4s_follow/README.md)
+# ... and that model with a braking prior behind a closing lead and a third steer stage around it
+# (reference_models/aligned/ctg_4s_follow/README.md)
 $T evaluate --model ctg --guidance no_collision --checkpoint reference_models/aligned/ctg_4s_follow --source nuscenes_pred \
   --split val --scenes 100 --out "$OUT/ctg4s_follow_no_collision"
 # TrafficGen and its aligned version extrapolated by 2 (reference_models/aligned/trafficgen_x2/README.md)
