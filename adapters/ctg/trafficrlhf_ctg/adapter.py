@@ -181,12 +181,12 @@ class CTGAdapter(TrafficModelAdapter):
         elif opts.steer_neighbours and not self.cfg.steer_neighbours:
             self._widen_steer_head()
         if opts.follow and not self.cfg.follow:
-            self._add_follow_head(opts.follow_brake)
+            self._add_gap_head("follow", opts.follow_brake)
         elif opts.follow_brake is not None:
             raise TrafficRLHFError(f"follow_brake={opts.follow_brake} sets a new gap-keeping head's start; add "
                                    "follow=true to a checkpoint without one (a saved head keeps its weights).")
         if opts.rear and not self.cfg.rear:
-            self._add_rear_head(opts.rear_push)
+            self._add_gap_head("rear", opts.rear_push)
         elif opts.rear_push is not None:
             raise TrafficRLHFError(f"rear_push={opts.rear_push} sets a new rear head's start; add rear=true to a "
                                    "checkpoint without one (a saved head keeps its weights).")
@@ -239,26 +239,16 @@ class CTGAdapter(TrafficModelAdapter):
         self._add_head(dataclasses.replace(self.cfg, steer=True, steer_road=road, steer_neighbours=neighbours),
                        "steer.")
 
-    def _add_follow_head(self, brake: float | None = None) -> None:
-        """Rebuild the model with a fresh gap-keeping head, keeping every trained weight, the steering head's too
-        (:meth:`_add_head`); the head is zero, or with ``brake`` its output bias (weights still zero)."""
-        self._add_head(dataclasses.replace(self.cfg, follow=True), "follow.")
-        if brake is not None:
-            assert self.model.follow is not None
-            last = self.model.follow.net[-1]
+    def _add_gap_head(self, name: str, bias: float | None = None) -> None:
+        """Rebuild the model with a fresh gap-keeping head ``name`` (``follow``: the agent ahead; ``rear``: the
+        agent behind), keeping every trained weight, the other heads' too (:meth:`_add_head`); the head is zero,
+        or with ``bias`` its output bias (weights still zero)."""
+        self._add_head(dataclasses.replace(self.cfg, **{name: True}), f"{name}.")
+        if bias is not None:
+            last = getattr(self.model, name).net[-1]
             assert isinstance(last, torch.nn.Linear)
             with torch.no_grad():
-                last.bias.fill_(brake)
-
-    def _add_rear_head(self, push: float | None = None) -> None:
-        """As :meth:`_add_follow_head`, for the rear head (``push``: its output bias)."""
-        self._add_head(dataclasses.replace(self.cfg, rear=True), "rear.")
-        if push is not None:
-            assert self.model.rear is not None
-            last = self.model.rear.net[-1]
-            assert isinstance(last, torch.nn.Linear)
-            with torch.no_grad():
-                last.bias.fill_(push)
+                last.bias.fill_(bias)
 
     def _add_head(self, cfg: CTGConfig, prefix: str) -> None:
         """Rebuild the model as ``cfg``, whose only new tensors are those under ``prefix``, copying every other
