@@ -123,6 +123,27 @@ def test_the_committed_follow_model_is_the_gated_model_with_a_braking_prior_and_
     assert history["config"]["groups"] == ["steer"] and len(history["history"]) == 70
 
 
+def test_random_draws_are_made_on_the_generators_device() -> None:
+    """A seeded CPU generator cannot draw on a GPU (session 51 found CTG failing there): draws are made where the
+    generator lives and moved, so a GPU run gets the CPU run's noise."""
+    from ctg_reference.model import draw_device
+
+    assert draw_device(torch.Generator(), "cuda") == torch.device("cpu")
+    assert draw_device(None, "cuda") == "cuda"
+
+
+@needs_data
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_sampling_on_cuda_follows_the_cpu_run(scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_ctg import CTGAdapter
+
+    path = str(REPO / "reference_models/aligned/ctg_4s_follow")
+    cpu = CTGAdapter(checkpoint=path, seed=0).sample(scenes, 2, None, torch.Generator().manual_seed(0))
+    gpu = CTGAdapter(checkpoint=path, seed=0, device="cuda").sample(scenes.to("cuda"), 2, None,
+                                                                    torch.Generator().manual_seed(0))
+    torch.testing.assert_close(gpu.futures.cpu(), cpu.futures, atol=1e-2, rtol=1e-3)
+
+
 @needs_data
 def test_guided_log_prob_is_exact(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
     guidance = GuidanceSet([SpeedLimitGuidance(limit=2.0)]).fit(scenes)

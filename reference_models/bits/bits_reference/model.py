@@ -359,7 +359,9 @@ class BITSModel(nn.Module):
         """Sample ``num_samples`` cells per agent from the masked categorical: cells ``(N, S')`` and their
         log-probabilities ``(N, S')``."""
         log_p = self.masked_log_probs(out.logits, mask)
-        index = torch.multinomial(log_p.exp(), num_samples, replacement=True, generator=generator)
+        at = generator.device if generator is not None else log_p.device  # a CPU generator draws on the CPU
+        index = torch.multinomial(log_p.exp().to(at), num_samples, replacement=True, generator=generator)
+        index = index.to(log_p.device)
         return index, log_p.gather(1, index)
 
     def mode_goals(self, out: GoalOutput, mask: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ from trafficrlhf_sdk.models.features import agent_poses, history_features, map_c
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-from ctg_reference.model import MAP_BEHIND_FRACTION, CTGConfig
+from ctg_reference.model import MAP_BEHIND_FRACTION, CTGConfig, draw_device
 
 __all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "co_denoised_rows", "drop_neighbour_plans", "future_targets",
            "logged_neighbour_plans", "neighbour_plan_features", "select_rows", "window_mask"]
@@ -123,8 +123,9 @@ def drop_neighbour_plans(valid: torch.Tensor, cfg: CTGConfig, generator: torch.G
     the proposal pass does), the others lose each neighbour's plan with probability ``cfg.plan_dropout_each``
     (as for neighbours that are not sampled)."""
     n, k = valid.shape[:2]
-    rows = torch.rand(n, 1, generator=generator, device=valid.device) >= cfg.plan_dropout_all
-    each = torch.rand(n, k, generator=generator, device=valid.device) >= cfg.plan_dropout_each
+    at = draw_device(generator, valid.device)
+    rows = torch.rand(n, 1, generator=generator, device=at).to(valid.device) >= cfg.plan_dropout_all
+    each = torch.rand(n, k, generator=generator, device=at).to(valid.device) >= cfg.plan_dropout_each
     return valid & (rows & each)[..., None]
 
 

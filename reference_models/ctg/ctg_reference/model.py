@@ -183,6 +183,12 @@ class CTGConfig:
 
 
 # --------------------------------------------------------------------------------------------- utilities
+def draw_device(generator: torch.Generator | None, device: torch.device | str) -> torch.device | str:
+    """Where random draws for tensors on ``device`` are made: on the generator's own device (a CPU generator
+    cannot draw on a GPU), then moved. A seeded CPU generator thus gives a GPU run the CPU run's noise."""
+    return generator.device if generator is not None else device
+
+
 def cosine_alphas_bar(steps: int, s: float = 0.008) -> torch.Tensor:
     """Cumulative products of (1 - beta) of the cosine schedule (Nichol & Dhariwal), ``(steps,)`` float64."""
     x = torch.linspace(0, steps, steps + 1, dtype=torch.float64)
@@ -397,13 +403,14 @@ class CTGModel(nn.Module):
         """
         n = actions.shape[0]
         x0 = self.normalize(actions)
+        at = draw_device(generator, actions.device)
         if group is None:
-            k = torch.randint(0, self.cfg.diffusion_steps, (n,), generator=generator, device=actions.device)
+            k = torch.randint(0, self.cfg.diffusion_steps, (n,), generator=generator, device=at).to(actions.device)
         else:
             per_group = torch.randint(0, self.cfg.diffusion_steps, (int(group.max()) + 1 if n else 0,),
-                                      generator=generator, device=actions.device)
+                                      generator=generator, device=at).to(actions.device)
             k = per_group[group]
-        noise = torch.randn(x0.shape, generator=generator, device=actions.device)
+        noise = torch.randn(x0.shape, generator=generator, device=at).to(actions.device)
         ab = self.alphas_bar[k][:, None, None]
         xk = ab.sqrt() * x0 + (1 - ab).sqrt() * noise
         if scene is not None:
@@ -466,7 +473,8 @@ class CTGModel(nn.Module):
         n, s = cond.shape[0], num_samples
         h = self.cfg.horizon
         c = (cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])).reshape(n * s, -1)
-        x = torch.randn((n * s, h, 2), generator=generator, device=cond.device)
+        at = draw_device(generator, cond.device)
+        x = torch.randn((n * s, h, 2), generator=generator, device=at).to(cond.device)
         schedule = self.sample_schedule
         chain, deltas, log_probs = [x], [], []
         x0 = x
@@ -489,7 +497,7 @@ class CTGModel(nn.Module):
                     step = self.cfg.guidance_step * torch.sign(grad.reshape(n * s, h, 2))
                     delta = torch.minimum(torch.maximum(-step, -sigma), sigma)
             mean = mean + delta
-            noise = torch.randn(mean.shape, generator=generator, device=cond.device)
+            noise = torch.randn(mean.shape, generator=generator, device=at).to(cond.device)
             x = (mean + sigma * noise).detach()
             chain.append(x)
             deltas.append(delta.detach())
