@@ -362,14 +362,10 @@ class CTGModel(nn.Module):
                              "neighbour_valid (N, K), extent (N, 2)).")
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
-        if rear:
-            lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                             cfg.follow_headway, cfg.rear_ttc, cfg.follow_heading_cos, behind=True)
-            gate_steps = cfg.rear_gate_steps
-        else:
-            lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                             cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos, cfg.follow_decel)
-            gate_steps = cfg.follow_gate_steps
+        ttc, decel, gate_steps = ((cfg.rear_ttc, None, cfg.rear_gate_steps) if rear
+                                  else (cfg.follow_ttc, cfg.follow_decel, cfg.follow_gate_steps))
+        lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
+                         cfg.follow_headway, ttc, cfg.follow_heading_cos, decel, behind=rear)
         gate = lead[..., :gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1); lead (N, R, H, 3)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
