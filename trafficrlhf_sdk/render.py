@@ -257,7 +257,7 @@ def _map_world_bounds(scene_map: MapRaster, b: int) -> tuple[float, float, float
 def _draw_map(ax: Axes, scene_map: MapRaster, b: int, view: tuple[float, float, float, float]) -> None:
     """Draw the raster layers (cropped to the view) and any vector polylines."""
     m = scene_map.world_to_pixel[b].detach().to("cpu", torch.float64).numpy()
-    raster = scene_map.raster[b]
+    raster = scene_map.scene_raster(b)
     _, h, w = raster.shape
     # Crop to the pixels under the view (a little padding so aspect adjustments never show an edge).
     pad_x, pad_y = 0.1 * (view[1] - view[0]), 0.1 * (view[3] - view[2])

@@ -120,8 +120,8 @@ def map_crops(
     if context.map is None:
         raise ValueError("map_crops needs `context.map`; load scenes from a source that provides rasters.")
     raster = context.map.raster
-    b, c, h, w = raster.shape
-    a = context.num_agents
+    _, c, h, w = raster.shape
+    b, a = context.num_scenes, context.num_agents
     cells = torch.arange(size_px, device=raster.device, dtype=torch.float32)
     local_x = (cells - behind_fraction * size_px + 0.5) * resolution_m
     local_y = (cells - size_px / 2 + 0.5) * resolution_m
@@ -129,7 +129,7 @@ def map_crops(
     points = from_agent_frame(grid.reshape(1, 1, -1, 2).expand(b, a, -1, 2), agent_poses(context))
     ij = torch.floor(context.map.to_pixel(points)).long()  # (B, A, S*S, 2)
     inside = (ij[..., 0] >= 0) & (ij[..., 0] < h) & (ij[..., 1] >= 0) & (ij[..., 1] < w)
-    flat = (ij[..., 0].clamp(0, h - 1) * w + ij[..., 1].clamp(0, w - 1)).reshape(b, 1, -1)
-    values = raster.reshape(b, c, -1).gather(2, flat.expand(b, c, -1)).reshape(b, c, a, size_px * size_px)
+    flat = (ij[..., 0].clamp(0, h - 1) * w + ij[..., 1].clamp(0, w - 1)).reshape(b, -1)
+    values = context.map.gather_pixels(flat).reshape(b, c, a, size_px * size_px)
     values = values.permute(0, 2, 1, 3).float() * inside[:, :, None, :]
     return values.reshape(b, a, c, size_px, size_px)

@@ -177,7 +177,7 @@ def _crops(scenario: ScenarioTensor, spec: FeatureSpec, scene: torch.Tensor, pos
     left = (torch.arange(fine, dtype=torch.float64) + 0.5) * cell - s * spec.crop_resolution_m / 2
     gx, gy = torch.meshgrid(ahead, left, indexing="ij")
     gx, gy = gx.reshape(1, -1), gy.reshape(1, -1)
-    raster = scenario_map.raster
+    raster, rows = scenario_map.raster, scenario_map.scene_rows()
     _, _, h, w = raster.shape
     layer_index = torch.tensor([src for _, src in channels])
     for lo in range(0, n, chunk):
@@ -190,7 +190,7 @@ def _crops(scenario: ScenarioTensor, spec: FeatureSpec, scene: torch.Tensor, pos
         i = torch.floor(m[:, 0, 0:1] * x + m[:, 0, 1:2] * y + m[:, 0, 2:3]).long()
         j = torch.floor(m[:, 1, 0:1] * x + m[:, 1, 1:2] * y + m[:, 1, 2:3]).long()
         inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        values = raster[b[:, None, None], layer_index[None, :, None], i.clamp(0, h - 1)[:, None],
+        values = raster[rows[b][:, None, None], layer_index[None, :, None], i.clamp(0, h - 1)[:, None],
                         j.clamp(0, w - 1)[:, None]]
         values = (values > 0) & inside[:, None]  # (n, C', fine*fine)
         pooled = values.reshape(-1, len(channels), s, ss, s, ss).sum((3, 5), dtype=torch.int32).to(torch.uint8)
@@ -286,6 +286,6 @@ def compute_step_inputs(scenario: ScenarioTensor, spec: FeatureSpec, steps: torc
         counts = torch.nn.functional.pad(torch.cumsum(event.long(), -1), (1, 0))  # (B, A, T + 1)
         lo = (step - stride + 1).clamp_min(0)
         recent.append(((counts[scene, agent, step + 1] - counts[scene, agent, lo]) > 0).float())
-    features = torch.cat([torch.stack(parts + recent, -1), neighbour.reshape(len(scene), -1), lookups], -1).float()
+    features = torch.cat([torch.stack(parts + recent, -1), neighbour.flatten(1), lookups], -1).float()
     crops = _crops(scenario, spec, scene, torch.stack([x, y, yaw], -1))
     return StepInputs(features.contiguous(), crops, scene, step, b_, t_, spec.crop_supersample ** 2)

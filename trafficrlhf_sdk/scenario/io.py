@@ -60,8 +60,9 @@ def scenario_tensors(scenario: ScenarioTensor) -> tuple[dict[str, torch.Tensor],
         if value is not None:
             tensors[name] = value.detach().cpu().contiguous()
     if scenario.map is not None:
+        dense_map = scenario.map.dense()  # one raster row per scene, as the file format stores it
         for name in _MAP_FIELDS:
-            value = getattr(scenario.map, name)
+            value = getattr(dense_map, name)
             if value is not None:
                 tensors[f"map.{name}"] = value.detach().cpu().contiguous()
     metadata = {

@@ -38,7 +38,13 @@ class MapRaster:
 
     Shapes (B = scenes, C = layers, H x W = pixels, P = polylines, L = points per polyline):
 
-    - ``raster`` uint8 ``(B, C, H, W)``: 1 where the layer is present, 0 elsewhere (and in padding).
+    - ``raster`` uint8 ``(R, C, H, W)``: 1 where the layer is present, 0 elsewhere (and in padding). Without
+      ``rows``, R = B and scene b reads row b.
+    - ``rows`` int64 ``(B,)`` or None: the raster row each scene reads. Scenes cut from the same map share a row:
+      ``index`` and ``repeat_scenes`` select rows and never copy pixels (128 futures of 16 contexts would
+      otherwise copy about 0.4-1.5 GB of nuScenes rasters). Read pixels through :meth:`lookup`,
+      :meth:`lookup_points`, :meth:`layer`, :meth:`scene_raster` or ``models.features.map_crops``;
+      :meth:`dense` gives one row per scene.
     - ``world_to_pixel`` float32 ``(B, 3, 3)``: affine map from scene-frame metres to *fractional pixel
       indices*: ``(i, j, 1) = M @ (x, y, 1)`` where ``i`` indexes H and ``j`` indexes W. The pixel that contains a
       point is ``(floor(i), floor(j))``.
@@ -53,6 +59,7 @@ class MapRaster:
     polylines: torch.Tensor | None = None
     polyline_valid: torch.Tensor | None = None
     polyline_type: torch.Tensor | None = None
+    rows: torch.Tensor | None = None
     _checked: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -67,14 +74,23 @@ class MapRaster:
                 f"`map.layers` names {len(self.layers)} layers {self.layers} but `map.raster` has {r.shape[1]}"
                 " channels; pass one name per channel."
             )
-        if tuple(self.world_to_pixel.shape) != (r.shape[0], 3, 3):
+        if self.rows is not None:
+            rows = self.rows
+            if rows.dim() != 1 or rows.dtype != torch.int64:
+                raise ScenarioValidationError(f"`map.rows` must be an int64 tensor of shape (B,); got dtype "
+                                              f"{rows.dtype}, shape {tuple(rows.shape)}.")
+            if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= r.shape[0]):
+                raise ScenarioValidationError(f"`map.rows` must index the {r.shape[0]} raster rows; got values from "
+                                              f"{int(rows.min())} to {int(rows.max())}.")
+        b = self.num_scenes
+        if tuple(self.world_to_pixel.shape) != (b, 3, 3):
             raise ScenarioValidationError(
-                f"`map.world_to_pixel` must have shape ({r.shape[0]}, 3, 3); got {tuple(self.world_to_pixel.shape)}."
+                f"`map.world_to_pixel` must have shape ({b}, 3, 3); got {tuple(self.world_to_pixel.shape)}."
             )
         if not torch.isfinite(self.world_to_pixel).all():
             raise ScenarioValidationError("`map.world_to_pixel` contains NaN or inf; every transform must be finite.")
         if self.polylines is not None:
-            b, p = r.shape[0], self.polylines.shape[1] if self.polylines.dim() == 4 else -1
+            p = self.polylines.shape[1] if self.polylines.dim() == 4 else -1
             if self.polylines.dim() != 4 or self.polylines.shape[0] != b or self.polylines.shape[-1] != 2:
                 raise ScenarioValidationError(
                     f"`map.polylines` must have shape (B={b}, P, L, 2); got {tuple(self.polylines.shape)}."
@@ -90,13 +106,30 @@ class MapRaster:
     @property
     def num_scenes(self) -> int:
         """Number of scenes B."""
-        return int(self.raster.shape[0])
+        return int(self.raster.shape[0] if self.rows is None else self.rows.shape[0])
+
+    def scene_rows(self) -> torch.Tensor:
+        """``(B,)`` int64: the raster row each scene reads."""
+        if self.rows is None:
+            return torch.arange(self.raster.shape[0], device=self.raster.device)
+        return self.rows
+
+    def scene_raster(self, b: int) -> torch.Tensor:
+        """Scene ``b``'s layers, uint8 ``(C, H, W)`` (a view, no copy)."""
+        return self.raster[b if self.rows is None else int(self.rows[b])]
+
+    def dense(self) -> MapRaster:
+        """The same map with one raster row per scene (``rows`` None); copies the shared rows."""
+        if self.rows is None:
+            return self
+        return replace(self, raster=self.raster[self.rows], rows=None)
 
     def layer(self, name: str) -> torch.Tensor:
         """The layer called ``name`` as a bool tensor ``(B, H, W)``."""
         if name not in self.layers:
             raise ScenarioValidationError(f"map layer {name!r} not found; available layers: {list(self.layers)}.")
-        return self.raster[:, self.layers.index(name)].bool()
+        grid = self.raster[:, self.layers.index(name)]
+        return (grid if self.rows is None else grid[self.rows]).bool()
 
     def to_pixel(self, xy: torch.Tensor) -> torch.Tensor:
         """Fractional pixel indices ``(B, ..., 2)`` (i along H, j along W) of scene-frame points ``xy (B, ..., 2)``."""
@@ -114,13 +147,30 @@ class MapRaster:
         if layer not in self.layers:
             raise ScenarioValidationError(f"map layer {layer!r} not found; available layers: {list(self.layers)}.")
         grid = self.raster[:, self.layers.index(layer)]  # uint8; avoids copying the whole layer to bool
-        b, h, w = grid.shape
+        _, h, w = grid.shape
         ij = torch.floor(self.to_pixel(xy)).long()
         i, j = ij[..., 0], ij[..., 1]
         inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
         flat_index = i.clamp(0, h - 1) * w + j.clamp(0, w - 1)
-        values = grid.reshape(b, -1).gather(1, flat_index.reshape(b, -1)).reshape(flat_index.shape)
-        return (values > 0) & inside
+        values = self.gather_pixels(flat_index.reshape(flat_index.shape[0], -1), self.layers.index(layer))
+        return (values[:, 0].reshape(flat_index.shape) > 0) & inside
+
+    def gather_pixels(self, flat_index: torch.Tensor, layer: int | None = None) -> torch.Tensor:
+        """uint8 ``(B, C, K)`` (``(B, 1, K)`` for one ``layer``): each scene's layers at the flat pixel indices
+        ``flat_index (B, K)`` (``i * W + j``, within ``0 .. H*W - 1``). Scenes sharing a raster row are gathered
+        from it together, without copying the row."""
+        raster = self.raster if layer is None else self.raster[:, layer : layer + 1]
+        r, c = raster.shape[:2]
+        b, k = flat_index.shape
+        if self.rows is None:
+            return raster.reshape(r, c, -1).gather(2, flat_index[:, None].expand(b, c, k))
+        out = torch.empty(b, c, k, dtype=raster.dtype, device=raster.device)
+        for row in self.rows.unique().tolist():
+            scenes = (self.rows == row).nonzero().flatten()
+            picked = flat_index[scenes].reshape(1, 1, -1).expand(1, c, -1)
+            values = raster[row : row + 1].reshape(1, c, -1).gather(2, picked)
+            out[scenes] = values.reshape(c, len(scenes), k).transpose(0, 1)
+        return out
 
     def lookup_points(self, scene: torch.Tensor, xy: torch.Tensor, layer: str = "drivable") -> torch.Tensor:
         """Like :meth:`lookup` for a flat list of points: ``xy (N, 2)`` (m) in scenes ``scene (N,)``; ``(N,)`` bool.
@@ -135,7 +185,8 @@ class MapRaster:
         ij = torch.floor(torch.einsum("nkc,nc->nk", m[:, :2, :2], xy) + m[:, :2, 2]).long()
         i, j = ij[:, 0], ij[:, 1]
         inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        values = grid[scene, i.clamp(0, h - 1), j.clamp(0, w - 1)]
+        rows = scene if self.rows is None else self.rows[scene]
+        values = grid[rows, i.clamp(0, h - 1), j.clamp(0, w - 1)]
         return (values > 0) & inside
 
     # ----------------------------------------------------------- batch ops
@@ -145,6 +196,7 @@ class MapRaster:
         return replace(
             self,
             raster=self.raster.to(device),
+            rows=move(self.rows),
             world_to_pixel=self.world_to_pixel.to(device),
             polylines=move(self.polylines),
             polyline_valid=move(self.polyline_valid),
@@ -152,13 +204,15 @@ class MapRaster:
         )
 
     def index(self, index: torch.Tensor | slice | int) -> MapRaster:
-        """Select scenes along B (an int keeps the batch axis)."""
+        """Select scenes along B (an int keeps the batch axis). The selection shares this map's raster rows."""
         if isinstance(index, int):
             index = slice(index, index + 1)
         pick = lambda t: None if t is None else t[index]  # noqa: E731
+        if isinstance(index, torch.Tensor):
+            index = index.to(self.raster.device)
         return replace(
             self,
-            raster=self.raster[index],
+            rows=self.scene_rows()[index],
             world_to_pixel=self.world_to_pixel[index],
             polylines=pick(self.polylines),
             polyline_valid=pick(self.polyline_valid),
@@ -166,15 +220,9 @@ class MapRaster:
         )
 
     def repeat_scenes(self, copies: int) -> MapRaster:
-        """Each scene's map ``copies`` times in a row (``B * copies`` scenes); with B = 1 as expanded views that
-        share the raster's memory (read-only), else as copies."""
+        """Each scene's map ``copies`` times in a row (``B * copies`` scenes), sharing this map's raster rows."""
         check_copies(copies)
-        if self.num_scenes != 1:
-            return self.index(torch.arange(self.num_scenes).repeat_interleave(copies))
-        grow = lambda t: None if t is None else t.expand(copies, *t.shape[1:])  # noqa: E731
-        return replace(self, raster=grow(self.raster), world_to_pixel=grow(self.world_to_pixel),
-                       polylines=grow(self.polylines), polyline_valid=grow(self.polyline_valid),
-                       polyline_type=grow(self.polyline_type))
+        return self.index(torch.arange(self.num_scenes, device=self.raster.device).repeat_interleave(copies))
 
     @staticmethod
     def concat(maps: Sequence[MapRaster]) -> MapRaster:
@@ -188,9 +236,16 @@ class MapRaster:
                 )
         h = max(m.raster.shape[2] for m in maps)
         w = max(m.raster.shape[3] for m in maps)
-        raster = torch.cat(
-            [torch.nn.functional.pad(m.raster, (0, w - m.raster.shape[3], 0, h - m.raster.shape[2])) for m in maps]
-        )
+        # keep only the rows each map's scenes read, once per distinct row
+        parts, rows, offset = [], [], 0
+        for m in maps:
+            used, local = m.scene_rows().unique(return_inverse=True) if m.rows is not None else (None, None)
+            kept = m.raster if used is None else m.raster[used]
+            parts.append(torch.nn.functional.pad(kept, (0, w - kept.shape[3], 0, h - kept.shape[2])))
+            rows.append(offset + (m.scene_rows() if local is None else local))
+            offset += kept.shape[0]
+        raster = torch.cat(parts)
+        shared = any(m.rows is not None for m in maps)
         polylines = polyline_valid = polyline_type = None
         if all(m.polylines is not None for m in maps):
             p = max(m.polylines.shape[1] for m in maps)  # type: ignore[union-attr]
@@ -205,6 +260,7 @@ class MapRaster:
             polyline_type = torch.cat([pad(m.polyline_type, 1) for m in maps])  # type: ignore[arg-type]
         return MapRaster(
             raster=raster,
+            rows=torch.cat(rows) if shared else None,
             world_to_pixel=torch.cat([m.world_to_pixel for m in maps]),
             layers=layers,
             polylines=polylines,
@@ -221,6 +277,7 @@ def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRast
     """
     if xy.numel() == 0:
         return scene_map
+    scene_map = scene_map.dense()
     lo, hi = xy.min(0).values.double() - margin_m, xy.max(0).values.double() + margin_m
     corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
     ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()

@@ -119,7 +119,7 @@ def reference_offroad(scene_map: Any, xy: Any, valid: Any) -> np.ndarray:
     if scene_map is None:
         raise ValueError("reference_offroad needs a map raster; the scenario has `map=None`.")
     layer = scene_map.layers.index("drivable")
-    raster = _numpy(scene_map.raster)[:, layer]
+    raster = _numpy(scene_map.dense().raster)[:, layer]
     transforms = np.asarray(_numpy(scene_map.world_to_pixel), dtype=np.float64)
     xy = np.asarray(_numpy(xy), dtype=np.float64)
     valid = np.asarray(_numpy(valid), dtype=bool)
