@@ -167,9 +167,13 @@ class MapRaster:
         out = torch.empty(b, c, k, dtype=raster.dtype, device=raster.device)
         for row in self.rows.unique().tolist():
             scenes = (self.rows == row).nonzero().flatten()
-            picked = flat_index[scenes].reshape(1, 1, -1).expand(1, c, -1)
-            values = raster[row : row + 1].reshape(1, c, -1).gather(2, picked)
-            out[scenes] = values.reshape(c, len(scenes), k).transpose(0, 1)
+            n = len(scenes)
+            shared = raster[row : row + 1].reshape(1, c, -1).expand(n, c, -1)  # the row once, read n times
+            first = int(scenes[0])
+            if int(scenes[-1]) - first + 1 == n:  # a run of scenes (what repeat_scenes gives): no scatter
+                torch.gather(shared, 2, flat_index[first : first + n, None].expand(n, c, k), out=out[first : first + n])
+            else:
+                out[scenes] = shared.gather(2, flat_index[scenes, None].expand(n, c, k))
         return out
 
     def lookup_points(self, scene: torch.Tensor, xy: torch.Tensor, layer: str = "drivable") -> torch.Tensor:
