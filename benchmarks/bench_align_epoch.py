@@ -1,6 +1,6 @@
 """Where an alignment epoch's time goes: the committed CTG recipe on the real nuScenes train scenes, 2 cores.
 
-Runs ``--epochs`` epochs of :class:`~trafficrlhf_sdk.align.AlignTrainer` with the recipe of
+Runs ``--epochs`` epochs of :class:`~trafficrlhf_sdk.alignment.AlignTrainer` with the recipe of
 ``reference_models/aligned/ctg_4s`` (the 4 s CTG base, ``builtin:realism-margins``, 16 contexts x 8 samples,
 75 % failure contexts from 24 scenes driven 10 s with no-collision guidance, per-agent credit) once with a fresh
 failure drive every epoch (``failure_refresh_every=1``) and once reusing each drive for two epochs (``=2``), and
@@ -20,8 +20,8 @@ from collections import defaultdict
 
 from _common import ROOT, header, peak_rss_mb
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
-from trafficrlhf_sdk.align.rewards import RealismReward
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.reward.builtin import RealismReward
 
 RECIPE = dict(alpha=3.0, denoising_steps=4, guidance="no_collision", contexts_per_epoch=16, samples_per_context=8,
               failure_fraction=0.75, failure_scenes=24, credit="agent", holdout_every=10, progress_bar=False,
@@ -30,7 +30,7 @@ RECIPE = dict(alpha=3.0, denoising_steps=4, guidance="no_collision", contexts_pe
 
 def run(checkpoint: str, epochs: int, refresh: int) -> dict[str, list[float]]:
     """Seconds per epoch of each phase for ``epochs`` epochs with ``failure_refresh_every=refresh``."""
-    from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.plugins import build_policy
 
     model = build_policy("ctg", {"checkpoint": checkpoint, "seed": 0})  # as `trafficrlhf align --model ctg` does
     trainer = AlignTrainer(model, RealismReward(margins=True),

@@ -12,7 +12,7 @@ import math
 
 from _common import header, load_val, peak_rss_mb, timed
 
-from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.simulation import ConstantVelocityPolicy
 
 

@@ -42,11 +42,11 @@ import torch
 from tqdm import tqdm
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
-from trafficrlhf_sdk.align.contexts import held_out_scene_ids
+from trafficrlhf_sdk.alignment.contexts import held_out_scene_ids
 from trafficrlhf_sdk.cli import format_error, parse_key_values
-from trafficrlhf_sdk.cli.evaluate import build_policy
+from trafficrlhf_sdk.plugins import build_policy
 from trafficrlhf_sdk.errors import TrafficRLHFError
-from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.metrics.geometry import colliding_pairs
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.simulation.simulator import Rollout
@@ -118,9 +118,9 @@ def main() -> None:
 
     from trafficrlhf_sdk import get_scenario_source
     from trafficrlhf_sdk.cli import format_error, parse_key_values
-    from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.plugins import build_policy
     from trafficrlhf_sdk.errors import TrafficRLHFError
-    from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+    from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", required=True)

@@ -29,7 +29,7 @@ import sys
 import torch
 from align_dev_eval import KEYS, comma_numbers, held_out_reports, held_out_scenes
 
-from trafficrlhf_sdk.align import extrapolate_checkpoint
+from trafficrlhf_sdk.alignment import extrapolate_checkpoint
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 REALISM = ("realism_ctg", "realism_body")  # both deviations count for "realism not worse"

@@ -24,7 +24,7 @@ from realism_by_failure import checkpoints_parser, drive
 
 from trafficrlhf_sdk import get_scenario_source
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, nanmean, scene_mean
-from trafficrlhf_sdk.render_failures import first_failures
+from trafficrlhf_sdk.evaluation.failures import first_failures
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
 STEPS_PER_SECOND = 10  # the simulator's 0.1 s step

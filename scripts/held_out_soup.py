@@ -34,7 +34,7 @@ import tempfile
 import torch
 from align_dev_eval import KEYS, comma_numbers, held_out_reports, held_out_scenes
 
-from trafficrlhf_sdk.align import average_checkpoints
+from trafficrlhf_sdk.alignment import average_checkpoints
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 

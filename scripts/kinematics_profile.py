@@ -17,7 +17,7 @@ import argparse
 import torch
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
-from trafficrlhf_sdk.cli.evaluate import build_policy
+from trafficrlhf_sdk.plugins import build_policy
 from trafficrlhf_sdk.metrics.realism import kinematics
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 

@@ -18,8 +18,8 @@ import json
 import torch
 
 from trafficrlhf_sdk import ScenarioTensor, get_scenario_source
-from trafficrlhf_sdk.cli.evaluate import build_policy
-from trafficrlhf_sdk.evaluation import EvaluationConfig, run_batched
+from trafficrlhf_sdk.plugins import build_policy
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, run_batched
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS, RealismMetric, histogram_distance
 from trafficrlhf_sdk.simulation.simulator import Rollout

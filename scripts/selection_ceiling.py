@@ -24,10 +24,10 @@ from typing import Any
 import torch
 
 from trafficrlhf_sdk import get_scenario_source
-from trafficrlhf_sdk.cli.align_commands import load_reward
-from trafficrlhf_sdk.cli.evaluate import build_policy
-from trafficrlhf_sdk.dynamics import wrap_angle
-from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+from trafficrlhf_sdk.reward.loading import load_reward
+from trafficrlhf_sdk.plugins import build_policy
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy
 from trafficrlhf_sdk.models.adapter import extend_constant_velocity
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan

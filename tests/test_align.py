@@ -13,7 +13,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step
 from trafficrlhf_sdk.scenario import ScenarioTensor
@@ -135,7 +135,7 @@ def test_gymnasium_env_passes_check_env_and_trains_with_sb3(train_scenes: Scenar
     sb3 = pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.env_checker import check_env
 
-    from trafficrlhf_sdk.align import TrafficRLHFEnv
+    from trafficrlhf_sdk.alignment import TrafficRLHFEnv
 
     env = TrafficRLHFEnv(train_scenes[:3], NoCollisionReward())
     check_env(env, warn=True)
@@ -225,7 +225,7 @@ def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> N
 @given(st.lists(st.text(min_size=1, max_size=4), unique=True, max_size=60), st.integers(2, 12))
 def test_holdout_splits_the_scene_list(ids: list[str], every: int) -> None:
     """Training and held-out scenes partition the split; every k-th scene is held out, in order."""
-    from trafficrlhf_sdk.align.contexts import held_out_scene_ids, training_scene_ids
+    from trafficrlhf_sdk.alignment.contexts import held_out_scene_ids, training_scene_ids
 
     train, held = training_scene_ids(ids, every), held_out_scene_ids(ids, every)
     assert not set(train) & set(held) and sorted(train + held) == sorted(ids)

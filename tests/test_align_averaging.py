@@ -12,7 +12,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from trafficrlhf_sdk.align import average_checkpoints, extrapolate_checkpoint
+from trafficrlhf_sdk.alignment import average_checkpoints, extrapolate_checkpoint
 from trafficrlhf_sdk.cli import main
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
@@ -460,7 +460,7 @@ def test_graft_takes_the_prefixed_tensors_from_the_part_and_the_rest_from_the_bo
                                                                                  capsys) -> None:  # type: ignore[no-untyped-def]
     """Bitwise: every ``history.`` tensor is the part's, every other the body's, the config the part's; a body
     without the prefixed module (a model saved before a head was added) gets it; the result loads."""
-    from trafficrlhf_sdk.align import graft_checkpoint
+    from trafficrlhf_sdk.alignment import graft_checkpoint
 
     body, part = three[0], three[1]
     out = graft_checkpoint(body, part, str(tmp_path / "grafted"), prefixes=("history.",))
@@ -486,7 +486,7 @@ def test_graft_takes_the_prefixed_tensors_from_the_part_and_the_rest_from_the_bo
 
 def test_graft_refuses_a_prefix_that_matches_nothing_other_architectures_and_overwriting_an_input(
         three: list[str], tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_sdk.align import graft_checkpoint
+    from trafficrlhf_sdk.alignment import graft_checkpoint
 
     with pytest.raises(DataFormatError, match="no tensor whose name starts with"):
         graft_checkpoint(three[0], three[1], str(tmp_path / "a"), prefixes=("nothing.",))
@@ -534,7 +534,7 @@ def test_development_reports_saved_with_out_pair_up_in_compare(load_script, monk
     from click.testing import CliRunner
 
     from trafficrlhf_sdk.cli import get_cli
-    from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.plugins import build_policy
 
     dev = load_script("align_dev_eval")
     monkeypatch.setattr(dev, "build_policy", lambda model, options: build_policy(model, {}))

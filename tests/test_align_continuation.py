@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
-from trafficrlhf_sdk.align.continuation import continuation_scenarios
-from trafficrlhf_sdk.align.rewards import FailureReward
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.alignment.continuation import continuation_scenarios
+from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 
@@ -131,7 +131,7 @@ def test_continuation_settings_are_checked(train_scene_list: list[ScenarioTensor
 
 
 def test_guidance_swapped_restores_the_policys_own_guidance_even_on_error() -> None:
-    from trafficrlhf_sdk.guidance import GuidanceSet, guidance_swapped
+    from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
 
     class Policy:
         guidance = None

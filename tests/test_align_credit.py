@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
-from trafficrlhf_sdk.align.contexts import ContextSampler
-from trafficrlhf_sdk.align.ppo_update import derived_generator
-from trafficrlhf_sdk.align.rewards import FailureReward
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.alignment.contexts import ContextSampler
+from trafficrlhf_sdk.alignment.ppo_update import derived_generator
+from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.scenario import ScenarioTensor
@@ -135,7 +135,7 @@ def test_denoising_steps_limit_the_ppo_terms_to_the_first_chain_steps(train_scen
 
 
 def test_pessimistic_reward_is_the_member_mean_minus_beta_std(train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import PessimisticReward
+    from trafficrlhf_sdk.reward.builtin import PessimisticReward
     from trafficrlhf_sdk.reward import CTGMLPRewardModel, RewardEnsemble
 
     torch.manual_seed(1)
@@ -164,7 +164,7 @@ def test_a_reference_model_far_away_does_not_turn_the_weights_into_nan(train_sce
 
 
 def test_realism_reward_penalizes_an_agent_that_stalls_against_the_log(train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import RealismReward
+    from trafficrlhf_sdk.reward.builtin import RealismReward
 
     log = train_scene_list[3].replace_unchecked(current_index=10).time_slice(0, 31)
     now = log.current_index
@@ -215,7 +215,7 @@ def test_failure_refresh_run_resumed_mid_block_matches_uninterrupted(train_scene
                                                                      tmp_path) -> None:  # type: ignore[no-untyped-def]
     import os
 
-    from trafficrlhf_sdk.align import align
+    from trafficrlhf_sdk.alignment import align
 
     config = {**FAST, "epochs": 3, "save_every": 1, "credit": "agent", "failure_fraction": 0.5,
               "failure_scenes": 3, "failure_drive_s": 3.0, "failure_refresh_every": 2}
@@ -235,7 +235,7 @@ def test_failure_refresh_run_resumed_mid_block_matches_uninterrupted(train_scene
 
 def test_a_reward_horizon_shorter_than_the_models_scores_only_the_first_steps(
         train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import RealismReward
+    from trafficrlhf_sdk.reward.builtin import RealismReward
 
     seen: list[int] = []
 
@@ -257,7 +257,7 @@ def test_rewards_that_use_the_log_get_the_log_not_the_contexts_own_continuation(
         train_scene_list: list[ScenarioTensor]) -> None:
     """Failure-focused contexts continue with the driving model's own steps; the reference a ``uses_log`` reward
     compares with must be the logged future of the same window."""
-    from trafficrlhf_sdk.align.rewards import RealismReward
+    from trafficrlhf_sdk.reward.builtin import RealismReward
 
     seen: list[tuple[ScenarioTensor, ScenarioTensor]] = []
 
@@ -347,7 +347,7 @@ def test_counterfactual_credit_varies_one_agent_and_holds_the_others_to_sample_z
 
 def test_counterfactual_credit_hands_log_comparing_rewards_the_logged_window(
         train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import RealismReward
+    from trafficrlhf_sdk.reward.builtin import RealismReward
 
     config = AlignConfig(alpha=1.0, credit="agent", counterfactual_credit=True, failure_fraction=0.5,
                          failure_scenes=4, failure_drive_s=4.0, **FAST)

@@ -9,8 +9,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trafficrlhf_sdk.align.rewards import RealismReward
-from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.reward.builtin import RealismReward
+from trafficrlhf_sdk.reward.loading import load_reward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 

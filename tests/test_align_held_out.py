@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer, align
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.testing.rewards import SlowDownReward

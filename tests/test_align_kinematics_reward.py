@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trafficrlhf_sdk.align.rewards import KINEMATIC_BINS, RealismReward, kinematic_log_ratio
-from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.reward.builtin import KINEMATIC_BINS, RealismReward, kinematic_log_ratio
+from trafficrlhf_sdk.reward.loading import load_reward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 
@@ -141,7 +141,7 @@ def test_num_samples_keeps_the_first_future_samples_only() -> None:
 def test_every_builtin_reward_builds_and_is_named_in_the_help() -> None:
     from click.testing import CliRunner
 
-    from trafficrlhf_sdk.align import rewards
+    from trafficrlhf_sdk.alignment import rewards
     from trafficrlhf_sdk.cli import get_cli
     from trafficrlhf_sdk.cli.align_commands import BUILTIN_REWARDS
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from trafficrlhf_sdk.align.rewards import FailureReward, RealismReward, time_to_collision
-from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.reward.builtin import FailureReward, RealismReward, time_to_collision
+from trafficrlhf_sdk.reward.loading import load_reward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 from scipy import stats
 
-from trafficrlhf_sdk.align.rewards import FailureReward, RandomReward
-from trafficrlhf_sdk.cli.align_commands import load_reward
+from trafficrlhf_sdk.reward.builtin import FailureReward, RandomReward
+from trafficrlhf_sdk.reward.loading import load_reward
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 

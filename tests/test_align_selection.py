@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer
-from trafficrlhf_sdk.align.selection import best_of_k_returns
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.alignment.selection import best_of_k_returns
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario import ScenarioTensor
 
@@ -95,7 +95,7 @@ class SelectingGRU(gru.ExampleGRUAdapter):  # type: ignore[misc, name-defined]
 
 
 def test_the_trainer_credits_the_selection_only_when_asked(train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import FailureReward
+    from trafficrlhf_sdk.reward.builtin import FailureReward
 
     def advantages(model, **extra):  # type: ignore[no-untyped-def]
         torch.manual_seed(0)
@@ -116,7 +116,7 @@ def test_the_trainer_credits_the_selection_only_when_asked(train_scene_list: lis
 
 
 def test_selection_credit_needs_a_selecting_adapter(train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.align.rewards import FailureReward
+    from trafficrlhf_sdk.reward.builtin import FailureReward
 
     with pytest.raises(TrafficRLHFError, match="selection_scores"):
         AlignTrainer(gru.ExampleGRUAdapter(), FailureReward(), AlignConfig(**FAST, selection_credit=True),

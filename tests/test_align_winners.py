@@ -6,9 +6,9 @@ import math
 
 import torch
 
-from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, align
-from trafficrlhf_sdk.align.rewards import FailureReward
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer, align
+from trafficrlhf_sdk.reward.builtin import FailureReward
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.testing.rewards import SlowDownReward
 

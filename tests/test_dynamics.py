@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from trafficrlhf_sdk.dynamics import (
+from trafficrlhf_sdk.simulation.dynamics import (
     DEFAULT_BOUNDS,
     UnicycleBounds,
     action_bounds,

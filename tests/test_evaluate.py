@@ -148,7 +148,7 @@ def test_seeds_write_one_run_each_and_pool_them(has_data, cli, tmp_path) -> None
 
 
 def test_seeds_summary_matches_numpy() -> None:
-    from trafficrlhf_sdk.cli.evaluate import seeds_summary
+    from trafficrlhf_sdk.evaluation.protocol import seeds_summary
 
     rates, realism = [0.1, 0.25, 0.16], [0.05, 0.07, 0.06]
     results = [{"metrics": {"failure_rate": rate, "realism_ctg": value, "reward_cost": None},
@@ -187,8 +187,8 @@ def test_model_options_reach_the_model_and_unknown_ones_are_named(has_data, cli)
 
 
 def test_compare_interval_reads_the_saved_realism_histograms(has_data, cli, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_sdk.evaluation import load_scene_histograms
-    from trafficrlhf_sdk.scene_breakdown import realism_deviation_draws
+    from trafficrlhf_sdk.evaluation.protocol import load_scene_histograms
+    from trafficrlhf_sdk.evaluation.breakdown import realism_deviation_draws
 
     folders, reported = [], {}
     for model in ("constant_velocity", "noisy_log"):

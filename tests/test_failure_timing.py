@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from trafficrlhf_sdk.evaluation import EvaluationConfig, run_batched
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, run_batched
 from trafficrlhf_sdk.metrics.failure import FailureMetric
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import ConstantVelocityPolicy, LogReplayPolicy

@@ -534,7 +534,7 @@ def test_speed_metric_on_log_replay_and_a_slowed_copy(synthetic_rollout) -> None
 
 def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore[no-untyped-def]
     """The first failing step per controlled agent, from the slow per-step references (shapely, pixel lookup)."""
-    from trafficrlhf_sdk.render_failures import first_failures
+    from trafficrlhf_sdk.evaluation.failures import first_failures
 
     found = first_failures(case.rollout)
     collision, offroad = case.failure["collision_steps"], case.failure["offroad_steps"]
@@ -552,7 +552,7 @@ def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore
 
 
 def test_failure_figure_names_who_failed_and_when(case, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_sdk.render_failures import first_failures, render_failures, save_failure_png
+    from trafficrlhf_sdk.evaluation.failures import first_failures, render_failures, save_failure_png
 
     found = first_failures(case.rollout)
     index = int((found.step >= 0).sum(-1).argmax())

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 from trafficrlhf_sdk.scenario import AgentType, ScenarioTensor
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from trafficrlhf_sdk.evaluation import EvaluationConfig, run_batched
+from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, run_batched
 from trafficrlhf_sdk.metrics.realism import RealismMetric
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import ConstantVelocityPolicy

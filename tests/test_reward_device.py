@@ -99,7 +99,7 @@ def test_training_on_cuda_learns_like_on_cpu(tiny_db: str, tmp_path: Path) -> No
 def test_a_gpu_reward_model_scores_cpu_rollouts_for_the_fine_tuner(scenes: ScenarioTensor) -> None:
     """The fine-tuner's scoring takes CPU rollouts; a reward model on the GPU featurizes them on the CPU, scores
     on the GPU and hands back CPU scores equal to a CPU copy's."""
-    from trafficrlhf_sdk.align.scoring import agent_scores, scenario_scores
+    from trafficrlhf_sdk.reward.scoring import agent_scores, scenario_scores
 
     torch.manual_seed(0)
     cpu_model = CTGMLPRewardModel(SMALL).eval()

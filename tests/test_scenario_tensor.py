@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from safetensors.torch import save_file
 
-from trafficrlhf_sdk.dynamics import unicycle_rollout, wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import unicycle_rollout, wrap_angle
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, ScenarioValidationError
 from trafficrlhf_sdk.scenario import DEFAULT_LAYERS, MapRaster, ScenarioTensor
 from trafficrlhf_sdk.testing.strategies import feasible_trajectories, scenario_tensors

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trafficrlhf_sdk.errors import DataFormatError
-from trafficrlhf_sdk.scene_breakdown import (
+from trafficrlhf_sdk.evaluation.breakdown import (
     paired_change_interval,
     paired_realism_interval,
     pooled_per_scene,
@@ -243,7 +243,7 @@ def test_realism_interval_pools_seeds_and_refuses_what_it_cannot_measure() -> No
 
 
 def test_scene_histograms_round_trip_and_a_bad_file_is_named(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_sdk.evaluation import load_scene_histograms, save_scene_histograms
+    from trafficrlhf_sdk.evaluation.protocol import load_scene_histograms, save_scene_histograms
 
     run = _counts(np.random.default_rng(0))
     path = save_scene_histograms({"ctg": run}, str(tmp_path / "h.npz"))

@@ -34,6 +34,18 @@ def register_reward_model_architectures(register: Register) -> None:
 
 
 @hookspec
+def register_rewards(register: Register) -> None:
+    """Register hand-written rewards: ``register(name, factory)``; ``factory(**options)`` returns an object with
+    ``step_rewards`` (and ``agent_scores``), used as ``builtin:NAME`` wherever a reward model is asked for."""
+
+
+@hookspec
+def register_pretrained(register: Register) -> None:
+    """Register bundled checkpoints: ``register(name, folder)``; ``folder`` holds ``config.json`` naming its
+    traffic model, so ``--checkpoint NAME`` and :func:`trafficrlhf_sdk.from_pretrained` find it by name."""
+
+
+@hookspec
 def register_scenario_sources(register: Register) -> None:
     """Register dataset readers: ``register(name, cls)`` with ``cls`` a ``ScenarioSource`` subclass."""
 

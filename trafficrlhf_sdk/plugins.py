@@ -20,13 +20,14 @@ from trafficrlhf_sdk import hookspecs
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 
-__all__ = ["DEFAULT_PLUGINS", "build_traffic_model", "get_plugin_manager", "list_plugins", "registry"]
+__all__ = ["DEFAULT_PLUGINS", "build_policy", "build_traffic_model", "checkpoint_model", "resolve_checkpoint", "get_plugin_manager", "list_plugins", "registry"]
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 DEFAULT_PLUGINS = (
     "trafficrlhf_sdk.default_plugins.policies",
     "trafficrlhf_sdk.default_plugins.metrics",
     "trafficrlhf_sdk.default_plugins.reward_models",
+    "trafficrlhf_sdk.default_plugins.rewards",
 )
 KINDS = {
     "traffic_models": ("register_traffic_models", "traffic model"),
@@ -34,6 +35,8 @@ KINDS = {
     "scenario_sources": ("register_scenario_sources", "scenario source"),
     "metrics": ("register_metrics", "metric"),
     "annotation_frontends": ("register_annotation_frontends", "annotation frontend"),
+    "rewards": ("register_rewards", "built-in reward"),
+    "pretrained": ("register_pretrained", "bundled checkpoint"),
 }
 
 pm = pluggy.PluginManager(hookspecs.PROJECT_NAME)
@@ -108,6 +111,58 @@ def build_traffic_model(name: str, options: dict[str, Any], optional: tuple[str,
                                f"{', '.join(f'{k}={kwargs[k]!r}' for k in unknown)}); it accepts: "
                                f"{', '.join(sorted(params)) or 'none'}.")
     return factory(**kwargs)
+
+
+def resolve_checkpoint(checkpoint: str) -> str:
+    """The folder of ``checkpoint``: an existing folder as given, else a bundled checkpoint registered under that
+    name (``trafficrlhf plugins`` lists them)."""
+    if os.path.isdir(checkpoint):
+        return checkpoint
+    bundled = registry("pretrained")
+    if checkpoint in bundled.names():
+        return str(bundled.get(checkpoint))
+    raise TrafficRLHFError(f"--checkpoint {checkpoint!r} is neither a folder nor a bundled checkpoint; give a folder "
+                           f"holding config.json + model.safetensors, or one of: {', '.join(bundled.names())}.")
+
+
+def checkpoint_model(folder: str) -> str | None:
+    """The traffic model a checkpoint folder was saved by (``adapter`` in its ``config.json``), or None."""
+    import json
+
+    path = os.path.join(folder, "config.json")
+    if not os.path.isfile(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as handle:
+            config = json.load(handle)
+    except (OSError, ValueError) as exc:
+        raise TrafficRLHFError(f"{path}: not a readable JSON config ({exc}); re-save the checkpoint.") from None
+    adapter = config.get("adapter") if isinstance(config, dict) else None
+    return adapter if isinstance(adapter, str) else None
+
+
+def build_policy(model: str | None, options: dict[str, Any]) -> Any:
+    """Instantiate a traffic model for closed-loop use: ``model`` (registered name) and/or ``options["checkpoint"]``
+    (a folder or a bundled checkpoint's name). Without ``model`` the checkpoint's ``config.json`` names it; a
+    checkpoint saved by another model is an error. ``checkpoint`` and ``seed`` go to factories that accept them;
+    ``guidance`` and any other option must be accepted, or the error names it."""
+    options = dict(options)
+    checkpoint = options.get("checkpoint")
+    if checkpoint is not None:
+        options["checkpoint"] = checkpoint = resolve_checkpoint(str(checkpoint))
+        saved_by = checkpoint_model(checkpoint)
+        if model is None:
+            model = saved_by
+            if model is None:
+                raise TrafficRLHFError(f"--checkpoint {checkpoint!r} has no config.json naming its traffic model; "
+                                       "add --model NAME.")
+        elif saved_by is not None and saved_by != model:
+            raise TrafficRLHFError(f"--checkpoint {checkpoint!r} was saved by traffic model {saved_by!r}, not "
+                                   f"--model {model!r}; drop --model or pass --model {saved_by}.")
+    if model is None:
+        raise TrafficRLHFError("no traffic model given: pass --model NAME (`trafficrlhf plugins` lists them) or "
+                               "--checkpoint FOLDER.")
+    return build_traffic_model(model, options, optional=("checkpoint", "seed"))
 
 
 def list_plugins() -> list[dict[str, Any]]:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import difflib
-from typing import Generic, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from trafficrlhf_sdk.errors import DuplicateRegistrationError, UnknownComponentError
 
-__all__ = ["Register", "Registry"]
+__all__ = ["Lazy", "Register", "Registry"]
 
 T = TypeVar("T")
 
@@ -17,6 +17,29 @@ class Register(Protocol):
 
     def __call__(self, name: str, value: object) -> None:
         """Register ``value`` under ``name``."""
+
+
+class Lazy:
+    """A component named by ``"module:attribute"`` and imported only when first looked up, so listing plugins
+    and starting the command line import no model code. With ``args``/``kwargs`` the attribute is called with
+    them, or without any when ``call=True`` (e.g. a metric instance built from its class)."""
+
+    def __init__(self, target: str, *args: Any, call: bool = False, **kwargs: Any) -> None:
+        module, sep, attribute = target.partition(":")
+        if not sep or not module or not attribute:
+            raise ValueError(f"lazy target {target!r} must read 'package.module:attribute'.")
+        self.target, self.args, self.kwargs, self.call = target, args, kwargs, call or bool(args or kwargs)
+
+    def resolve(self) -> Any:
+        """Import the target (and call it when arguments were given)."""
+        import importlib
+
+        module, _, attribute = self.target.partition(":")
+        value = getattr(importlib.import_module(module), attribute)
+        return value(*self.args, **self.kwargs) if self.call else value
+
+    def __repr__(self) -> str:
+        return f"Lazy({self.target!r})"
 
 
 class Registry(Generic[T]):
@@ -56,7 +79,10 @@ class Registry(Generic[T]):
                 f"Unknown {self.kind}: {name!r}. Registered: {sorted(self._items)}.{hint} "
                 "Install the plugin that provides it (see `trafficrlhf plugins`)."
             )
-        return self._items[name]
+        value = self._items[name]
+        if isinstance(value, Lazy):
+            value = self._items[name] = value.resolve()
+        return value
 
     def owner(self, name: str) -> str:
         """The plugin that registered ``name``."""

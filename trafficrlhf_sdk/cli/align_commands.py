@@ -10,58 +10,7 @@ import click
 
 from trafficrlhf_sdk.cli import cli
 
-__all__ = ["BUILTIN_REWARDS", "align_command", "load_reward"]
-
-BUILTIN_PREFIX = "builtin:"
-# name -> (class in trafficrlhf_sdk.align.rewards, constructor defaults); a table of names, so the CLI help is
-# built from it without importing torch at start-up
-BUILTIN_REWARDS: dict[str, tuple[str, dict[str, object]]] = {
-    "failure": ("FailureReward", {}),
-    "collision": ("FailureReward", {"offroad": False}),
-    "realism": ("RealismReward", {}),
-    "failure-margins": ("FailureReward", {"margins": True}),
-    "realism-margins": ("RealismReward", {"margins": True}),
-    "realism-speed": ("RealismReward", {"margins": True, "speed_weight": 1.0}),
-    "realism-kinematics": ("RealismReward", {"margins": True, "kinematics_weight": 0.5}),
-    "realism-heading": ("RealismReward", {"margins": True, "heading_weight": 1.0}),
-    "random": ("RandomReward", {}),
-}
-
-
-def load_reward(spec: str, options: dict[str, object] | None = None) -> object:
-    """A saved reward-model folder, or a hand-written reward: ``builtin:failure``, ``builtin:collision``,
-    ``builtin:realism``, or ``builtin:failure-margins`` / ``builtin:realism-margins`` (the same with the
-    near-failure costs of :class:`~trafficrlhf_sdk.align.rewards.FailureReward`), ``builtin:realism-speed``
-    (``realism-margins`` plus the speed-mismatch term of :class:`~trafficrlhf_sdk.align.rewards.RealismReward`),
-    ``builtin:realism-kinematics`` (``realism-margins`` plus its kinematic-histogram term) or
-    ``builtin:realism-heading`` (``realism-margins`` plus its heading-mismatch term); ``builtin:random``
-    is :class:`~trafficrlhf_sdk.align.rewards.RandomReward`, a reward without information (the null control).
-
-    ``options`` override keyword arguments of a built-in reward's constructor (``--reward-option``)."""
-    from trafficrlhf_sdk.errors import TrafficRLHFError
-
-    options = dict(options or {})
-    if spec.startswith(BUILTIN_PREFIX):
-        from trafficrlhf_sdk.align import rewards
-
-        name = spec[len(BUILTIN_PREFIX):]
-        if name not in BUILTIN_REWARDS:
-            raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use one of "
-                                   f"{', '.join(BUILTIN_PREFIX + n for n in BUILTIN_REWARDS)}.")
-        class_name, defaults = BUILTIN_REWARDS[name]
-        cls = getattr(rewards, class_name)
-        try:
-            return cls(**{**defaults, **options})
-        except TypeError as error:
-            raise TrafficRLHFError(f"--reward-option {sorted(options)} does not fit {spec!r} ({error}); use "
-                                   f"keyword arguments of {cls.__name__}.") from None
-    if options:
-        raise TrafficRLHFError(f"--reward-option {sorted(options)} applies to built-in rewards only; {spec!r} is "
-                               "a saved reward model.")
-    from trafficrlhf_sdk.reward import RewardModel
-
-    return RewardModel.from_pretrained(spec).eval()
-
+__all__ = ["align_command"]
 
 def _comma_list(text: str | None) -> tuple[str, ...] | None:
     """``"a, b,"`` -> ``("a", "b")``; None stays None (AlignConfig validates the names)."""
@@ -100,9 +49,8 @@ def _parse_perturb(text: str | None) -> dict[str, float]:
 @cli.command("align")
 @click.option("--model", "model", required=True, help="Registered traffic model (see `trafficrlhf plugins`).")
 @click.option("--reward-model", "reward_spec", required=True,
-              help="Saved reward model folder (`trafficrlhf rm train`), or a built-in reward: "
-                   + " / ".join(BUILTIN_PREFIX + name for name in BUILTIN_REWARDS)
-                   + " (builtin:random carries no information: the null control).")
+              help="Saved reward model folder (`trafficrlhf rm train`), or a built-in reward builtin:NAME "
+                   "(`trafficrlhf plugins` lists them; baselines and ablations).")
 @click.option("--reward-option", "reward_options", multiple=True, metavar="KEY=VALUE",
               help="Keyword argument of a built-in reward (JSON value), repeatable, e.g. kinematics_weight=1.0.")
 @click.option("--alpha", type=click.FloatRange(min=0), default=None,
@@ -249,8 +197,9 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
     """
     import torch
 
-    from trafficrlhf_sdk.align import AlignConfig, AlignTrainer, paper_alpha
-    from trafficrlhf_sdk.cli.evaluate import build_policy
+    from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer, paper_alpha
+    from trafficrlhf_sdk.plugins import build_policy
+    from trafficrlhf_sdk.reward.loading import load_reward
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -258,7 +207,7 @@ def align_command(model: str, reward_spec: str, reward_options: tuple[str, ...],
 
     reward = load_reward(reward_spec, parse_key_values(reward_options, "--reward-option"))
     if pessimism is not None:
-        from trafficrlhf_sdk.align.rewards import PessimisticReward
+        from trafficrlhf_sdk.reward.builtin import PessimisticReward
 
         reward = PessimisticReward(reward, pessimism)
 
@@ -343,7 +292,7 @@ def average_command(checkpoints: tuple[str, ...], out_dir: str, weights: str | N
 
     The result loads like any checkpoint: `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
     """
-    from trafficrlhf_sdk.align.averaging import average_checkpoints
+    from trafficrlhf_sdk.alignment.averaging import average_checkpoints
 
     average_checkpoints(checkpoints, out_dir, _parse_weights(weights))
     click.echo(f"averaged {len(checkpoints)} checkpoints into {out_dir}")
@@ -369,7 +318,7 @@ def extrapolate_command(aligned: str, base_dir: str, factor: float,
     Choose --factor on held-out scenes (scripts/extrapolation_sweep.py); the result loads like any checkpoint:
     `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
     """
-    from trafficrlhf_sdk.align.averaging import extrapolate_checkpoint
+    from trafficrlhf_sdk.alignment.averaging import extrapolate_checkpoint
 
     extrapolate_checkpoint(base_dir, aligned, out_dir, factor, directions)
     extra = "".join(f" + {w:g} x ({b} - {a})" for a, b, w in directions)
@@ -390,7 +339,7 @@ def graft_command(part: str, body_dir: str, prefixes: tuple[str, ...], out_dir: 
     Both must be checkpoints of one adapter and architecture outside the prefix; the result loads like any
     checkpoint: `trafficrlhf evaluate --model MODEL --checkpoint OUT`.
     """
-    from trafficrlhf_sdk.align.averaging import graft_checkpoint
+    from trafficrlhf_sdk.alignment.averaging import graft_checkpoint
 
     graft_checkpoint(body_dir, part, out_dir, prefixes)
     click.echo(f"wrote {body_dir} with the {', '.join(prefixes)} tensors of {part} to {out_dir}")

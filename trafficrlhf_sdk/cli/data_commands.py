@@ -8,7 +8,7 @@ import os
 import sys
 from collections import Counter
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Console
@@ -17,7 +17,9 @@ from rich.table import Table
 
 from trafficrlhf_sdk.cli import cli, format_error
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
-from trafficrlhf_sdk.scenario import AgentType, ScenarioSource, ScenarioTensor
+
+if TYPE_CHECKING:
+    from trafficrlhf_sdk.scenario import ScenarioSource, ScenarioTensor
 
 __all__ = ["inspect_command", "plugins_command", "render_command", "scene_statistics", "sources_command"]
 
@@ -157,6 +159,8 @@ def _total_scene_count(source: ScenarioSource, split: str) -> int | None:
 
 def scene_statistics(scenes: Iterable[ScenarioTensor]) -> dict[str, Any]:
     """Summary statistics over scenes (each a ScenarioTensor; every scene of every batch counts once)."""
+    from trafficrlhf_sdk.scenario import AgentType
+
     agents: list[int] = []
     controlled: list[int] = []
     durations: list[float] = []

@@ -14,7 +14,7 @@ from trafficrlhf_sdk.errors import TrafficRLHFError
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from trafficrlhf_sdk.evaluation import EvaluationReport
+    from trafficrlhf_sdk.evaluation.protocol import EvaluationReport
 
 ROWS = (
     ("failure_rate", "failure rate (any)"),
@@ -41,14 +41,6 @@ ROWS = (
     ("stopped_share_logged", "  stopped in the log"),
     ("reward_cost", "reward cost"),
 )
-
-
-def build_policy(model: str, options: dict[str, object]) -> object:
-    """Instantiate registered traffic model ``model``: ``checkpoint`` and ``seed`` go to factories that accept
-    them; ``guidance`` and any other option (``--model-option``) must be accepted, or the error names it."""
-    from trafficrlhf_sdk.plugins import build_traffic_model
-
-    return build_traffic_model(model, options, optional=("checkpoint", "seed"))
 
 
 def _chosen_scenes(available: list[str], wanted: tuple[str, ...], split: str) -> list[str]:
@@ -112,7 +104,8 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     import torch
 
     from trafficrlhf_sdk import get_scenario_source
-    from trafficrlhf_sdk.evaluation import EvaluationConfig, evaluate_policy
+    from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy, seeds_summary
+    from trafficrlhf_sdk.plugins import build_policy
 
     if render_worst and not out_dir:
         raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
@@ -203,35 +196,14 @@ def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
     return seeds
 
 
-def seeds_summary(results: list[dict]) -> dict:
-    """Runs of one policy on the same scenes at several seeds, as one JSON object.
-
-    ``results``: each run's ``EvaluationReport.to_json()``. Returns ``seeds``; ``mean`` and ``std`` (population,
-    over the runs) of every metric that all runs report as a number; ``logged`` (the logged data's values, the
-    same for every seed); ``runs``: each seed's metrics; and the scene count and controlled agents.
-    """
-    def numbers(result: dict) -> dict[str, float]:
-        return {key: float(value) for key, value in result["metrics"].items() if isinstance(value, (int, float))}
-
-    per_run = [numbers(result) for result in results]
-    keys = [key for key in per_run[0] if all(key in values for values in per_run)]
-    mean = {key: sum(values[key] for values in per_run) / len(per_run) for key in keys}
-    std = {key: (sum((values[key] - mean[key]) ** 2 for values in per_run) / len(per_run)) ** 0.5 for key in keys}
-    seeds = [result["metadata"].get("seed") for result in results]
-    return {"seeds": seeds, "mean": mean, "std": std, "logged": results[0]["logged"],
-            "runs": [{"seed": seed, "metrics": result["metrics"]} for seed, result in zip(seeds, results)],
-            "num_scenes": results[0]["num_scenes"], "num_controlled_agents": results[0]["num_controlled_agents"],
-            "metadata": {key: value for key, value in results[0]["metadata"].items() if key != "seed"}}
-
-
 def _print_seeds(folders: list[str], worst_scenes: int) -> None:
     """The runs' mean and per-seed values (``trafficrlhf compare``), then where their pooled failures are."""
     from rich.console import Console
 
-    from trafficrlhf_sdk.cli.compare import _read, comparison_table
+    from trafficrlhf_sdk.evaluation.compare import comparison_table, read_results
 
     click.echo(comparison_table(folders))
-    _print_concentration(Console(), [_read(folder) for folder in folders], worst_scenes)
+    _print_concentration(Console(), [read_results(folder) for folder in folders], worst_scenes)
     click.echo(f"wrote {len(folders)} runs: {', '.join(folders)}")
 
 
@@ -240,7 +212,7 @@ def _print_concentration(console: Console, results: list[dict], top: int) -> Non
     the ``top`` scenes carrying most of it."""
     from rich.table import Table
 
-    from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, scenes_carrying, worst_scenes
+    from trafficrlhf_sdk.evaluation.breakdown import pooled_per_scene, scenes_carrying, worst_scenes
 
     per_scene = pooled_per_scene(results)
     failing = sum(1 for _, value in per_scene.values() if value > 0)
@@ -267,8 +239,8 @@ def _render_worst(report: EvaluationReport, top: int, out_dir: str) -> list[str]
     """PNGs of the ``top`` scenes carrying most of the failure rate, named ``<rank>_<scene>.png``."""
     import os
 
-    from trafficrlhf_sdk.render_failures import first_failures, save_failure_png
-    from trafficrlhf_sdk.scene_breakdown import pooled_per_scene, worst_scenes
+    from trafficrlhf_sdk.evaluation.failures import first_failures, save_failure_png
+    from trafficrlhf_sdk.evaluation.breakdown import pooled_per_scene, worst_scenes
 
     result, rollout = report.to_json(), report.rollout
     if rollout is None:

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from trafficrlhf_sdk.hookspecs import hookimpl
-from trafficrlhf_sdk.registry import Register
-from trafficrlhf_sdk.simulation.policies import ConstantVelocityPolicy, LogReplayPolicy, NoisyLogPolicy
+from trafficrlhf_sdk.registry import Lazy, Register
 
 
 @hookimpl
 def register_traffic_models(register: Register) -> None:
     """log_replay, constant_velocity, noisy_log."""
-    register("log_replay", LogReplayPolicy)
-    register("constant_velocity", ConstantVelocityPolicy)
-    register("noisy_log", NoisyLogPolicy)
+    register("log_replay", Lazy("trafficrlhf_sdk.simulation.policies:LogReplayPolicy"))
+    register("constant_velocity", Lazy("trafficrlhf_sdk.simulation.policies:ConstantVelocityPolicy"))
+    register("noisy_log", Lazy("trafficrlhf_sdk.simulation.policies:NoisyLogPolicy"))

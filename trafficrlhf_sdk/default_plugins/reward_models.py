@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 from trafficrlhf_sdk.hookspecs import hookimpl
-from trafficrlhf_sdk.registry import Register
-from trafficrlhf_sdk.reward.ctg_mlp import CTGMLPRewardModel
-from trafficrlhf_sdk.reward.model import RewardEnsemble
+from trafficrlhf_sdk.registry import Lazy, Register
 
 
 @hookimpl
 def register_reward_model_architectures(register: Register) -> None:
     """ctg_mlp (the paper's), ensemble (a bootstrap ensemble of any registered architecture)."""
-    register(CTGMLPRewardModel.architecture, CTGMLPRewardModel)
-    register(RewardEnsemble.architecture, RewardEnsemble)
+    register("ctg_mlp", Lazy("trafficrlhf_sdk.reward.ctg_mlp:CTGMLPRewardModel"))
+    register("ensemble", Lazy("trafficrlhf_sdk.reward.model:RewardEnsemble"))

@@ -7,50 +7,34 @@ hidden logged future (:mod:`~trafficrlhf_sdk.feedback.campaign`). People label t
 :class:`PreferenceDataset` for reward-model training.
 """
 
-from trafficrlhf_sdk.feedback.agreement import agreement_report, campaign_agreement, fleiss_kappa
-from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign, extend_campaign
-from trafficrlhf_sdk.feedback.errors import (
-    AuthenticationError,
-    DuplicateSubmissionError,
-    FeedbackError,
-    InvalidChoiceError,
-    ItemStateError,
-    UnknownCampaignError,
-    UnknownItemError,
-)
-from trafficrlhf_sdk.feedback.preference import PreferenceDataset, export_preferences
-from trafficrlhf_sdk.feedback.store import Annotator, Assignment, Campaign, ContextRecord, FeedbackStore, Label
-from trafficrlhf_sdk.feedback.synthetic import (
-    RealismJudgment,
-    SyntheticAnnotator,
-    SyntheticAnnotatorConfig,
-    judge_realism,
-)
+from trafficrlhf_sdk._lazy import lazy_exports
 
-__all__ = [
-    "Annotator",
-    "Assignment",
-    "AuthenticationError",
-    "Campaign",
-    "CampaignConfig",
-    "ContextRecord",
-    "DuplicateSubmissionError",
-    "FeedbackError",
-    "FeedbackStore",
-    "InvalidChoiceError",
-    "ItemStateError",
-    "Label",
-    "PreferenceDataset",
-    "RealismJudgment",
-    "SyntheticAnnotator",
-    "SyntheticAnnotatorConfig",
-    "UnknownCampaignError",
-    "UnknownItemError",
-    "agreement_report",
-    "campaign_agreement",
-    "create_campaign",
-    "export_preferences",
-    "extend_campaign",
-    "fleiss_kappa",
-    "judge_realism",
-]
+_EXPORTS = {
+    "Annotator": "store",
+    "Assignment": "store",
+    "AuthenticationError": "errors",
+    "Campaign": "store",
+    "CampaignConfig": "campaign",
+    "ContextRecord": "store",
+    "DuplicateSubmissionError": "errors",
+    "FeedbackError": "errors",
+    "FeedbackStore": "store",
+    "InvalidChoiceError": "errors",
+    "ItemStateError": "errors",
+    "Label": "store",
+    "PreferenceDataset": "preference",
+    "RealismJudgment": "synthetic",
+    "SyntheticAnnotator": "synthetic",
+    "SyntheticAnnotatorConfig": "synthetic",
+    "UnknownCampaignError": "errors",
+    "UnknownItemError": "errors",
+    "agreement_report": "agreement",
+    "campaign_agreement": "agreement",
+    "create_campaign": "campaign",
+    "export_preferences": "preference",
+    "extend_campaign": "campaign",
+    "fleiss_kappa": "agreement",
+    "judge_realism": "synthetic",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -12,10 +12,13 @@ import torch
 from safetensors.torch import load, save
 
 from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["Annotator", "Assignment", "Campaign", "ContextRecord", "Label", "decode_future", "encode_future",
-           "hash_token"]
+__all__ = ["TIE_SLOT", "Annotator", "Assignment", "Campaign", "ContextRecord", "Label", "decode_future",
+           "encode_future", "hash_token"]
+
+TIE_SLOT = -1  # the stored slot of "equally realistic"
 
 
 def hash_token(token: str) -> str:
@@ -41,6 +44,16 @@ class Campaign:
     def labels_per_item(self) -> int | None:
         """How many annotators should label each item (None: every annotator labels every item)."""
         return self.config.get("labels_per_item")
+
+    @property
+    def settings(self) -> AnnotationSettings:
+        """Playback, guidelines, gold items, qualification, leases and ties of this campaign."""
+        return AnnotationSettings.from_config(self.config)
+
+    @property
+    def models(self) -> tuple[str, ...]:
+        """The traffic models of the candidates (several when the campaign mixes models)."""
+        return tuple(self.config.get("candidate_models") or [self.model])
 
 
 @dataclass(frozen=True)
@@ -71,7 +84,8 @@ class Assignment:
 
 @dataclass(frozen=True)
 class Label:
-    """A stored label. ``slot`` 0 means "none realistic" (``candidate`` None: the logged future wins)."""
+    """A stored label. ``slot`` 0 means "none realistic" (``candidate`` None: the logged future wins); ``slot``
+    -1 means the candidates are equally realistic (a tie; ``candidate`` None)."""
 
     id: int
     context_id: int
@@ -88,7 +102,12 @@ class Label:
     @property
     def none_realistic(self) -> bool:
         """True when the annotator declared no candidate realistic."""
-        return self.candidate is None
+        return self.slot == 0
+
+    @property
+    def tie(self) -> bool:
+        """True when the annotator found the candidates equally realistic."""
+        return self.slot == TIE_SLOT
 
 
 @dataclass(frozen=True)
@@ -100,6 +119,9 @@ class ContextRecord:
         candidates: float32 ``(N, A, H, 4)`` model futures after the start step; ``candidate_valid`` bool
             ``(N, A, H)``; ``logged`` ``(A, H, 4)`` and ``logged_valid`` ``(A, H)``: the logged future.
         controlled: bool ``(A,)``: agents the model drove (the others replay the log in every candidate).
+        candidate_models: the traffic model of each candidate (None where the database does not say).
+        gold_answer: for a gold item, the index of the candidate known to be the right answer; else None.
+        priority: serving priority (higher first).
     """
 
     id: int
@@ -115,6 +137,9 @@ class ContextRecord:
     candidate_valid: torch.Tensor
     logged: torch.Tensor
     logged_valid: torch.Tensor
+    candidate_models: tuple[str | None, ...] = ()
+    gold_answer: int | None = None
+    priority: float = 0.0
 
     @property
     def controlled(self) -> torch.Tensor:

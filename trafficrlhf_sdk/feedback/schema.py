@@ -11,14 +11,25 @@ Schema (``PRAGMA user_version`` = :data:`SCHEMA_VERSION`):
 - ``annotators``: name and the SHA-256 of the token (the token itself is printed once and never stored).
 - ``assignments``: which annotator was shown which item, in which position of their queue, and the shuffled
   candidate order (``permutation[k]`` = candidate index shown in slot ``k + 1``).
-- ``labels``: ``UNIQUE(context, annotator)``: the slot pressed (0 = none realistic), the candidate index it
-  means (NULL for none), the permutation, time on the item, source (``human`` or ``synthetic``).
+- ``labels``: ``UNIQUE(context, annotator)``: the slot pressed (0 = none realistic, -1 = the candidates are
+  equally realistic), the candidate index it means (NULL for none and for a tie), the permutation, time on the
+  item, source (``human`` or ``synthetic``).
 - ``label_history``: previous values of revised labels. ``skips``: ``UNIQUE(context, annotator)`` with a reason.
+- ``admins``: campaign owners' tokens (SHA-256 only), for the app's admin page.
+
+Version 2 added: ``contexts.gold_answer`` (the known answer of a gold item: a candidate index, NULL for a
+regular item) and ``contexts.priority`` (higher is served first, e.g. reward-model disagreement),
+``candidates.model`` (the traffic model behind each candidate), ``assignments.lease_expires_at`` (unix seconds:
+until then the open item is reserved for its annotator) and ``assignments.released`` (1 when an expired lease
+was given up because others filled the item), the ``admins`` table, and ties (``slot`` -1) in ``labels`` and
+``label_history``. :func:`migrate` upgrades a version 1 file in place, in one transaction.
 """
 
-__all__ = ["SCHEMA_SQL", "SCHEMA_VERSION"]
+from collections.abc import Callable
 
-SCHEMA_VERSION = 1
+__all__ = ["SCHEMA_SQL", "SCHEMA_VERSION", "migrate"]
+
+SCHEMA_VERSION = 2
 
 SCHEMA_SQL = """
 CREATE TABLE IF NOT EXISTS campaigns (
@@ -31,11 +42,13 @@ CREATE TABLE IF NOT EXISTS contexts (
     id INTEGER PRIMARY KEY, campaign_id INTEGER NOT NULL REFERENCES campaigns(id), ordinal INTEGER NOT NULL,
     source TEXT NOT NULL, split TEXT NOT NULL, scene_id TEXT NOT NULL, seed INTEGER NOT NULL,
     start_index INTEGER NOT NULL, created_at TEXT NOT NULL, sdk_version TEXT NOT NULL, scenario BLOB NOT NULL,
+    gold_answer INTEGER, priority REAL NOT NULL DEFAULT 0,
     UNIQUE (campaign_id, source, split, scene_id), UNIQUE (campaign_id, ordinal)
 );
 CREATE TABLE IF NOT EXISTS candidates (
     id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id), idx INTEGER NOT NULL,
-    kind TEXT NOT NULL CHECK (kind IN ('model', 'logged')), tensors BLOB NOT NULL, UNIQUE (context_id, idx)
+    kind TEXT NOT NULL CHECK (kind IN ('model', 'logged')), tensors BLOB NOT NULL, model TEXT,
+    UNIQUE (context_id, idx)
 );
 CREATE TABLE IF NOT EXISTS annotators (
     id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, token_sha256 TEXT NOT NULL UNIQUE,
@@ -45,12 +58,13 @@ CREATE TABLE IF NOT EXISTS assignments (
     id INTEGER PRIMARY KEY, annotator_id INTEGER NOT NULL REFERENCES annotators(id),
     context_id INTEGER NOT NULL REFERENCES contexts(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
     position INTEGER NOT NULL, permutation TEXT NOT NULL, assigned_at TEXT NOT NULL,
+    lease_expires_at REAL, released INTEGER NOT NULL DEFAULT 0,
     UNIQUE (annotator_id, context_id), UNIQUE (annotator_id, campaign_id, position)
 );
 CREATE TABLE IF NOT EXISTS labels (
     id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id),
     annotator_id INTEGER NOT NULL REFERENCES annotators(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
-    slot INTEGER NOT NULL CHECK (slot >= 0), candidate INTEGER, permutation TEXT NOT NULL,
+    slot INTEGER NOT NULL CHECK (slot >= -1), candidate INTEGER, permutation TEXT NOT NULL,
     time_on_item_ms INTEGER, source TEXT NOT NULL, created_at TEXT NOT NULL, revision INTEGER NOT NULL DEFAULT 0,
     UNIQUE (context_id, annotator_id)
 );
@@ -63,6 +77,46 @@ CREATE TABLE IF NOT EXISTS skips (
     annotator_id INTEGER NOT NULL REFERENCES annotators(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
     reason TEXT NOT NULL, created_at TEXT NOT NULL, UNIQUE (context_id, annotator_id)
 );
+CREATE TABLE IF NOT EXISTS admins (
+    id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, token_sha256 TEXT NOT NULL UNIQUE, created_at TEXT NOT NULL
+);
 CREATE INDEX IF NOT EXISTS labels_by_campaign ON labels (campaign_id, context_id);
 CREATE INDEX IF NOT EXISTS contexts_by_campaign ON contexts (campaign_id, ordinal);
+CREATE INDEX IF NOT EXISTS assignments_by_context ON assignments (context_id);
 """
+
+_V1_TO_V2 = """
+PRAGMA defer_foreign_keys = ON;
+ALTER TABLE contexts ADD COLUMN gold_answer INTEGER;
+ALTER TABLE contexts ADD COLUMN priority REAL NOT NULL DEFAULT 0;
+ALTER TABLE candidates ADD COLUMN model TEXT;
+ALTER TABLE assignments ADD COLUMN lease_expires_at REAL;
+ALTER TABLE assignments ADD COLUMN released INTEGER NOT NULL DEFAULT 0;
+CREATE TABLE labels_v2 (
+    id INTEGER PRIMARY KEY, context_id INTEGER NOT NULL REFERENCES contexts(id),
+    annotator_id INTEGER NOT NULL REFERENCES annotators(id), campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+    slot INTEGER NOT NULL CHECK (slot >= -1), candidate INTEGER, permutation TEXT NOT NULL,
+    time_on_item_ms INTEGER, source TEXT NOT NULL, created_at TEXT NOT NULL, revision INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (context_id, annotator_id)
+);
+INSERT INTO labels_v2 SELECT id, context_id, annotator_id, campaign_id, slot, candidate, permutation,
+    time_on_item_ms, source, created_at, revision FROM labels;
+DROP INDEX IF EXISTS labels_by_campaign;
+DROP TABLE labels;
+ALTER TABLE labels_v2 RENAME TO labels;
+UPDATE candidates SET model = (SELECT c.model FROM contexts x JOIN campaigns c ON c.id = x.campaign_id
+    WHERE x.id = candidates.context_id) WHERE kind = 'model'
+"""
+
+
+def migrate(execute: Callable[[str], object], version: int) -> None:
+    """Upgrade a database of schema ``version`` to :data:`SCHEMA_VERSION` inside the caller's transaction.
+
+    ``execute`` runs one SQL statement. Version 0 is a new file (nothing to upgrade); the tables and indexes
+    of the current schema are created afterwards by the caller.
+    """
+    if version == 1:
+        for statement in _V1_TO_V2.split(";"):
+            if statement.strip():
+                execute(statement)
+

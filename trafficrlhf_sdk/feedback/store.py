@@ -21,6 +21,7 @@ import random
 import secrets
 import sqlite3
 import threading
+import time
 from dataclasses import replace
 from datetime import datetime, timezone
 from collections.abc import Iterator
@@ -38,6 +39,7 @@ from trafficrlhf_sdk.feedback.errors import (
     UnknownItemError,
 )
 from trafficrlhf_sdk.feedback.records import (
+    TIE_SLOT,
     Annotator,
     Assignment,
     Campaign,
@@ -50,15 +52,18 @@ from trafficrlhf_sdk.feedback.records import (
     encode_future,
     hash_token,
 )
-from trafficrlhf_sdk.feedback.schema import SCHEMA_SQL, SCHEMA_VERSION
+from trafficrlhf_sdk.feedback.schema import SCHEMA_SQL, SCHEMA_VERSION, migrate
+from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.scenario.io import scenario_from_bytes, scenario_to_bytes
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["SCHEMA_VERSION", "Annotator", "Assignment", "Campaign", "ContextRecord", "FeedbackStore", "Label"]
+__all__ = ["SCHEMA_VERSION", "TIE_SLOT", "Annotator", "Assignment", "Campaign", "ContextRecord", "FeedbackStore",
+           "Label", "SQLITE_MAX_INT"]
 
 MAX_REASON_CHARS = 500
+SQLITE_MAX_INT = 2**63 - 1  # ids above this cannot be stored (nor looked up) by SQLite
 Synchronous = Literal["OFF", "NORMAL", "FULL", "EXTRA"]
-
+LabelKind = Literal["regular", "gold", "all"]
 
 
 def _now() -> str:
@@ -93,10 +98,12 @@ class FeedbackStore:
         conn.execute("PRAGMA journal_mode=WAL")
         with self.transaction() as tx:
             version = tx.execute("PRAGMA user_version").fetchone()[0]
-            if version not in (0, SCHEMA_VERSION):
+            if version not in (0, 1, SCHEMA_VERSION):
                 raise DataFormatError(
-                    f"{self.path!r} has feedback schema version {version}; this SDK reads version {SCHEMA_VERSION}."
+                    f"{self.path!r} has feedback schema version {version}; this SDK reads versions 1 to "
+                    f"{SCHEMA_VERSION}. Upgrade the SDK to open it."
                 )
+            migrate(tx.execute, version)
             tx.executescript_safe(SCHEMA_SQL)
             tx.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
 
@@ -183,18 +190,59 @@ class FeedbackStore:
         """Every campaign, oldest first."""
         return [_campaign(r) for r in self._conn().execute("SELECT * FROM campaigns ORDER BY id")]
 
+    def update_settings(self, campaign: Campaign | str, **changes: Any) -> Campaign:
+        """Change some of the campaign's :class:`AnnotationSettings` (validated; the others are kept)."""
+        name = campaign if isinstance(campaign, str) else campaign.name
+        with self.transaction() as tx:
+            row = tx.execute("SELECT config_json FROM campaigns WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                raise UnknownCampaignError(f"no campaign {name!r} in {self.path!r}.")
+            config = json.loads(row["config_json"])
+            try:
+                settings = AnnotationSettings(**{**(config.get("annotation") or {}), **changes})
+            except ValueError as exc:
+                raise InvalidChoiceError(f"invalid settings for campaign {name!r}: {exc}") from exc
+            config["annotation"] = settings.model_dump(mode="json")
+            tx.execute("UPDATE campaigns SET config_json = ? WHERE name = ?", (json.dumps(config), name))
+        return self.campaign(name)
+
+    def set_priorities(self, campaign: Campaign, priorities: dict[int, float]) -> int:
+        """Serve items with higher ``priorities[context_id]`` first (others keep theirs; default 0).
+
+        This is the hook for active selection: score each context, e.g. by how much an ensemble of reward
+        models disagrees on its candidates (:func:`~trafficrlhf_sdk.feedback.selection.rank_by_disagreement`),
+        and pass the scores here. Returns how many items were updated; unknown ids raise ``UnknownItemError``.
+        """
+        with self.transaction() as tx:
+            known = {r[0] for r in tx.execute("SELECT id FROM contexts WHERE campaign_id = ?", (campaign.id,))}
+            missing = sorted(set(priorities) - known)
+            if missing:
+                raise UnknownItemError(f"no items {missing[:10]} in campaign {campaign.name!r}; nothing was changed.")
+            tx.executemany("UPDATE contexts SET priority = ? WHERE id = ?",
+                           [(float(v), int(k)) for k, v in priorities.items()])
+        return len(priorities)
+
     # ----------------------------------------------------------------------------------------- contexts
     def add_context(self, campaign: Campaign, source: str, split: str, scene_id: str, seed: int,
                     scenario: ScenarioTensor, candidates: torch.Tensor, candidate_valid: torch.Tensor,
-                    logged: torch.Tensor, logged_valid: torch.Tensor, sdk_version: str) -> int:
+                    logged: torch.Tensor, logged_valid: torch.Tensor, sdk_version: str,
+                    candidate_models: list[str] | tuple[str, ...] | None = None, gold_answer: int | None = None,
+                    priority: float = 0.0) -> int:
         """Store one item (context + N candidates + logged future) in one transaction; returns its id.
 
         Shapes: ``scenario`` B = 1 with ``current_index`` = the start step; ``candidates (N, A, H, 4)``,
-        ``candidate_valid (N, A, H)``, ``logged (A, H, 4)``, ``logged_valid (A, H)``.
+        ``candidate_valid (N, A, H)``, ``logged (A, H, 4)``, ``logged_valid (A, H)``. ``candidate_models``: the
+        traffic model of each candidate (default: the campaign's model for all). ``gold_answer``: makes the item
+        a gold item whose right answer is that candidate index (see :mod:`~trafficrlhf_sdk.feedback.gold`).
         """
         n = int(candidates.shape[0])
         if n != campaign.num_candidates:
             raise InvalidChoiceError(f"campaign {campaign.name!r} takes {campaign.num_candidates} candidates; got {n}.")
+        models = list(candidate_models) if candidate_models is not None else [campaign.model] * n
+        if len(models) != n:
+            raise InvalidChoiceError(f"`candidate_models` must name one model per candidate ({n}); got {models!r}.")
+        if gold_answer is not None and not 0 <= gold_answer < n:
+            raise InvalidChoiceError(f"`gold_answer` must be a candidate index 0..{n - 1}; got {gold_answer!r}.")
         a = scenario.num_agents
         if (scenario.num_scenes != 1 or candidates.dim() != 4 or tuple(candidates.shape[1:2]) != (a,)
                 or tuple(candidate_valid.shape) != tuple(candidates.shape[:3])
@@ -214,35 +262,39 @@ class FeedbackStore:
             try:
                 cur = tx.execute(
                     "INSERT INTO contexts (campaign_id, ordinal, source, split, scene_id, seed, start_index, "
-                    "created_at, sdk_version, scenario) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    "created_at, sdk_version, scenario, gold_answer, priority) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, "
+                    "?, ?)",
                     (campaign.id, ordinal, source, split, scene_id, seed, scenario.current_index, _now(), sdk_version,
-                     blob),
+                     blob, gold_answer, float(priority)),
                 )
             except sqlite3.IntegrityError as exc:
                 raise DuplicateSubmissionError(
                     f"campaign {campaign.name!r} already holds scene {source}/{split}/{scene_id}."
                 ) from exc
             context_id = int(cur.lastrowid)  # type: ignore[arg-type]
-            rows = [(context_id, k, "model", futures[k]) for k in range(n)]
-            rows.append((context_id, -1, "logged", encode_future(logged, logged_valid)))
-            tx.executemany("INSERT INTO candidates (context_id, idx, kind, tensors) VALUES (?, ?, ?, ?)", rows)
+            rows = [(context_id, k, "model", futures[k], models[k]) for k in range(n)]
+            rows.append((context_id, -1, "logged", encode_future(logged, logged_valid), None))
+            tx.executemany("INSERT INTO candidates (context_id, idx, kind, tensors, model) VALUES (?, ?, ?, ?, ?)",
+                           rows)
         return context_id
 
     def context_keys(self, campaign: Campaign) -> list[dict[str, Any]]:
-        """``id, ordinal, source, split, scene_id, seed`` of every item of ``campaign``, by ordinal."""
+        """``id, ordinal, source, split, scene_id, seed, gold_answer, priority`` of every item of ``campaign``, by
+        ordinal (``gold_answer`` is None for regular items)."""
         rows = self._conn().execute(
-            "SELECT id, ordinal, source, split, scene_id, seed FROM contexts WHERE campaign_id = ? ORDER BY ordinal",
-            (campaign.id,))
+            "SELECT id, ordinal, source, split, scene_id, seed, gold_answer, priority FROM contexts WHERE "
+            "campaign_id = ? ORDER BY ordinal", (campaign.id,))
         return [dict(r) for r in rows]
 
     def load_context(self, context_id: int, campaign: Campaign | None = None) -> ContextRecord:
         """The item ``context_id`` with its tensors; ``campaign`` restricts the lookup to that campaign."""
+        _check_id(context_id, "item")
         with self.snapshot() as conn:
             row = conn.execute("SELECT * FROM contexts WHERE id = ?", (context_id,)).fetchone()
             if row is None or (campaign is not None and row["campaign_id"] != campaign.id):
                 where = f"campaign {campaign.name!r}" if campaign is not None else repr(self.path)
                 raise UnknownItemError(f"no item {context_id!r} in {where}; see `trafficrlhf feedback status`.")
-            futures = conn.execute("SELECT idx, tensors FROM candidates WHERE context_id = ? ORDER BY idx",
+            futures = conn.execute("SELECT idx, tensors, model FROM candidates WHERE context_id = ? ORDER BY idx",
                                    (context_id,)).fetchall()
         name = f"item {context_id}"
         scenario = scenario_from_bytes(row["scenario"], name)
@@ -255,6 +307,8 @@ class FeedbackStore:
             split=row["split"], scene_id=row["scene_id"], seed=row["seed"], start_index=row["start_index"],
             scenario=scenario, candidates=torch.stack([s for s, _ in model]),
             candidate_valid=torch.stack([v for _, v in model]), logged=decoded[-1][0], logged_valid=decoded[-1][1],
+            candidate_models=tuple(r["model"] for r in futures if r["idx"] >= 0), gold_answer=row["gold_answer"],
+            priority=float(row["priority"]),
         )
 
     # --------------------------------------------------------------------------------------- annotators

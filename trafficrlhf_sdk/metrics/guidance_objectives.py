@@ -17,7 +17,7 @@ class GuidanceObjectivesMetric(Metric):
 
     def compute(self, rollout: Rollout) -> MetricResult:
         """The three objectives, means over controlled agents of all scenes."""
-        from trafficrlhf_sdk.guidance import guidance_objectives
+        from trafficrlhf_sdk.simulation.guidance import guidance_objectives
 
         return MetricResult(values=guidance_objectives(rollout.simulated, rollout.logged, rollout.controlled,
                                                        rollout.start_index, rollout.end_index))

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
-from trafficrlhf_sdk.guidance import GuidanceSet, select_samples
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet, select_samples
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan

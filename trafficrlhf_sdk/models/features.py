@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["agent_poses", "from_agent_frame", "history_features", "map_crops", "neighbour_features", "to_agent_frame"]

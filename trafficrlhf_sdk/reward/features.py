@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.errors import ScenarioValidationError
 from trafficrlhf_sdk.scenario.map import MapRaster, check_copies
 

@@ -6,7 +6,7 @@ import dataclasses
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["MIRROR_SUFFIX", "mirror_scenario", "perturb_history"]

@@ -1,22 +1,26 @@
-"""Closed-loop simulation: replan at 2 Hz, execute the first steps of each plan, replay the rest from the log."""
+"""Closed-loop simulation: unicycle dynamics, guidance, and the simulator that replans at 2 Hz, executes the first
+steps of each plan and replays the other agents from the log.
 
-from trafficrlhf_sdk.simulation.policies import (
-    ClosedLoopPolicy,
-    ConstantVelocityPolicy,
-    LogReplayPolicy,
-    NoisyLogPolicy,
-    Plan,
-)
-from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_rollout, simulate
+Names are imported on first use, so ``trafficrlhf_sdk.simulation.dynamics`` can be read by the scenario package
+without loading the simulator.
+"""
 
-__all__ = [
-    "ClosedLoopPolicy",
-    "ConstantVelocityPolicy",
-    "LogReplayPolicy",
-    "NoisyLogPolicy",
-    "Plan",
-    "Rollout",
-    "SimulationConfig",
-    "log_rollout",
-    "simulate",
-]
+from trafficrlhf_sdk._lazy import lazy_exports
+
+_EXPORTS = {
+    "ClosedLoopPolicy": "policies",
+    "ConstantVelocityPolicy": "policies",
+    "LogReplayPolicy": "policies",
+    "NoisyLogPolicy": "policies",
+    "Plan": "policies",
+    "Rollout": "simulator",
+    "SimulationConfig": "simulator",
+    "log_rollout": "simulator",
+    "simulate": "simulator",
+    "GuidanceSet": "guidance",
+    "unicycle_step": "dynamics",
+    "unicycle_rollout": "dynamics",
+    "wrap_angle": "dynamics",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

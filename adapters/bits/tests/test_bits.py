@@ -181,7 +181,7 @@ def test_plan_picks_the_best_bits_score(adapter) -> None:  # type: ignore[no-unt
 def test_train_on_selection_samples_what_plan_executes(adapter) -> None:  # type: ignore[no-untyped-def]
     """Each sample is BITS's choice among a goal set; its log-probability is the set's; same draw as plan()."""
     from trafficrlhf_bits import BITSAdapter
-    from trafficrlhf_sdk.guidance import GuidanceSet
+    from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 
     scene = synthetic_scene()
     k = 4
@@ -212,7 +212,7 @@ def test_train_on_selection_samples_what_plan_executes(adapter) -> None:  # type
 def test_selection_scores_rank_samples_as_plan_does(adapter) -> None:  # type: ignore[no-untyped-def]
     """The scores of a draw pick exactly the goal BITS's selection executes, per agent and per scene."""
     from trafficrlhf_bits import BITSAdapter
-    from trafficrlhf_sdk.guidance import GuidanceSet
+    from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 
     scene = synthetic_scene()
     for spec in (None, "no_collision"):

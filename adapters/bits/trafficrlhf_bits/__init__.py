@@ -1,14 +1,39 @@
 """TrafficRLHF plugin: the compact BITS (spatial goal network + frozen goal-conditioned policy) as traffic model
-``bits``. The bundled weights are trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
+``bits``, with its bundled checkpoints ``bits`` and ``bits-aligned``. The weights are trained on nuScenes
+(CC BY-NC-SA 4.0, non-commercial)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_bits.adapter import BITSAdapter, BITSOptions, default_checkpoint
-
-__all__ = ["BITSAdapter", "BITSOptions", "default_checkpoint"]
+_EXPORTS = {
+    "BITSAdapter": "adapter",
+    "BITSOptions": "adapter",
+    "default_checkpoint": "adapter",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_traffic_models(register):  # type: ignore[no-untyped-def]
-    """Register ``bits`` (factory: :class:`BITSAdapter`, accepts guidance / plan_samples / checkpoint / seed)."""
-    register("bits", BITSAdapter)
+    """Register ``bits`` (factory: :class:`BITSAdapter`; imported when first used)."""
+    register("bits", Lazy("trafficrlhf_bits.adapter:BITSAdapter"))
+
+
+@hookimpl
+def register_pretrained(register):  # type: ignore[no-untyped-def]
+    """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
+    spec = importlib.util.find_spec("bits_reference")
+    if spec is None or spec.origin is None:
+        return
+    root = Path(spec.origin).resolve().parent.parent
+    register("bits", str(root / "checkpoints/bits_small"))
+    aligned = root.parent / "aligned" / "bits"
+    if aligned.is_dir():
+        register("bits-aligned", str(aligned))

@@ -39,8 +39,8 @@ from pydantic import Field
 import bits_reference
 from bits_reference.data import agent_features, future_targets, select_rows, window_mask
 from bits_reference.model import BITSConfig, BITSModel, disk_collision, selection_score
-from trafficrlhf_sdk.dynamics import wrap_angle
-from trafficrlhf_sdk.guidance import GuidanceSet, select_samples
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet, select_samples
 from trafficrlhf_sdk.metrics.geometry import box_corners
 from trafficrlhf_sdk.models.adapter import (
     AdapterOptions,

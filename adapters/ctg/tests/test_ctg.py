@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from trafficrlhf_sdk.guidance import GuidanceSet, SpeedLimitGuidance
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet, SpeedLimitGuidance
 from trafficrlhf_sdk.scenario import default_data_root
 
 ROOT = os.path.join(default_data_root(), "nuscenes_pred")
@@ -171,7 +171,7 @@ def test_guidance_lowers_its_loss(adapter, scenes) -> None:  # type: ignore[no-u
 def test_selection_scores_rank_first_the_sample_plan_executes(scenes, guidance) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_ctg import CTGAdapter
 
-    from trafficrlhf_sdk.guidance import NoCollisionGuidance
+    from trafficrlhf_sdk.simulation.guidance import NoCollisionGuidance
 
     planner = CTGAdapter(seed=0, plan_samples=5)
     # losses that differ between samples on these scenes: a low limit, and a 15 m buffer around every agent

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.scenario import default_data_root
 
 HAS_DATA = os.path.isdir(os.path.join(default_data_root(), "nuscenes_pred", "label"))

@@ -1,13 +1,40 @@
-"""TrafficRLHF plugin: the compact CTG diffusion model as traffic model ``ctg``."""
+"""TrafficRLHF plugin: the compact CTG diffusion model as traffic model ``ctg``, with its bundled checkpoints
+``ctg`` (2 s plan), ``ctg-4s`` (4 s plan) and ``ctg-aligned`` (the 4 s model aligned with PPO). The weights are
+trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_ctg.adapter import CTGAdapter, CTGOptions, default_checkpoint
-
-__all__ = ["CTGAdapter", "CTGOptions", "default_checkpoint"]
+_EXPORTS = {
+    "CTGAdapter": "adapter",
+    "CTGOptions": "adapter",
+    "default_checkpoint": "adapter",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_traffic_models(register):  # type: ignore[no-untyped-def]
-    """Register ``ctg`` (factory: :class:`CTGAdapter`, accepts guidance / checkpoint / seed)."""
-    register("ctg", CTGAdapter)
+    """Register ``ctg`` (factory: :class:`CTGAdapter`; imported when first used)."""
+    register("ctg", Lazy("trafficrlhf_ctg.adapter:CTGAdapter"))
+
+
+@hookimpl
+def register_pretrained(register):  # type: ignore[no-untyped-def]
+    """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
+    spec = importlib.util.find_spec("ctg_reference")
+    if spec is None or spec.origin is None:
+        return
+    root = Path(spec.origin).resolve().parent.parent
+    register("ctg", str(root / "checkpoints/ctg_small"))
+    register("ctg-4s", str(root / "checkpoints/ctg_small_4s"))
+    aligned = root.parent / "aligned" / "ctg"
+    if aligned.is_dir():
+        register("ctg-aligned", str(aligned))

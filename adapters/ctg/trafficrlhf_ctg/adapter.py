@@ -49,9 +49,9 @@ from ctg_reference.data import (
     window_mask,
 )
 from ctg_reference.model import CTGConfig, CTGModel, SceneRows, SteerMap
-from trafficrlhf_sdk.dynamics import unicycle_rollout
+from trafficrlhf_sdk.simulation.dynamics import unicycle_rollout
 from trafficrlhf_sdk.errors import TrafficRLHFError
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
 from trafficrlhf_sdk.models.stationary import StationaryHold, StationaryRule
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -438,7 +438,7 @@ class CTGAdapter(TrafficModelAdapter):
 
         With a guidance the planner draws ``plan_samples`` futures and executes the lowest guidance loss, so the
         score is minus that loss; for a scene-level guidance (``no_collision``) it is the scene's total over its
-        controlled agents, the same for each of them, as :func:`~trafficrlhf_sdk.guidance.select_samples` sums
+        controlled agents, the same for each of them, as :func:`~trafficrlhf_sdk.simulation.guidance.select_samples` sums
         it. Without a guidance the planner executes its one sample: zeros and ``k = 1``."""
         if guidance is None:
             return torch.zeros_like(output.futures[..., 0, 0]), 1

@@ -13,7 +13,7 @@ import os
 import pytest
 import torch
 
-from trafficrlhf_sdk.dynamics import unicycle_rollout as sdk_unicycle_rollout
+from trafficrlhf_sdk.simulation.dynamics import unicycle_rollout as sdk_unicycle_rollout
 from trafficrlhf_sdk.models.adapter import PolicyTrace
 from trafficrlhf_sdk.scenario import AgentType, MapRaster, ScenarioTensor, default_data_root
 

@@ -1,16 +1,40 @@
-"""TrafficRLHF plugin: the compact TrafficGen (initializer + multi-modal forecaster) as traffic model ``trafficgen``.
+"""TrafficRLHF plugin: the compact TrafficGen (initializer + multi-modal forecaster) as traffic model
+``trafficgen``, with its bundled checkpoints ``trafficgen`` (2 s), ``trafficgen-4s`` and ``trafficgen-aligned``
+(the 4 s model aligned with PPO). The weights are trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
 
-The bundled checkpoint was trained on nuScenes (CC BY-NC-SA 4.0, non-commercial).
-"""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_trafficgen.adapter import TrafficGenAdapter, TrafficGenOptions, default_checkpoint
-
-__all__ = ["TrafficGenAdapter", "TrafficGenOptions", "default_checkpoint"]
+_EXPORTS = {
+    "TrafficGenAdapter": "adapter",
+    "TrafficGenOptions": "adapter",
+    "default_checkpoint": "adapter",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_traffic_models(register):  # type: ignore[no-untyped-def]
-    """Register ``trafficgen`` (factory: :class:`TrafficGenAdapter`, accepts guidance / checkpoint / seed)."""
-    register("trafficgen", TrafficGenAdapter)
+    """Register ``trafficgen`` (factory: :class:`TrafficGenAdapter`; imported when first used)."""
+    register("trafficgen", Lazy("trafficrlhf_trafficgen.adapter:TrafficGenAdapter"))
+
+
+@hookimpl
+def register_pretrained(register):  # type: ignore[no-untyped-def]
+    """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
+    spec = importlib.util.find_spec("trafficgen_reference")
+    if spec is None or spec.origin is None:
+        return
+    root = Path(spec.origin).resolve().parent.parent
+    register("trafficgen", str(root / "checkpoints/trafficgen_small"))
+    register("trafficgen-4s", str(root / "checkpoints/trafficgen_small_4s"))
+    aligned = root.parent / "aligned" / "trafficgen"
+    if aligned.is_dir():
+        register("trafficgen-aligned", str(aligned))

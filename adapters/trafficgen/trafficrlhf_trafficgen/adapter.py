@@ -30,7 +30,7 @@ from pydantic import Field
 import trafficgen_reference
 from trafficgen_reference.data import forecaster_features, future_targets, initialize_scene, select_rows, window_mask
 from trafficgen_reference.model import Forecaster, ForecastOutput, TrafficGenConfig, TrafficGenModel, unicycle_rollout
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import (
     AdapterOptions,
     PolicyTrace,

@@ -8,14 +8,20 @@ non-commercial).
 """
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_example_gru.adapter import BUNDLED_CHECKPOINT, ExampleGRUAdapter
-from trafficrlhf_example_gru.model import GRUConfig, GRUPolicyNet
-
-__all__ = ["BUNDLED_CHECKPOINT", "ExampleGRUAdapter", "GRUConfig", "GRUPolicyNet"]
+_EXPORTS = {
+    "BUNDLED_CHECKPOINT": "adapter",
+    "ExampleGRUAdapter": "adapter",
+    "GRUConfig": "model",
+    "GRUPolicyNet": "model",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_traffic_models(register):  # type: ignore[no-untyped-def]
-    """Register ``example_gru``."""
-    register("example_gru", ExampleGRUAdapter)
+    """Register ``example_gru`` (imported when first used)."""
+    register("example_gru", Lazy("trafficrlhf_example_gru.adapter:ExampleGRUAdapter"))

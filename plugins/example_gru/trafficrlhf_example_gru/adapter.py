@@ -17,9 +17,9 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.dynamics import action_bounds, wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import action_bounds, wrap_angle
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
-from trafficrlhf_sdk.guidance import GuidanceSet
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models import PolicyTrace, SampleOutput, TrafficModelAdapter
 from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features
 from trafficrlhf_sdk.scenario import AgentType, ScenarioTensor

@@ -15,7 +15,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from trafficrlhf_sdk.dynamics import action_bounds, unicycle_step
+from trafficrlhf_sdk.simulation.dynamics import action_bounds, unicycle_step
 
 __all__ = ["DecodeResult", "GRUConfig", "GRUPolicyNet"]
 

@@ -5,13 +5,18 @@ described in shared/data/README.md. nuScenes data is licensed CC BY-NC-SA 4.0 (n
 """
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_nuscenes_pred.source import NuScenesPredSource, parse_label_file
-
-__all__ = ["NuScenesPredSource", "parse_label_file"]
+_EXPORTS = {
+    "NuScenesPredSource": "source",
+    "parse_label_file": "source",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_scenario_sources(register):  # type: ignore[no-untyped-def]
     """Register ``nuscenes_pred``."""
-    register("nuscenes_pred", NuScenesPredSource)
+    register("nuscenes_pred", Lazy("trafficrlhf_nuscenes_pred.source:NuScenesPredSource"))

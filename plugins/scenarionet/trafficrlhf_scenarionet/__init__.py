@@ -8,21 +8,22 @@ datasets keep their own terms.
 """
 
 from trafficrlhf_sdk import hookimpl
+from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.registry import Lazy
 
-from trafficrlhf_scenarionet.source import ScenarioNetConfig, ScenarioNetSource, read_scenario
-from trafficrlhf_scenarionet.unpickler import RestrictedUnpickler, restricted_load, restricted_loads
-
-__all__ = [
-    "RestrictedUnpickler",
-    "ScenarioNetConfig",
-    "ScenarioNetSource",
-    "read_scenario",
-    "restricted_load",
-    "restricted_loads",
-]
+_EXPORTS = {
+    "RestrictedUnpickler": "unpickler",
+    "ScenarioNetConfig": "source",
+    "ScenarioNetSource": "source",
+    "read_scenario": "source",
+    "restricted_load": "unpickler",
+    "restricted_loads": "unpickler",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 @hookimpl
 def register_scenario_sources(register):  # type: ignore[no-untyped-def]
     """Register ``scenarionet``."""
-    register("scenarionet", ScenarioNetSource)
+    register("scenarionet", Lazy("trafficrlhf_scenarionet.source:ScenarioNetSource"))

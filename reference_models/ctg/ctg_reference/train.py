@@ -26,7 +26,7 @@ import torch
 from safetensors.torch import save_file
 from tqdm.auto import tqdm
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features, to_agent_frame
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario

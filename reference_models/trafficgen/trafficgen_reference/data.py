@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from trafficrlhf_sdk.dynamics import wrap_angle
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.models.features import (
     agent_poses,
     from_agent_frame,

@@ -1,0 +1,131 @@
+"""Checkpoints of an :class:`~trafficrlhf_sdk.alignment.AlignTrainer` run (``output_dir/checkpoints/checkpoint-N``):
+the adapter's weights (``save_pretrained``), the optimizer state as safetensors and ``trainer_state.json``
+(epochs done, history, optimizer hyper-parameters, RNG state, the held-out best and the reused failure drive),
+enough for a resumed run to match an uninterrupted one."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from typing import Any
+
+import torch
+from safetensors.torch import save_file
+
+from trafficrlhf_sdk.alignment.contexts import FailureDrive
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.scenario.io import safe_load_file
+
+__all__ = ["TrainerCheckpoints"]
+
+STATE_FILE = "trainer_state.json"
+OPTIMIZER_FILE = "optimizer.safetensors"
+BEST_FILE = "best_model.safetensors"  # weights of the best held-out evaluation so far (keep_best)
+DRIVE_FILE = "failure_drive.safetensors"  # the failure run reused by later epochs (failure_refresh_every > 1)
+
+
+class TrainerCheckpoints:
+    """Saving and restoring a trainer's state; mixed into :class:`~trafficrlhf_sdk.alignment.AlignTrainer`, whose
+    ``model``, ``optimizer``, ``config``, ``group_names``, ``history``, ``held_out``, ``context_sampler`` and
+    ``start_epoch`` it reads and writes."""
+
+    model: Any
+    optimizer: torch.optim.Optimizer
+    config: Any
+    group_names: list[str]
+    history: list[dict[str, float]]
+    held_out: Any
+    context_sampler: Any
+    start_epoch: int
+
+    def _checkpoint_root(self) -> str | None:
+        return None if self.config.output_dir is None else os.path.join(self.config.output_dir, "checkpoints")
+
+    def save_checkpoint(self, epochs_done: int) -> str:
+        """Write ``checkpoints/checkpoint-N``: the adapter (``save_pretrained``), the optimizer state as
+        safetensors and ``trainer_state.json`` (epochs done, history, optimizer hyper-parameters, RNG state)."""
+        root = self._checkpoint_root()
+        if root is None:
+            raise TrafficRLHFError("set `output_dir` to save checkpoints.")
+        final = os.path.join(root, f"checkpoint-{epochs_done}")
+        tmp = final + ".tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        self.model.save_pretrained(tmp)
+        state = self.optimizer.state_dict()
+        tensors: dict[str, torch.Tensor] = {}
+        scalars: dict[str, Any] = {}
+        for index, entry in state["state"].items():
+            for key, value in entry.items():
+                if isinstance(value, torch.Tensor):
+                    tensors[f"{index}.{key}"] = value.detach().cpu().contiguous()
+                else:
+                    scalars[f"{index}.{key}"] = value
+        save_file(tensors, os.path.join(tmp, OPTIMIZER_FILE), metadata={"format": "pt"})
+        if self.held_out is not None and self.held_out.best_state is not None:
+            save_file({k: v.contiguous() for k, v in self.held_out.best_state.items()},
+                      os.path.join(tmp, BEST_FILE), metadata={"format": "pt"})
+        drive = self.context_sampler.failure_drive
+        if drive is not None and self.config.failure_refresh_every > 1:
+            save_file(drive.to_tensors(), os.path.join(tmp, DRIVE_FILE), metadata={"format": "pt"})
+        payload = {
+            "epochs_done": epochs_done,
+            "groups": list(self.group_names),
+            "config": self.config.model_dump(mode="json"),
+            "history": self.history,
+            "optimizer_param_groups": state["param_groups"],
+            "optimizer_scalars": scalars,
+            "torch_rng_state": torch.get_rng_state().tolist(),
+            "held_out": None if self.held_out is None else self.held_out.state(),
+        }
+        with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
+            json.dump(payload, handle, indent=1)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        limit = self.config.save_total_limit
+        if limit is not None:
+            for old in self.list_checkpoints()[:-limit]:
+                shutil.rmtree(old, ignore_errors=True)
+        return final
+
+    def list_checkpoints(self) -> list[str]:
+        """Complete checkpoint folders in ``output_dir``, oldest first."""
+        root = self._checkpoint_root()
+        if root is None or not os.path.isdir(root):
+            return []
+        found = []
+        for name in os.listdir(root):
+            path = os.path.join(root, name)
+            complete = os.path.isfile(os.path.join(path, STATE_FILE))
+            if name.startswith("checkpoint-") and name[11:].isdigit() and complete:
+                found.append((int(name[11:]), path))
+        return [p for _, p in sorted(found)]
+
+    def load_checkpoint(self, directory: str) -> None:
+        """Restore weights, optimizer state, history and the epoch counter from a checkpoint folder."""
+        with open(os.path.join(directory, STATE_FILE), encoding="utf-8") as handle:
+            payload = json.load(handle)
+        if list(payload["groups"]) != list(self.group_names):
+            raise TrafficRLHFError(f"checkpoint {directory!r} trained groups {payload['groups']}, this run trains "
+                                   f"{list(self.group_names)}; resume with the same `groups`.")
+        self.model.load_weights(directory)
+        tensors, _ = safe_load_file(os.path.join(directory, OPTIMIZER_FILE))
+        per_param: dict[int, dict[str, Any]] = {}
+        for key, value in tensors.items():
+            index, name = key.split(".", 1)
+            per_param.setdefault(int(index), {})[name] = value
+        for key, value in payload.get("optimizer_scalars", {}).items():
+            index, name = key.split(".", 1)
+            per_param.setdefault(int(index), {})[name] = value
+        self.optimizer.load_state_dict({"state": per_param, "param_groups": payload["optimizer_param_groups"]})
+        torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
+        self.history = list(payload["history"])
+        self.start_epoch = int(payload["epochs_done"])
+        best = payload.get("held_out")
+        if self.held_out is not None and best and best.get("best_epoch") is not None:
+            self.held_out.best_epoch = int(best["best_epoch"])
+            self.held_out.best_failure_rate = float(best["best_failure_rate"])
+            self.held_out.best_state, _ = safe_load_file(os.path.join(directory, BEST_FILE))
+        drive_file = os.path.join(directory, DRIVE_FILE)
+        if os.path.isfile(drive_file):
+            self.context_sampler.failure_drive = FailureDrive.from_tensors(safe_load_file(drive_file)[0])

@@ -1,0 +1,41 @@
+"""Evaluation (stage IV): the closed-loop protocol, per-scene breakdowns with paired intervals, comparison tables
+and drawings of failures.
+
+- :func:`evaluate_policy` + :class:`EvaluationConfig` -> :class:`EvaluationReport` (``protocol``);
+- :func:`pooled_per_scene`, :func:`worst_scenes`, :func:`paired_change_interval`, ... (``breakdown``);
+- :func:`comparison_table` and friends over saved runs (``compare``);
+- :func:`first_failures`, :func:`save_failure_png` (``failures``).
+"""
+
+from trafficrlhf_sdk._lazy import lazy_exports
+
+_EXPORTS = {
+    "EvaluationConfig": "protocol",
+    "EvaluationReport": "protocol",
+    "evaluate_policy": "protocol",
+    "compute_metrics": "protocol",
+    "run_batched": "protocol",
+    "load_scene_histograms": "protocol",
+    "save_scene_histograms": "protocol",
+    "plot_histograms": "protocol",
+    "seeds_summary": "protocol",
+    "SceneShare": "breakdown",
+    "SceneChange": "breakdown",
+    "ChangeInterval": "breakdown",
+    "pooled_per_scene": "breakdown",
+    "worst_scenes": "breakdown",
+    "scenes_carrying": "breakdown",
+    "scene_changes": "breakdown",
+    "paired_change_interval": "breakdown",
+    "paired_realism_interval": "breakdown",
+    "comparison_table": "compare",
+    "scene_change_table": "compare",
+    "change_interval_table": "compare",
+    "read_results": "compare",
+    "FirstFailures": "failures",
+    "first_failures": "failures",
+    "save_failure_png": "failures",
+    "render_failures": "failures",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,199 @@
+"""Comparison tables over several evaluation folders (what ``trafficrlhf compare`` prints)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+
+__all__ = ["change_interval_table", "comparison_table", "read_results", "scene_change_table"]
+
+ROWS = (
+    ("failure_rate", "failure rate"),
+    ("collision_rate", "collision rate"),
+    ("collision_rate_own", "  with an agent it drives"),
+    ("collision_rate_replayed", "  with a replayed agent"),
+    ("offroad_rate", "off-road rate"),
+    ("failure_rate_corners", "failure rate (box corners)"),
+    ("realism_ctg", "realism dev. (ctg)"),
+    ("realism_body", "realism dev. (body)"),
+    ("realism_body_speed", "speed-histogram dev. (body, m/s)"),
+    ("guidance_speed_limit", "speed-limit violation (m/s)"),
+    ("guidance_target_speed", "target-speed error (m/s)"),
+    ("guidance_goal_waypoint", "goal distance (m)"),
+    ("speed_ratio", "speed / logged speed"),
+    ("stopped_share", "stopped at the end (share)"),
+    ("stopped_share_logged", "  stopped in the log"),
+    ("reward_cost", "reward cost"),
+)
+
+
+def _label(result: dict, folder: str) -> str:
+    meta = result.get("metadata", {})
+    model = meta.get("model") or os.path.basename(os.path.normpath(folder))
+    label = f"{model} + {meta['guidance']}" if meta.get("guidance") else str(model)
+    if meta.get("checkpoint"):  # aligned or retrained weights: say which
+        label += f" ({os.path.basename(os.path.normpath(str(meta['checkpoint'])))})"
+    return label
+
+
+def read_results(folder: str) -> dict:
+    """The ``results.json`` of an evaluation folder (``trafficrlhf evaluate --out``), with ``_folder`` set."""
+    path = os.path.join(folder, "results.json")
+    if not os.path.isfile(path):
+        raise DataNotFoundError(f"no results.json in {folder!r}; pass folders written by "
+                                "`trafficrlhf evaluate --out`.")
+    try:
+        with open(path, encoding="utf-8") as handle:
+            result = json.load(handle)
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
+    result["_folder"] = folder  # where scene_histograms.npz lies, read only by --interval
+    return result
+
+
+def _scene_counts(runs: list[dict]) -> list[dict] | None:
+    """Each run's per-scene realism counts ``{preset: ...}``, each archive read once (None if any run lacks
+    them: results written before session 45)."""
+    from trafficrlhf_sdk.evaluation.protocol import SCENE_HISTOGRAMS, load_scene_histograms
+
+    paths = [os.path.join(run["_folder"], SCENE_HISTOGRAMS) for run in runs]
+    if not all(os.path.isfile(path) for path in paths):
+        return None
+    return [load_scene_histograms(path) for path in paths]
+
+
+def _pool_seeds(runs: list[tuple[str, dict]]) -> list[tuple[str, list[dict]]]:
+    """Group runs of one policy (same label and scenes) that differ only in their seed, keeping order."""
+    groups: list[tuple[str, list[dict]]] = []
+    for label, result in runs:
+        meta = result.get("metadata", {})
+        for name, members in groups:
+            first = members[0].get("metadata", {})
+            seeds = {m.get("metadata", {}).get("seed") for m in members}
+            if (name == label and first.get("scene_ids") == meta.get("scene_ids")
+                    and meta.get("seed") is not None and meta.get("seed") not in seeds):
+                members.append(result)
+                break
+        else:
+            groups.append((label, [result]))
+    # within a policy, in seed order (a shell glob lists seed_10 before seed_9)
+    return [(label, sorted(members, key=lambda m: m.get("metadata", {}).get("seed") or 0))
+            for label, members in groups]
+
+
+def comparison_table(folders: list[str]) -> str:
+    """Markdown table (metrics as rows, runs as columns) of the ``results.json`` in each folder.
+
+    Runs of the same policy on the same scenes with different seeds share a column: the mean, then the value
+    of each seed (evaluation noise is often as large as the effects compared).
+    """
+    groups = _pool_seeds([(_label(result := read_results(folder), folder), result) for folder in folders])
+    header = []
+    for label, members in groups:
+        seeds = [str(m.get("metadata", {}).get("seed")) for m in members]
+        header.append(label if len(members) == 1 else f"{label}, seeds {' / '.join(seeds)}")
+    lines = ["| metric | " + " | ".join(header) + " |", "|---" * (len(groups) + 1) + "|"]
+
+    def cell(values: list[float | None]) -> str:
+        if any(v is None for v in values):
+            return "n/a"
+        mean = sum(values) / len(values)  # type: ignore[arg-type]
+        return f"{mean:.4f}" if len(values) == 1 else f"{mean:.4f} ({' / '.join(f'{v:.4f}' for v in values)})"
+
+    for key, name in ROWS:
+        values = [[m["metrics"].get(key) for m in members] for _, members in groups]
+        if all(v is None for vs in values for v in vs):
+            continue
+        lines.append(f"| {name} | " + " | ".join(cell(vs) for vs in values) + " |")
+    lines.append("| closed-loop time (s) | " + " | ".join(
+        " / ".join(f"{m['simulation_time_s']:.1f}" for m in members) for _, members in groups) + " |")
+    lines.append("| scenes / controlled agents | " + " | ".join(
+        f"{members[0]['num_scenes']} / {members[0]['num_controlled_agents']}" for _, members in groups) + " |")
+    return "\n".join(lines)
+
+
+def scene_change_table(folders: list[str], top: int, key: str = "failure_rate") -> str:
+    """Markdown table of the ``top`` scenes whose ``key`` changed most from the first policy's runs to the last
+    policy's (each pooled over its seeds, as in :func:`comparison_table`), plus how many scenes rose or fell."""
+    from trafficrlhf_sdk.evaluation.breakdown import pooled_per_scene, scene_changes
+
+    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--scene-changes")
+    before, after = pooled_per_scene(before_runs, key), pooled_per_scene(after_runs, key)
+    changes = scene_changes(before, after)
+    rose = sum(1 for row in changes if row.change > 0)
+    fell = sum(1 for row in changes if row.change < 0)
+    lines = [f"{key} per scene, {first} -> {last}: {fell} scenes lower, {rose} higher, "
+             f"{len(changes) - rose - fell} unchanged", "",
+             f"| scene | agents | {first} | {last} | change |", "|---|---|---|---|---|"]
+    lines += [f"| {row.scene_id} | {row.controlled_agents} | {row.before:.4f} | {row.after:.4f} | {row.change:+.4f} |"
+              for row in changes[:top]]
+    return "\n".join(lines)
+
+
+INTERVAL_KEYS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
+                 ("collision_rate_own", "collision with an agent it drives"),
+                 ("collision_rate_replayed", "collision with a replayed agent"), ("offroad_rate", "off-road rate"))
+REALISM_INTERVAL_KEYS = (("ctg", "realism dev. (ctg)"), ("body", "realism dev. (body)"))
+
+
+def _first_and_last(folders: list[str], option: str) -> tuple[tuple[str, list[dict]], tuple[str, list[dict]]]:
+    groups = _pool_seeds([(_label(result := read_results(folder), folder), result) for folder in folders])
+    if len(groups) < 2:
+        raise DataFormatError(f"{option} needs runs of two policies; got one ({groups[0][0]!r}). Pass the "
+                              "folders of a first and a second model.")
+    return groups[0], groups[-1]
+
+
+def change_interval_table(folders: list[str], level: float = 0.95, resamples: int = 10_000,
+                          target: float | None = None) -> str:
+    """Markdown table of the relative change from the first policy's runs to the last policy's (each pooled over
+    its seeds) in the failure, collision and off-road rates, each with a paired bootstrap interval over scenes
+    (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_change_interval`), and in the two realism deviations where
+    every run's folder has ``scene_histograms.npz`` (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_realism_interval`).
+    ``target``: a relative change such as -0.7; adds the share of the failure-rate draws at or below it."""
+    from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, paired_realism_interval, pooled_per_scene
+
+    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--interval")
+    seeds = f"{len(before_runs)} / {len(after_runs)} seed(s)"
+    extra = "" if target is None else f" share of draws <= {100 * target:+.0f} % |"
+    lines = [f"{first} -> {last} ({seeds}); {100 * level:.0f} % paired bootstrap interval over scenes", "",
+             f"| metric | {first} | {last} | change | interval |{extra}",
+             "|---|---|---|---|---|" + ("---|" if target is not None else "")]
+    scenes = draws = None
+    for key, name in INTERVAL_KEYS:
+        if not all(key in (r.get("per_scene") or {}) for r in before_runs + after_runs):
+            continue
+        before, after = pooled_per_scene(before_runs, key), pooled_per_scene(after_runs, key)
+        if not any(value > 0 for _, value in before.values()):
+            after_mean = sum(value for _, value in after.values()) / max(len(after), 1)
+            lines.append(f"| {name} | 0.0000 | {after_mean:.4f} | n/a: 0 before | |" + (" |" if extra else ""))
+            continue
+        ci = paired_change_interval(before, after, level=level, resamples=resamples, target=target)
+        row = (f"| {name} | {ci.before:.4f} | {ci.after:.4f} | {100 * ci.change:+.1f} % | "
+               f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} % |")
+        if ci.share_meeting_target is not None:
+            row += f" {ci.share_meeting_target:.2f} |"
+        lines.append(row)
+        scenes, draws = ci.scenes, ci.resamples
+    if len(lines) == 4:
+        raise DataFormatError("no per-scene failure, collision or off-road rates in these results; re-run "
+                              "`trafficrlhf evaluate --out` with this version to write them.")
+    same_scenes = (before_runs[0].get("metadata", {}).get("scene_ids")
+                   == after_runs[0].get("metadata", {}).get("scene_ids"))
+    before_counts = _scene_counts(before_runs) if same_scenes else None
+    after_counts = _scene_counts(after_runs) if before_counts is not None else None
+    for preset, name in REALISM_INTERVAL_KEYS:
+        if before_counts is None or after_counts is None:
+            break
+        if any(preset not in run for run in before_counts + after_counts):
+            continue
+        ci = paired_realism_interval([run[preset] for run in before_counts], [run[preset] for run in after_counts],
+                                     level=level, resamples=resamples)
+        lines.append(f"| {name} | {ci.before:.4f} | {ci.after:.4f} | {100 * ci.change:+.1f} % | "
+                     f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} % |" + (" |" if extra else ""))
+    if scenes is not None:
+        lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like "
+                      "these (and the seeds' noise inside each scene's mean), not a change of data set."]
+    return "\n".join(lines)

@@ -1,0 +1,275 @@
+"""Evaluate a traffic model in closed loop on logged scenes: failure rate, realism deviation, reward cost."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+import zipfile
+from dataclasses import dataclass, field
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.metrics.base import Metric
+from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS, RealismMetric
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import ClosedLoopPolicy
+from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_rollout, simulate
+
+__all__ = ["SCENE_HISTOGRAMS", "EvaluationConfig", "EvaluationReport", "evaluate_policy", "load_scene_histograms",
+           "plot_histograms", "run_batched", "save_scene_histograms"]
+
+SCENE_HISTOGRAMS = "scene_histograms.npz"
+DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives", "speed")
+
+
+class EvaluationConfig(BaseModel):
+    """What :func:`evaluate_policy` runs."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig, description="Closed-loop protocol.")
+    metrics: tuple[str, ...] = Field(DEFAULT_METRICS, description="Registered metric names to compute.")
+    batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch (memory bound).")
+    seed: int = Field(0, description="Seed of torch's global generator before the rollout.")
+
+
+@dataclass
+class EvaluationReport:
+    """Scalar metrics of the model and of the logged data on the same scenes, plus timing and histograms."""
+
+    values: dict[str, float]
+    logged_values: dict[str, float]
+    num_scenes: int
+    num_controlled_agents: int
+    wall_time_s: float
+    simulation_time_s: float
+    metadata: dict[str, Any] = field(default_factory=dict)
+    histograms: dict[str, dict[str, dict[str, list[float]]]] = field(default_factory=dict)
+    # per scene, in the order of ``metadata["scene_ids"]``: "controlled_agents" and every metric value that is a
+    # mean over scenes (failure, collision, off-road, speed...); None where a scene has no controlled agent
+    per_scene: dict[str, list[float | None]] = field(default_factory=dict)
+    # per realism preset and quantity: per-scene bin counts {"simulated", "logged"} of shape (B, num_bins), in
+    # the order of ``metadata["scene_ids"]``; saved as scene_histograms.npz for a bootstrap over scenes
+    scene_histograms: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
+    # the closed-loop rollout itself (not saved): for drawing scenes, e.g. with render_failures.save_failure_png
+    rollout: Rollout | None = field(default=None, repr=False, compare=False)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-serializable dict (NaN written as null)."""
+        clean = lambda d: {k: (None if v != v else v) for k, v in d.items()}  # noqa: E731
+        return {
+            "metrics": clean(self.values),
+            "logged": clean(self.logged_values),
+            "num_scenes": self.num_scenes,
+            "num_controlled_agents": self.num_controlled_agents,
+            "wall_time_s": self.wall_time_s,
+            "simulation_time_s": self.simulation_time_s,
+            "metadata": self.metadata,
+            "histograms": self.histograms,
+            "per_scene": self.per_scene,
+        }
+
+    def save(self, directory: str, plot: bool = True) -> list[str]:
+        """Write ``results.json`` (plus ``scene_histograms.npz`` and ``histograms.png`` when there are realism
+        histograms) into ``directory``; returns the written paths."""
+        os.makedirs(directory, exist_ok=True)
+        paths = [os.path.join(directory, "results.json")]
+        with open(paths[0], "w", encoding="utf-8") as handle:
+            json.dump(self.to_json(), handle, indent=2)
+        if self.scene_histograms:
+            paths.append(save_scene_histograms(self.scene_histograms, os.path.join(directory, SCENE_HISTOGRAMS)))
+        if plot and self.histograms:
+            paths.append(plot_histograms(self.histograms, os.path.join(directory, "histograms.png"),
+                                         title=str(self.metadata.get("model", ""))))
+        return paths
+
+
+def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: EvaluationConfig,
+                progress: bool = False) -> tuple[Rollout, Rollout]:
+    """Simulate ``scenario`` in batches of ``config.batch_size`` scenes.
+
+    Returns ``(rollout, reference)``: the policy's rollout over all scenes and the log-replay rollout of the
+    same scenes. Batches are joined along B without copying the map rasters.
+    """
+    reference = log_rollout(scenario, config.simulation)
+    torch.manual_seed(config.seed)
+    starts = range(0, scenario.num_scenes, config.batch_size)
+    if progress:
+        from tqdm.auto import tqdm
+
+        starts = tqdm(starts, desc="simulating", unit="batch")
+    parts = [simulate(policy, scenario[i : i + config.batch_size], config.simulation) for i in starts]
+    simulated = reference.logged.replace_unchecked(
+        states=torch.cat([p.simulated.states for p in parts]),
+        valid=torch.cat([p.simulated.valid for p in parts]),
+        controlled=torch.cat([p.controlled for p in parts]),
+    )
+    rollout = Rollout(simulated, reference.logged, simulated.controlled, reference.start_index, reference.end_index,
+                      sum(p.wall_time_s for p in parts), sum(p.policy_time_s for p in parts))
+    return rollout, reference
+
+
+def compute_metrics(rollout: Rollout, metrics: Sequence[Metric], per_scene: dict[str, list[float | None]] | None = None,
+                    scene_histograms: dict[str, Any] | None = None) -> tuple[dict[str, float], dict[str, Any]]:
+    """All scalar values of ``metrics`` on ``rollout`` and the realism histograms (simulated and logged).
+
+    ``per_scene``, if given, receives each metric's per-scene values ``(B,)`` as lists (NaN written as None);
+    ``scene_histograms`` receives each realism preset's per-scene bin counts
+    (:attr:`EvaluationReport.scene_histograms`)."""
+    values: dict[str, float] = {}
+    histograms: dict[str, Any] = {}
+    for metric in metrics:
+        result = metric.compute(rollout)
+        values.update(result.values)
+        if per_scene is not None:
+            per_scene.update({k: [None if x != x else x for x in v.double().tolist()]
+                              for k, v in result.per_scene.items()})
+        if isinstance(metric, RealismMetric):
+            histograms[metric.preset] = {
+                q: {"simulated": result.extras["simulated"][q].tolist(), "logged": result.extras["logged"][q].tolist(),
+                    "low": SPECS[q].low, "high": SPECS[q].high}
+                for q in QUANTITIES
+            }
+            if scene_histograms is not None:
+                counts = result.extras["scene_counts"]
+                scene_histograms[metric.preset] = {
+                    q: {side: counts[side][q].round().to(torch.int32).numpy() for side in ("simulated", "logged")}
+                    for q in (*QUANTITIES, "pace")
+                }
+    return values, histograms
+
+
+def evaluate_policy(
+    policy: ClosedLoopPolicy,
+    scenario: ScenarioTensor,
+    config: EvaluationConfig | None = None,
+    extra_metrics: Sequence[Metric] = (),
+    progress: bool = False,
+    metadata: dict[str, Any] | None = None,
+) -> EvaluationReport:
+    """Run ``policy`` in closed loop on ``scenario`` and compute the metrics for it and for the log.
+
+    Args:
+        policy: a :class:`ClosedLoopPolicy`.
+        scenario: logged scenes ``(B, A, T)``.
+        config: :class:`EvaluationConfig`.
+        extra_metrics: metric instances beyond the registered names (e.g. a ``RewardCostMetric``).
+        progress: show progress bars.
+        metadata: stored in the report (model name, source, split...).
+    """
+    from trafficrlhf_sdk import get_metric
+
+    config = config or EvaluationConfig()
+    metrics = [get_metric(name) for name in config.metrics] + list(extra_metrics)
+    began = time.perf_counter()
+    rollout, reference = run_batched(policy, scenario, config, progress)
+    per_scene: dict[str, list[float | None]] = {"controlled_agents": rollout.controlled.sum(-1).tolist()}
+    scene_histograms: dict[str, Any] = {}
+    values, histograms = compute_metrics(rollout, metrics, per_scene, scene_histograms)
+    logged_values, _ = compute_metrics(reference, metrics)
+    info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed}
+    info.update(metadata or {})
+    return EvaluationReport(
+        values=values,
+        logged_values=logged_values,
+        num_scenes=scenario.num_scenes,
+        num_controlled_agents=int(rollout.controlled.sum()),
+        wall_time_s=time.perf_counter() - began,
+        simulation_time_s=rollout.wall_time_s,
+        metadata=info,
+        histograms=histograms,
+        per_scene=per_scene,
+        scene_histograms=scene_histograms,
+        rollout=rollout,
+    )
+
+
+def save_scene_histograms(scene_histograms: dict[str, dict[str, dict[str, Any]]], path: str) -> str:
+    """Write :attr:`EvaluationReport.scene_histograms` to ``path`` (``.npz``, one ``preset/quantity/side`` array
+    of int32 counts ``(B, num_bins)`` each); returns ``path``."""
+    arrays = {f"{preset}/{q}/{side}": np.asarray(counts, dtype=np.int32)
+              for preset, by_quantity in scene_histograms.items()
+              for q, sides in by_quantity.items() for side, counts in sides.items()}
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def load_scene_histograms(path: str) -> dict[str, dict[str, dict[str, Any]]]:
+    """Read a :func:`save_scene_histograms` file back into ``{preset: {quantity: {side: int array (B, bins)}}}``.
+
+    Raises DataFormatError for a file that is not such an archive."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {key: archive[key] for key in archive.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise DataFormatError(f"{path}: not a per-scene histogram archive ({exc}); re-run "
+                              "`trafficrlhf evaluate --out` to write it again.") from exc
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for key, array in arrays.items():
+        parts = key.split("/")
+        if len(parts) != 3 or array.ndim != 2:
+            raise DataFormatError(f"{path}: unexpected entry {key!r} of shape {array.shape}; expected "
+                                  "'preset/quantity/side' arrays of shape (scenes, bins).")
+        out.setdefault(parts[0], {}).setdefault(parts[1], {})[parts[2]] = array
+    return out
+
+
+def plot_histograms(histograms: dict[str, Any], path: str, title: str = "") -> str:
+    """PNG of simulated vs logged histograms: one row per realism preset, one column per quantity."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    presets = list(histograms)
+    fig, axes = plt.subplots(len(presets), len(QUANTITIES), figsize=(4 * len(QUANTITIES), 3 * len(presets)),
+                             squeeze=False)
+    units = {"lon_acc": "m/s²", "lat_acc": "m/s²", "jerk": "m/s³"}
+    for row, preset in enumerate(presets):
+        for col, q in enumerate(QUANTITIES):
+            h = histograms[preset][q]
+            edges = torch.linspace(h["low"], h["high"], len(h["logged"]) + 1)
+            centres = ((edges[1:] + edges[:-1]) / 2).tolist()
+            width = float(edges[1] - edges[0])
+            ax = axes[row][col]
+            ax.bar(centres, h["logged"], width=width, alpha=0.5, label="logged", color="tab:gray")
+            ax.step(centres, h["simulated"], where="mid", label="simulated", color="tab:red")
+            ax.set_title(f"{preset}: {q}")
+            ax.set_xlabel(units[q])
+            if col == 0:
+                ax.set_ylabel("share (scene-normalized)")
+            ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def seeds_summary(results: list[dict]) -> dict:
+    """Runs of one policy on the same scenes at several seeds, as one JSON object.
+
+    ``results``: each run's ``EvaluationReport.to_json()``. Returns ``seeds``; ``mean`` and ``std`` (population,
+    over the runs) of every metric that all runs report as a number; ``logged`` (the logged data's values, the
+    same for every seed); ``runs``: each seed's metrics; and the scene count and controlled agents.
+    """
+    def numbers(result: dict) -> dict[str, float]:
+        return {key: float(value) for key, value in result["metrics"].items() if isinstance(value, (int, float))}
+
+    per_run = [numbers(result) for result in results]
+    keys = [key for key in per_run[0] if all(key in values for values in per_run)]
+    mean = {key: sum(values[key] for values in per_run) / len(per_run) for key in keys}
+    std = {key: (sum((values[key] - mean[key]) ** 2 for values in per_run) / len(per_run)) ** 0.5 for key in keys}
+    seeds = [result["metadata"].get("seed") for result in results]
+    return {"seeds": seeds, "mean": mean, "std": std, "logged": results[0]["logged"],
+            "runs": [{"seed": seed, "metrics": result["metrics"]} for seed, result in zip(seeds, results)],
+            "num_scenes": results[0]["num_scenes"], "num_controlled_agents": results[0]["num_controlled_agents"],
+            "metadata": {key: value for key, value in results[0]["metadata"].items() if key != "seed"}}
