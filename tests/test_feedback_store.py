@@ -37,7 +37,7 @@ def _count(store: FeedbackStore, table: str) -> int:
 def test_schema_wal_and_round_trip(store: FeedbackStore) -> None:
     campaign = make_tiny_campaign(store, num_contexts=2)
     assert store._conn().execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert store._conn().execute("PRAGMA user_version").fetchone()[0] == 1
+    assert store._conn().execute("PRAGMA user_version").fetchone()[0] == 2
     keys = store.context_keys(campaign)
     assert [k["ordinal"] for k in keys] == [0, 1]
     record = store.load_context(keys[1]["id"], campaign)

@@ -57,8 +57,17 @@ from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.scenario.io import scenario_from_bytes, scenario_to_bytes
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["SCHEMA_VERSION", "TIE_SLOT", "Annotator", "Assignment", "Campaign", "ContextRecord", "FeedbackStore",
-           "Label", "SQLITE_MAX_INT"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "SQLITE_MAX_INT",
+    "TIE_SLOT",
+    "Annotator",
+    "Assignment",
+    "Campaign",
+    "ContextRecord",
+    "FeedbackStore",
+    "Label",
+]
 
 MAX_REASON_CHARS = 500
 SQLITE_MAX_INT = 2**63 - 1  # ids above this cannot be stored (nor looked up) by SQLite
@@ -329,13 +338,26 @@ class FeedbackStore:
         return self.annotator(name), token
 
     def new_token(self, name: str) -> str:
-        """Replace annotator ``name``'s token (the old one stops working) and return the new one."""
+        """Replace annotator ``name``'s token (the old one stops working), reactivate them, return the new one."""
         token = secrets.token_urlsafe(24)
         with self.transaction() as tx:
             if tx.execute("UPDATE annotators SET token_sha256 = ?, active = 1 WHERE name = ?",
                           (hash_token(token), name)).rowcount != 1:
                 raise UnknownItemError(f"no annotator {name!r}; add one with `trafficrlhf feedback annotator add`.")
         return token
+
+    def set_active(self, name: str, active: bool) -> Annotator:
+        """(De)activate annotator ``name``. A deactivated token is refused, and the annotator's open items are
+        released at once, so that others can take them."""
+        with self.transaction() as tx:
+            row = tx.execute("SELECT id FROM annotators WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                raise UnknownItemError(f"no annotator {name!r}; add one with `trafficrlhf feedback annotator add`.")
+            tx.execute("UPDATE annotators SET active = ? WHERE id = ?", (int(bool(active)), row["id"]))
+            if not active:
+                tx.execute("UPDATE assignments SET released = 1, lease_expires_at = NULL WHERE annotator_id = ? AND "
+                           "lease_expires_at IS NOT NULL", (row["id"],))
+        return self.annotator(name)
 
     def annotator(self, name: str) -> Annotator:
         """The annotator called ``name``."""
@@ -360,60 +382,175 @@ class FeedbackStore:
                                       "(`trafficrlhf feedback annotator token NAME`).")
         return Annotator(row["id"], row["name"], row["created_at"], True)
 
+    # ------------------------------------------------------------------------------------------- admins
+    def add_admin(self, name: str) -> str:
+        """Create (or re-key) campaign owner ``name`` and return their admin token (shown once, stored hashed)."""
+        if not name or not name.strip() or len(name) > 100:
+            raise InvalidChoiceError(f"admin `name` must be 1-100 characters; got {name!r}.")
+        token = secrets.token_urlsafe(24)
+        with self.transaction() as tx:
+            tx.execute("INSERT INTO admins (name, token_sha256, created_at) VALUES (?, ?, ?) ON CONFLICT(name) DO "
+                       "UPDATE SET token_sha256 = excluded.token_sha256", (name, hash_token(token), _now()))
+        return token
+
+    def authenticate_admin(self, token: str | None) -> str:
+        """The name of the admin holding ``token``; anything else raises :class:`AuthenticationError`."""
+        if not token:
+            raise AuthenticationError("missing admin token: send the header 'Authorization: Bearer <admin token>'.")
+        row = self._conn().execute("SELECT name FROM admins WHERE token_sha256 = ?", (hash_token(token),)).fetchone()
+        if row is None:
+            raise AuthenticationError("unknown admin token; create one with `trafficrlhf feedback admin NAME`.")
+        return str(row["name"])
+
     # -------------------------------------------------------------------------------------- assignments
     def next_item(self, annotator: Annotator, campaign: Campaign) -> Assignment | None:
         """The annotator's open item (resume), else a new one; None when nothing is left for them.
 
-        New items: those the annotator has not seen, fewest labels first (only items below the campaign's
-        ``labels_per_item``, if set), in an order shuffled per annotator.
+        Order of service: with ``qualification_gold`` N > 0, the first N items are gold items; an annotator who
+        fails them gets nothing more (see :meth:`quality`). Afterwards gold items come at ``gold_rate``, the
+        rest are regular items the annotator has not seen: highest ``priority`` first, then (with
+        ``labels_per_item``) fewest labels, in an order shuffled per annotator. With ``labels_per_item`` an item
+        is offered only while its labels plus the unexpired leases of others on it stay below the cap; opening
+        an item leases it for ``lease_seconds``. An open item whose lease expired while others filled it is
+        released (it will not come back) and the next one is served.
         """
+        settings = campaign.settings
+        now = time.time()
         with self.transaction() as tx:
-            open_row = tx.execute(
-                "SELECT a.* FROM assignments a WHERE a.annotator_id = ? AND a.campaign_id = ? AND NOT EXISTS "
-                "(SELECT 1 FROM labels l WHERE l.context_id = a.context_id AND l.annotator_id = a.annotator_id) "
-                "AND NOT EXISTS (SELECT 1 FROM skips s WHERE s.context_id = a.context_id AND s.annotator_id = "
-                "a.annotator_id) ORDER BY a.position LIMIT 1", (annotator.id, campaign.id)).fetchone()
-            if open_row is not None:
-                return _assignment(open_row)
-            rows = tx.execute(
-                "SELECT c.id, (SELECT COUNT(*) FROM labels l WHERE l.context_id = c.id) AS n FROM contexts c "
-                "WHERE c.campaign_id = ? AND NOT EXISTS (SELECT 1 FROM assignments a WHERE a.context_id = c.id AND "
-                "a.annotator_id = ?)", (campaign.id, annotator.id)).fetchall()
-            cap = campaign.labels_per_item
-            pool = [(r["n"], _shuffle_key(campaign.seed, annotator.id, r["id"]), r["id"]) for r in rows
-                    if cap is None or r["n"] < cap]
-            if not pool:
+            while True:
+                open_row = tx.execute(
+                    "SELECT a.* FROM assignments a WHERE a.annotator_id = ? AND a.campaign_id = ? AND a.released = 0 "
+                    "AND NOT EXISTS (SELECT 1 FROM labels l WHERE l.context_id = a.context_id AND l.annotator_id = "
+                    "a.annotator_id) AND NOT EXISTS (SELECT 1 FROM skips s WHERE s.context_id = a.context_id AND "
+                    "s.annotator_id = a.annotator_id) ORDER BY a.position LIMIT 1",
+                    (annotator.id, campaign.id)).fetchone()
+                if open_row is None:
+                    break
+                if self._keep_lease(tx, campaign, open_row, now):
+                    return _assignment(open_row)
+            quality = self._quality(tx, annotator, campaign)
+            gold = self._due_gold(tx, annotator, campaign, settings, quality)
+            if gold == "stop":
                 return None
-            context_id = min(pool)[2] if cap is not None else min(pool, key=lambda p: p[1])[2]
-            return self._assign(tx, annotator, campaign, context_id)
+            if gold is not None:
+                return self._assign(tx, annotator, campaign, int(gold), now)
+            context_id = self._pick_regular(tx, annotator, campaign, now)
+            if context_id is None:
+                return None
+            return self._assign(tx, annotator, campaign, context_id, now)
+
+    def _keep_lease(self, tx: _Tx, campaign: Campaign, row: sqlite3.Row, now: float) -> bool:
+        """Renew the lease of an open assignment; False (and released) when it expired and others filled it."""
+        cap = campaign.labels_per_item
+        gold = tx.execute("SELECT gold_answer FROM contexts WHERE id = ?", (row["context_id"],)).fetchone()[0]
+        if cap is not None and gold is None and (row["lease_expires_at"] is None or row["lease_expires_at"] <= now):
+            if self._taken(tx, row["context_id"], row["annotator_id"], now) >= cap:
+                tx.execute("UPDATE assignments SET released = 1, lease_expires_at = NULL WHERE id = ?", (row["id"],))
+                return False
+        tx.execute("UPDATE assignments SET lease_expires_at = ? WHERE id = ?",
+                   (now + campaign.settings.lease_seconds, row["id"]))
+        return True
+
+    @staticmethod
+    def _taken(tx: _Tx | sqlite3.Connection, context_id: int, annotator_id: int, now: float) -> int:
+        """Labels of item ``context_id`` by others plus unexpired leases of others on it."""
+        return int(tx.execute(
+            "SELECT (SELECT COUNT(*) FROM labels WHERE context_id = ? AND annotator_id != ?) + (SELECT COUNT(*) FROM "
+            "assignments WHERE context_id = ? AND annotator_id != ? AND released = 0 AND lease_expires_at > ?)",
+            (context_id, annotator_id, context_id, annotator_id, now)).fetchone()[0])
+
+    def _regular_query(self, count_only: bool) -> str:
+        what = "COUNT(*)" if count_only else "c.id"
+        order = "" if count_only else " ORDER BY c.priority DESC, n ASC, (c.id * 2654435761 + ?) % 4294967311 LIMIT 1"
+        return (
+            f"SELECT {what} FROM (SELECT c.id, c.priority, COALESCE(l.n, 0) AS n, COALESCE(l.n, 0) + COALESCE(s.n, 0) "
+            "AS taken FROM contexts c "
+            "LEFT JOIN (SELECT context_id, COUNT(*) AS n FROM labels WHERE campaign_id = ? GROUP BY context_id) l "
+            "ON l.context_id = c.id "
+            "LEFT JOIN (SELECT context_id, COUNT(*) AS n FROM assignments WHERE campaign_id = ? AND released = 0 AND "
+            "lease_expires_at > ? GROUP BY context_id) s ON s.context_id = c.id "
+            "WHERE c.campaign_id = ? AND c.gold_answer IS NULL AND NOT EXISTS (SELECT 1 FROM assignments a WHERE "
+            f"a.annotator_id = ? AND a.context_id = c.id)) c WHERE ? IS NULL OR c.taken < ?{order}"
+        )
+
+    def _pick_regular(self, tx: _Tx, annotator: Annotator, campaign: Campaign, now: float) -> int | None:
+        cap = campaign.labels_per_item
+        salt = _shuffle_key(campaign.seed, annotator.id) % 4294967311
+        sql = self._regular_query(False)
+        if cap is None:  # everybody labels everything: label counts do not steer the order
+            sql = sql.replace("n ASC, ", "")
+        row = tx.execute(sql, (campaign.id, campaign.id, now, campaign.id, annotator.id, cap, cap, salt)).fetchone()
+        return None if row is None else int(row[0])
+
+    def _due_gold(self, tx: _Tx, annotator: Annotator, campaign: Campaign, settings: AnnotationSettings,
+                  quality: dict[str, Any]) -> int | str | None:
+        """A gold item to serve now, ``"stop"`` when the annotator failed (or cannot finish) qualification, or
+        None for a regular item."""
+        unseen = tx.execute(
+            "SELECT c.id FROM contexts c WHERE c.campaign_id = ? AND c.gold_answer IS NOT NULL AND NOT EXISTS "
+            "(SELECT 1 FROM assignments a WHERE a.annotator_id = ? AND a.context_id = c.id) ORDER BY "
+            "(c.id * 2654435761 + ?) % 4294967311 LIMIT 1",
+            (campaign.id, annotator.id, _shuffle_key(campaign.seed, annotator.id, "gold") % 4294967311)).fetchone()
+        if quality["status"] == "failed":
+            return "stop"
+        if quality["status"] == "pending":
+            return "stop" if unseen is None else int(unseen[0])
+        if unseen is None or settings.gold_rate <= 0:
+            return None
+        served = tx.execute(
+            "SELECT COUNT(*), COALESCE(SUM(c.gold_answer IS NOT NULL), 0) FROM assignments a JOIN contexts c ON c.id = "
+            "a.context_id WHERE a.annotator_id = ? AND a.campaign_id = ?", (annotator.id, campaign.id)).fetchone()
+        after = int(served[0]) - settings.qualification_gold
+        gold_after = int(served[1]) - settings.qualification_gold
+        jitter = (_shuffle_key(campaign.seed, annotator.id, "gold-phase") % 1000) / 1000.0
+        return int(unseen[0]) if int(settings.gold_rate * (after + 1) + jitter) > gold_after else None
 
     def open_item(self, annotator: Annotator, campaign: Campaign, context_id: int) -> Assignment:
-        """The annotator's assignment of item ``context_id``, created (with its permutation) on first open."""
+        """The annotator's assignment of item ``context_id``, created (with its permutation) on first open.
+
+        With ``labels_per_item``, opening a new regular item that is full (labels plus others' leases) raises
+        :class:`ItemStateError`; so does opening a gold item before qualification is over or a regular one
+        before it is passed.
+        """
+        _check_id(context_id, "item")
+        now = time.time()
         with self.transaction() as tx:
             row = tx.execute("SELECT * FROM assignments WHERE annotator_id = ? AND context_id = ?",
                              (annotator.id, context_id)).fetchone()
             if row is not None:
                 if row["campaign_id"] != campaign.id:
                     raise UnknownItemError(f"no item {context_id!r} in campaign {campaign.name!r}.")
-                return self._with_status(tx, _assignment(row))
-            exists = tx.execute("SELECT 1 FROM contexts WHERE id = ? AND campaign_id = ?",
-                                (context_id, campaign.id)).fetchone()
-            if exists is None:
+                assignment = self._with_status(tx, _assignment(row))
+                if assignment.status == "open" and not row["released"]:
+                    self._keep_lease(tx, campaign, row, now)
+                return assignment
+            ctx = tx.execute("SELECT gold_answer FROM contexts WHERE id = ? AND campaign_id = ?",
+                             (context_id, campaign.id)).fetchone()
+            if ctx is None:
                 raise UnknownItemError(f"no item {context_id!r} in campaign {campaign.name!r}.")
-            return self._assign(tx, annotator, campaign, context_id)
+            status = self._quality(tx, annotator, campaign)["status"]
+            if status in ("pending", "failed") and ctx["gold_answer"] is None:
+                raise ItemStateError(f"annotator {annotator.name!r} is not qualified for campaign {campaign.name!r} "
+                                     f"(qualification {status}); take the next item instead.")
+            cap = campaign.labels_per_item
+            if cap is not None and ctx["gold_answer"] is None and self._taken(tx, context_id, annotator.id, now) >= cap:
+                raise ItemStateError(f"item {context_id} already has its {cap} annotator(s) (labels_per_item); "
+                                     "nothing was assigned. Take the next item instead.")
+            return self._assign(tx, annotator, campaign, context_id, now)
 
-    def _assign(self, tx: _Tx, annotator: Annotator, campaign: Campaign, context_id: int) -> Assignment:
+    def _assign(self, tx: _Tx, annotator: Annotator, campaign: Campaign, context_id: int, now: float) -> Assignment:
         position = tx.execute("SELECT COALESCE(MAX(position), 0) + 1 FROM assignments WHERE annotator_id = ? AND "
                               "campaign_id = ?", (annotator.id, campaign.id)).fetchone()[0]
         permutation = list(range(campaign.num_candidates))
         random.Random(_shuffle_key(campaign.seed, annotator.id, context_id, "perm")).shuffle(permutation)
-        now = _now()
+        stamp = _now()
         cur = tx.execute(
-            "INSERT INTO assignments (annotator_id, context_id, campaign_id, position, permutation, assigned_at) "
-            "VALUES (?, ?, ?, ?, ?, ?)",
-            (annotator.id, context_id, campaign.id, position, json.dumps(permutation), now))
+            "INSERT INTO assignments (annotator_id, context_id, campaign_id, position, permutation, assigned_at, "
+            "lease_expires_at) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (annotator.id, context_id, campaign.id, position, json.dumps(permutation), stamp,
+             now + campaign.settings.lease_seconds))
         return Assignment(int(cur.lastrowid), annotator.id, context_id, campaign.id, position,  # type: ignore[arg-type]
-                          tuple(permutation), now)
+                          tuple(permutation), stamp)
 
     def _with_status(self, conn: _Tx | sqlite3.Connection, assignment: Assignment) -> Assignment:
         label = conn.execute("SELECT slot FROM labels WHERE context_id = ? AND annotator_id = ?",
@@ -433,25 +570,41 @@ class FeedbackStore:
                                 "position", (annotator.id, campaign.id)).fetchall()
             return [self._with_status(conn, _assignment(r)) for r in rows]
 
+    def is_gold(self, context_id: int) -> bool:
+        """True when item ``context_id`` is a gold item."""
+        _check_id(context_id, "item")
+        row = self._conn().execute("SELECT gold_answer FROM contexts WHERE id = ?", (context_id,)).fetchone()
+        return row is not None and row[0] is not None
+
     # ------------------------------------------------------------------------------------ labels, skips
     def submit_label(self, annotator: Annotator, campaign: Campaign, context_id: int, slot: int,
-                     time_on_item_ms: int | None = None, source: str = "human", revise: bool = False) -> Label:
-        """Record the annotator's choice for item ``context_id``: ``slot`` 1..N (as shown) or 0 (none realistic).
+                     time_on_item_ms: int | None = None, source: str = "human", revise: bool = False,
+                     min_view_s: float | None = None) -> Label:
+        """Record the annotator's choice for item ``context_id``: ``slot`` 1..N (as shown), 0 (none realistic)
+        or :data:`TIE_SLOT` (-1, equally realistic, when the campaign allows ties).
 
         The item must have been opened (its permutation fixed). A second submission raises
         :class:`DuplicateSubmissionError` and writes nothing, unless ``revise`` (the old value then goes to
-        ``label_history``). A label replaces a skip of the same item.
+        ``label_history``). A label replaces a skip of the same item. With ``labels_per_item``, a first label on
+        a regular item that already has its labels from others is refused (:class:`ItemStateError`) and the
+        annotator's assignment is released. ``min_view_s``: refuse (``ItemStateError``) a first label sent
+        sooner than this after the item was first served (the app's playback requirement).
         """
-        if isinstance(slot, bool) or not isinstance(slot, int) or not 0 <= slot <= campaign.num_candidates:
+        low = TIE_SLOT if campaign.settings.allow_tie else 0
+        if isinstance(slot, bool) or not isinstance(slot, int) or not low <= slot <= campaign.num_candidates:
+            tie = ", or -1 ('tie') for equally realistic" if campaign.settings.allow_tie else ""
             raise InvalidChoiceError(
-                f"`choice` must be an integer from 0 (none realistic) to {campaign.num_candidates}; got {slot!r}."
+                f"`choice` must be an integer from 0 (none realistic) to {campaign.num_candidates}{tie}; got "
+                f"{slot!r}."
             )
-        if time_on_item_ms is not None and (not isinstance(time_on_item_ms, int) or time_on_item_ms < 0):
-            raise InvalidChoiceError(f"`time_ms` must be a non-negative integer; got {time_on_item_ms!r}.")
+        if time_on_item_ms is not None and (isinstance(time_on_item_ms, bool) or not isinstance(time_on_item_ms, int)
+                                            or not 0 <= time_on_item_ms <= SQLITE_MAX_INT):
+            raise InvalidChoiceError(f"`time_ms` must be a non-negative integer below 2^63; got {time_on_item_ms!r}.")
         now = _now()
+        full = None
         with self.transaction() as tx:
             assignment = self._assignment_for_write(tx, annotator, campaign, context_id)
-            candidate = None if slot == 0 else assignment.permutation[slot - 1]
+            candidate = None if slot <= 0 else assignment.permutation[slot - 1]
             existing = tx.execute("SELECT * FROM labels WHERE context_id = ? AND annotator_id = ?",
                                   (context_id, annotator.id)).fetchone()
             if existing is not None:
@@ -470,14 +623,36 @@ class FeedbackStore:
             else:
                 if revise:
                     raise ItemStateError(f"item {context_id} has no label by {annotator.name!r} to revise; POST one.")
-                tx.execute("DELETE FROM skips WHERE context_id = ? AND annotator_id = ?", (context_id, annotator.id))
-                cur = tx.execute(
-                    "INSERT INTO labels (context_id, annotator_id, campaign_id, slot, candidate, permutation, "
-                    "time_on_item_ms, source, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (context_id, annotator.id, campaign.id, slot, candidate, json.dumps(list(assignment.permutation)),
-                     time_on_item_ms, source, now))
-                label_id = cur.lastrowid
-            row = tx.execute("SELECT * FROM labels WHERE id = ?", (label_id,)).fetchone()
+                if min_view_s is not None and min_view_s > 0:
+                    shown = datetime.fromisoformat(assignment.assigned_at).timestamp()
+                    waited = time.time() - shown
+                    if waited < min_view_s:
+                        raise ItemStateError(
+                            f"item {context_id} was served {waited:.1f} s ago; watch the future play through once "
+                            f"(at least {min_view_s:.1f} s) before choosing. Nothing was written.")
+                cap = campaign.labels_per_item
+                gold = tx.execute("SELECT gold_answer FROM contexts WHERE id = ?", (context_id,)).fetchone()[0]
+                others = tx.execute("SELECT COUNT(*) FROM labels WHERE context_id = ? AND annotator_id != ?",
+                                    (context_id, annotator.id)).fetchone()[0]
+                if cap is not None and gold is None and others >= cap:
+                    tx.execute("UPDATE assignments SET released = 1, lease_expires_at = NULL WHERE id = ?",
+                               (assignment.id,))
+                    full = (cap, others)
+                    label_id = None
+                else:
+                    tx.execute("DELETE FROM skips WHERE context_id = ? AND annotator_id = ?",
+                               (context_id, annotator.id))
+                    cur = tx.execute(
+                        "INSERT INTO labels (context_id, annotator_id, campaign_id, slot, candidate, permutation, "
+                        "time_on_item_ms, source, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (context_id, annotator.id, campaign.id, slot, candidate,
+                         json.dumps(list(assignment.permutation)), time_on_item_ms, source, now))
+                    label_id = cur.lastrowid
+                    tx.execute("UPDATE assignments SET lease_expires_at = NULL WHERE id = ?", (assignment.id,))
+            row = None if label_id is None else tx.execute("SELECT * FROM labels WHERE id = ?", (label_id,)).fetchone()
+        if full is not None:
+            raise ItemStateError(f"item {context_id} already has {full[1]} label(s) from others (labels_per_item "
+                                 f"{full[0]}; your lease on it had expired); nothing was written. Take the next item.")
         return _label(row)
 
     def skip(self, annotator: Annotator, campaign: Campaign, context_id: int, reason: str) -> None:
@@ -485,7 +660,7 @@ class FeedbackStore:
         if not isinstance(reason, str) or not reason.strip() or len(reason) > MAX_REASON_CHARS:
             raise InvalidChoiceError(f"skip `reason` must be 1-{MAX_REASON_CHARS} characters; got {reason!r}.")
         with self.transaction() as tx:
-            self._assignment_for_write(tx, annotator, campaign, context_id)
+            assignment = self._assignment_for_write(tx, annotator, campaign, context_id)
             if tx.execute("SELECT 1 FROM labels WHERE context_id = ? AND annotator_id = ?",
                           (context_id, annotator.id)).fetchone():
                 raise DuplicateSubmissionError(f"item {context_id} is already labeled by {annotator.name!r}; "
@@ -495,10 +670,10 @@ class FeedbackStore:
                            "(?, ?, ?, ?, ?)", (context_id, annotator.id, campaign.id, reason.strip(), _now()))
             except sqlite3.IntegrityError as exc:
                 raise DuplicateSubmissionError(f"item {context_id} is already skipped by {annotator.name!r}.") from exc
+            tx.execute("UPDATE assignments SET lease_expires_at = NULL WHERE id = ?", (assignment.id,))
 
     def _assignment_for_write(self, tx: _Tx, annotator: Annotator, campaign: Campaign, context_id: int) -> Assignment:
-        if isinstance(context_id, bool) or not isinstance(context_id, int):
-            raise UnknownItemError(f"item ids are integers; got {context_id!r}.")
+        _check_id(context_id, "item")
         row = tx.execute("SELECT * FROM assignments WHERE annotator_id = ? AND context_id = ?",
                          (annotator.id, context_id)).fetchone()
         if row is None or row["campaign_id"] != campaign.id:
@@ -508,11 +683,18 @@ class FeedbackStore:
                 raise UnknownItemError(f"no item {context_id!r} in campaign {campaign.name!r}.")
             raise ItemStateError(f"item {context_id} was never opened by {annotator.name!r}: open it first (GET) so "
                                  "its candidate order is fixed; nothing was written.")
+        if row["released"]:
+            raise ItemStateError(f"item {context_id} was released from {annotator.name!r} (the lease expired and "
+                                 "others labeled it); nothing was written. Take the next item.")
         return _assignment(row)
 
-    def labels(self, campaign: Campaign) -> list[Label]:
-        """Every label of ``campaign``, oldest first."""
-        rows = self._conn().execute("SELECT * FROM labels WHERE campaign_id = ? ORDER BY id", (campaign.id,))
+    def labels(self, campaign: Campaign, kind: LabelKind = "regular") -> list[Label]:
+        """The labels of ``campaign`` (``kind``: regular items, gold items or all), oldest first."""
+        where = {"regular": " AND c.gold_answer IS NULL", "gold": " AND c.gold_answer IS NOT NULL", "all": ""}
+        if kind not in where:
+            raise ValueError(f"`kind` must be 'regular', 'gold' or 'all'; got {kind!r}.")
+        rows = self._conn().execute("SELECT l.* FROM labels l JOIN contexts c ON c.id = l.context_id WHERE "
+                                    f"l.campaign_id = ?{where[kind]} ORDER BY l.id", (campaign.id,))
         return [_label(r) for r in rows]
 
     def skips(self, campaign: Campaign) -> list[dict[str, Any]]:
@@ -521,6 +703,60 @@ class FeedbackStore:
                                     "campaign_id = ? ORDER BY id", (campaign.id,))
         return [dict(r) for r in rows]
 
+    # ------------------------------------------------------------------------------------------ quality
+    def quality(self, annotator: Annotator, campaign: Campaign) -> dict[str, Any]:
+        """The annotator's gold figures in ``campaign``.
+
+        Returns ``gold_answered``, ``gold_correct``, ``gold_accuracy`` (None before any gold answer), and
+        ``status``: ``"none"`` (no qualification asked), ``"pending"`` (fewer than N gold answers),
+        ``"passed"`` or ``"failed"`` (judged on the first N gold answers against ``qualification_accuracy``).
+        A tie or "none realistic" on a gold item counts as wrong.
+        """
+        with self.snapshot() as conn:
+            return self._quality(conn, annotator, campaign)
+
+    @staticmethod
+    def _quality(conn: _Tx | sqlite3.Connection, annotator: Annotator | int, campaign: Campaign) -> dict[str, Any]:
+        annotator_id = annotator if isinstance(annotator, int) else annotator.id
+        rows = conn.execute(
+            "SELECT l.candidate IS NOT NULL AND l.candidate = c.gold_answer FROM labels l JOIN contexts c ON c.id = "
+            "l.context_id WHERE l.annotator_id = ? AND l.campaign_id = ? AND c.gold_answer IS NOT NULL ORDER BY l.id",
+            (annotator_id, campaign.id)).fetchall()
+        right = [bool(r[0]) for r in rows]
+        settings = campaign.settings
+        n = settings.qualification_gold
+        if n == 0:
+            status = "none"
+        elif len(right) < n:
+            status = "pending"
+        else:
+            status = "passed" if sum(right[:n]) >= settings.qualification_accuracy * n - 1e-9 else "failed"
+        return {"gold_answered": len(right), "gold_correct": sum(right),
+                "gold_accuracy": sum(right) / len(right) if right else None, "status": status,
+                "qualification_gold": n}
+
+    def annotator_stats(self, campaign: Campaign) -> list[dict[str, Any]]:
+        """Per annotator who worked on ``campaign`` (or is active): labels, skips, ties, 'none', open items,
+        gold figures and qualification status, and the median time per label (ms)."""
+        conn = self._conn()
+        out = []
+        for a in self.annotators():
+            rows = conn.execute(
+                "SELECT l.slot, l.time_on_item_ms FROM labels l JOIN contexts c ON c.id = l.context_id WHERE "
+                "l.annotator_id = ? AND l.campaign_id = ? AND c.gold_answer IS NULL", (a.id, campaign.id)).fetchall()
+            skips = conn.execute("SELECT COUNT(*) FROM skips WHERE annotator_id = ? AND campaign_id = ?",
+                                 (a.id, campaign.id)).fetchone()[0]
+            leases = conn.execute(
+                "SELECT COUNT(*) FROM assignments WHERE annotator_id = ? AND campaign_id = ? AND released = 0 AND "
+                "lease_expires_at > ?", (a.id, campaign.id, time.time())).fetchone()[0]
+            times = sorted(r[1] for r in rows if r[1] is not None)
+            out.append({"annotator": a.name, "active": a.active, "labels": len(rows), "skips": skips,
+                        "ties": sum(r[0] == TIE_SLOT for r in rows), "none_realistic": sum(r[0] == 0 for r in rows),
+                        "open_items": leases, "median_time_ms": times[len(times) // 2] if times else None,
+                        **self._quality(conn, a, campaign)})
+        return out
+
+    # ----------------------------------------------------------------------------------------- progress
     def progress(self, annotator: Annotator, campaign: Campaign) -> dict[str, int]:
         """``labeled``, ``skipped``, ``done`` and ``total`` (items this annotator can still get, plus done)."""
         with self.snapshot() as conn:
@@ -528,32 +764,36 @@ class FeedbackStore:
                                    (annotator.id, campaign.id)).fetchone()[0]
             skipped = conn.execute("SELECT COUNT(*) FROM skips WHERE annotator_id = ? AND campaign_id = ?",
                                    (annotator.id, campaign.id)).fetchone()[0]
-            if campaign.labels_per_item is None:
-                total = conn.execute("SELECT COUNT(*) FROM contexts WHERE campaign_id = ?",
-                                     (campaign.id,)).fetchone()[0]
-            else:
-                assigned = conn.execute("SELECT COUNT(*) FROM assignments WHERE annotator_id = ? AND campaign_id = ?",
-                                        (annotator.id, campaign.id)).fetchone()[0]
-                available = conn.execute(
-                    "SELECT COUNT(*) FROM contexts c WHERE c.campaign_id = ? AND NOT EXISTS (SELECT 1 FROM assignments"
-                    " a WHERE a.context_id = c.id AND a.annotator_id = ?) AND (SELECT COUNT(*) FROM labels l WHERE "
-                    "l.context_id = c.id) < ?", (campaign.id, annotator.id, campaign.labels_per_item)).fetchone()[0]
-                total = assigned + available
-        return {"labeled": labeled, "skipped": skipped, "done": labeled + skipped, "total": total}
+            assigned = conn.execute("SELECT COUNT(*) FROM assignments WHERE annotator_id = ? AND campaign_id = ? AND "
+                                    "released = 0", (annotator.id, campaign.id)).fetchone()[0]
+            cap = campaign.labels_per_item
+            available = conn.execute(self._regular_query(True), (campaign.id, campaign.id, time.time(), campaign.id,
+                                                                 annotator.id, cap, cap)).fetchone()[0]
+        return {"labeled": labeled, "skipped": skipped, "done": labeled + skipped, "total": assigned + available}
 
     def counts(self, campaign: Campaign) -> dict[str, int]:
-        """Items, labels, skips and distinct annotators of ``campaign``."""
+        """Regular items, labels (ties and 'none realistic' among them), skips, distinct annotators, gold items,
+        items that reached ``labels_per_item`` and items over it (0 unless the cap was lowered)."""
         conn = self._conn()
 
         def one(sql: str) -> int:
-            return conn.execute(sql, (campaign.id,)).fetchone()[0]
+            return int(conn.execute(sql, (campaign.id,)).fetchone()[0])
 
+        regular = ("AND context_id IN (SELECT id FROM contexts WHERE campaign_id = l.campaign_id AND gold_answer IS "
+                   "NULL)")
+        per_item = (f"SELECT context_id, COUNT(*) AS n FROM labels l WHERE campaign_id = ? {regular} "
+                    "GROUP BY context_id")
+        cap = campaign.labels_per_item
         return {
-            "items": one("SELECT COUNT(*) FROM contexts WHERE campaign_id = ?"),
-            "labels": one("SELECT COUNT(*) FROM labels WHERE campaign_id = ?"),
-            "none_realistic": one("SELECT COUNT(*) FROM labels WHERE campaign_id = ? AND slot = 0"),
+            "items": one("SELECT COUNT(*) FROM contexts WHERE campaign_id = ? AND gold_answer IS NULL"),
+            "labels": one(f"SELECT COUNT(*) FROM labels l WHERE campaign_id = ? {regular}"),
+            "none_realistic": one(f"SELECT COUNT(*) FROM labels l WHERE campaign_id = ? AND slot = 0 {regular}"),
+            "ties": one(f"SELECT COUNT(*) FROM labels l WHERE campaign_id = ? AND slot = {TIE_SLOT} {regular}"),
             "skips": one("SELECT COUNT(*) FROM skips WHERE campaign_id = ?"),
-            "annotators": one("SELECT COUNT(DISTINCT annotator_id) FROM labels WHERE campaign_id = ?"),
+            "annotators": one(f"SELECT COUNT(DISTINCT annotator_id) FROM labels l WHERE campaign_id = ? {regular}"),
+            "gold_items": one("SELECT COUNT(*) FROM contexts WHERE campaign_id = ? AND gold_answer IS NOT NULL"),
+            "items_complete": 0 if cap is None else one(f"SELECT COUNT(*) FROM ({per_item}) WHERE n >= {int(cap)}"),
+            "items_over_cap": 0 if cap is None else one(f"SELECT COUNT(*) FROM ({per_item}) WHERE n > {int(cap)}"),
         }
 
 
@@ -583,3 +823,9 @@ def _shuffle_key(*parts: object) -> int:
 
 def _replace(assignment: Assignment, **changes: Any) -> Assignment:
     return replace(assignment, **changes)
+
+
+def _check_id(value: object, what: str) -> None:
+    """Refuse ids that are not integers in SQLite's range (an item id ``2**63`` would overflow the driver)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SQLITE_MAX_INT:
+        raise UnknownItemError(f"{what} ids are integers from 0 to 2^63 - 1; got {value!r}.")
