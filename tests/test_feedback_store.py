@@ -101,7 +101,7 @@ def test_bad_writes_raise_and_write_nothing(store: FeedbackStore) -> None:
     item = store.next_item(alice, campaign)
     assert item is not None
     other = next(k["id"] for k in store.context_keys(campaign) if k["id"] != item.context_id)
-    for choice in (-1, 6, True, "1", 1.0):
+    for choice in (-2, 6, True, "1", 1.0):
         with pytest.raises(InvalidChoiceError, match="from 0"):
             store.submit_label(alice, campaign, item.context_id, choice)  # type: ignore[arg-type]
     with pytest.raises(ItemStateError, match="never opened"):
