@@ -6,11 +6,7 @@ the data is absent. Point ``TRAFFICRLHF_DATA`` at another copy to use it instead
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
-from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -60,27 +56,6 @@ def make_gru_adapter():  # type: ignore[no-untyped-def]
         return gru.ExampleGRUAdapter()
 
     return make
-
-
-def _import_script(name: str) -> ModuleType:
-    """Import ``scripts/<name>.py`` (the scripts folder is on the path while it loads: a script may import its
-    neighbours, as the extrapolation sweep imports align_dev_eval)."""
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))
-    try:
-        spec = importlib.util.spec_from_file_location(name, scripts / f"{name}.py")
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(scripts))
-    return module
-
-
-@pytest.fixture(scope="session")
-def load_script():  # type: ignore[no-untyped-def]
-    """``load_script(name)`` imports ``scripts/<name>.py`` as a module (the scripts are not a package)."""
-    return _import_script
 
 
 @pytest.fixture(scope="session")

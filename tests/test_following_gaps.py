@@ -1,4 +1,4 @@
-"""``metrics.following_gaps`` and ``scripts/following_gaps.py``: the gap to the agent ahead in the path, as logged."""
+"""``metrics.following_gaps`` and ``metrics.path_gaps``: the gap to the agent ahead in the path."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from trafficrlhf_sdk.metrics import following_gaps, path_gaps
-from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 
 def loop_following_gaps(xy, yaw, extent, valid, margin):  # type: ignore[no-untyped-def]
@@ -59,43 +58,3 @@ def test_a_follower_worked_by_hand() -> None:
     # an invalid leader does not count: agent 0 then has nobody in its path (agent 3 is 4 m to the side)
     valid[0, 1, 0] = False
     assert math.isinf(following_gaps(xy, yaw, speed, extent, valid, 0.5)[0, 0, 0])
-
-
-def test_calibrated_headway_holds_the_asked_share(load_script) -> None:  # type: ignore[no-untyped-def]
-    script = load_script("following_gaps")
-    gen = torch.Generator().manual_seed(0)
-    speed = torch.rand(5000, generator=gen) * 15
-    gap = 1.0 + speed * (0.3 + 1.5 * torch.rand(5000, generator=gen))
-    headway = script.headway_for_share(gap, speed, 1.0, 0.05)
-    assert script.share_inside(gap, speed, 1.0, headway) == pytest.approx(0.05, abs=1e-3)
-    assert math.isnan(script.headway_for_share(gap, speed, 30.0, 0.05))  # the standstill gap alone holds more
-    report = script.summary(gap, speed, [(1.0, headway)], [1.0], 0.05)
-    assert report["following_steps"] == 5000
-    assert sum(band["steps"] for band in report["speed_bands"].values()) == 5000
-
-
-def test_logged_following_keeps_controlled_steps_from_now_on(val_scenes, load_script) -> None:  # type: ignore[no-untyped-def]
-    script = load_script("following_gaps")
-    gap, speed = script.logged_following(val_scenes, max_gap_m=30.0)
-    full = following_gaps(val_scenes.xy, val_scenes.yaw, val_scenes.states[..., 2], val_scenes.extent,
-                          val_scenes.valid)
-    mask = val_scenes.controlled[..., None] & val_scenes.valid & (full < 30)
-    mask[..., : val_scenes.current_index] = False
-    assert gap.numel() == int(mask.sum()) > 0
-    assert torch.equal(gap, full[mask]) and bool((gap < 30).all())
-    assert torch.equal(speed, val_scenes.states[..., 2][mask])
-
-
-def test_logged_closing_worked_by_hand(load_script) -> None:  # type: ignore[no-untyped-def]
-    # agent 0 at 10 m/s, 12 m behind agent 1 (centres) at 6 m/s: gap 7.5 m, closing 4 m/s, TTC 1.875 s, needs
-    # 16 / 15 m/s²; agent 1 closes in on nobody; agent 2, 20 m ahead of agent 1 at 8 m/s, is not controlled
-    script = load_script("following_gaps")
-    xy = torch.tensor([[[[0.0, 0.0]], [[12.0, 0.0]], [[32.0, 0.0]]]])
-    scene = ScenarioTensor(states=torch.cat([xy, torch.tensor([[[[10.0, 0.0]], [[6.0, 0.0]], [[8.0, 0.0]]]])], -1),
-                           valid=torch.ones(1, 3, 1, dtype=torch.bool), extent=torch.tensor([[[4.5, 1.8]] * 3]),
-                           agent_type=torch.zeros(1, 3, dtype=torch.long),
-                           controlled=torch.tensor([[True, True, False]]), dt=0.5, current_index=0)
-    ttc, needed = script.logged_closing(scene)
-    assert ttc.shape == needed.shape == (2,)
-    assert ttc[0] == pytest.approx(7.5 / 4.0) and needed[0] == pytest.approx(16.0 / 15.0)
-    assert math.isinf(ttc[1]) and needed[1] == 0
