@@ -44,11 +44,7 @@ REPO = Path(__file__).resolve().parents[3]
 COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1 s)
     "reference_models/ctg/checkpoints/ctg_small": 20,
     "reference_models/ctg/checkpoints/ctg_small_4s": 40,
-    "reference_models/aligned/ctg": 20,
-    "reference_models/aligned/ctg_4s": 40,
-    "reference_models/aligned/ctg_4s_road": 40,
-    "reference_models/aligned/ctg_4s_gated": 40,
-    "reference_models/aligned/ctg_4s_follow": 40,
+    "reference_models/aligned/ctg": 40,
 }
 
 
@@ -69,63 +65,36 @@ def test_committed_checkpoints_load_and_plan(path, scenes) -> None:  # type: ign
     assert moved.norm(dim=-1).masked_select(agents[:, None]).max() < 40.0 * COMMITTED[path] * 0.1
 
 
-@pytest.mark.parametrize("aligned,base", [
-    ("reference_models/aligned/ctg", "reference_models/ctg/checkpoints/ctg_small"),
-    ("reference_models/aligned/ctg_4s", "reference_models/ctg/checkpoints/ctg_small_4s"),
-])
-def test_committed_aligned_checkpoints_are_fine_tuned_from_their_base(aligned: str, base: str) -> None:
-    from safetensors.torch import load_file
-
-    tuned = load_file(str(REPO / aligned / "model.safetensors"))
-    start = load_file(str(REPO / base / "model.safetensors"))
-    assert tuned.keys() == start.keys()
-    assert all(tuned[k].shape == start[k].shape for k in tuned)
-    changed = [k for k in tuned if tuned[k].is_floating_point() and not torch.equal(tuned[k], start[k])]
-    assert len(changed) > len(tuned) // 2, f"only {len(changed)} of {len(tuned)} tensors differ from the base"
-
-
-@pytest.mark.parametrize("name", ["ctg_4s_road", "ctg_4s_gated"])
-def test_the_committed_road_steered_ctgs_are_their_base_plus_a_trained_head(name: str) -> None:
-    """Only the steering group trained: every base tensor is bitwise the base's, and the head moved off zero."""
-    from safetensors.torch import load_file
-
-    tuned = load_file(str(REPO / "reference_models/aligned" / name / "model.safetensors"))
-    start = load_file(str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s/model.safetensors"))
-    assert all(torch.equal(tuned[k], start[k]) for k in start)
-    head = sorted(set(tuned) - set(start))
-    assert head and all(k.startswith("steer.") for k in head)
-    last = max((k for k in head if k.endswith(".weight")), key=lambda k: int(k.split(".")[2]))
-    assert tuned[last].abs().sum() > 0  # the zero-initialized output layer was trained
-
-
-def test_the_committed_follow_model_is_the_gated_model_with_a_braking_prior_and_a_third_steer_stage() -> None:
-    """``ctg_4s_follow``: every tensor of ``ctg_4s_gated`` outside the steering head bitwise, the steering head
-    trained on (a third stage), and a gap-keeping head that was never trained: zero output weights and a bias of
-    -3 (the braking prior), with the session-51 gate settings."""
+def test_the_committed_aligned_ctg_is_its_base_plus_a_steering_head_and_a_braking_prior() -> None:
+    """``reference_models/aligned/ctg``: every tensor of the 4 s base ``ctg_small_4s`` bitwise, a trained steering
+    head (its zero-initialized output layer moved), and a gap-keeping head that was never trained: zero output
+    weights and a bias of -3 (the braking prior), with its recorded gate settings and three steering stages."""
     import json
 
     from safetensors.torch import load_file
 
-    folder = REPO / "reference_models/aligned/ctg_4s_follow"
+    folder = REPO / "reference_models/aligned/ctg"
     tuned = load_file(str(folder / "model.safetensors"))
-    start = load_file(str(REPO / "reference_models/aligned/ctg_4s_gated/model.safetensors"))
-    assert all(torch.equal(tuned[k], start[k]) for k in start if not k.startswith("steer."))
-    assert any(not torch.equal(tuned[k], start[k]) for k in start if k.startswith("steer."))
+    start = load_file(str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s/model.safetensors"))
+    assert all(torch.equal(tuned[k], start[k]) for k in start)
     head = sorted(set(tuned) - set(start))
-    assert head and all(k.startswith("follow.") for k in head)
-    last = max(int(k.split(".")[2]) for k in head)
+    assert {k.split(".")[0] for k in head} == {"steer", "follow"}
+    steer = max(int(k.split(".")[2]) for k in head if k.startswith("steer."))
+    assert tuned[f"steer.net.{steer}.weight"].abs().sum() > 0
+    last = max(int(k.split(".")[2]) for k in head if k.startswith("follow."))
     assert torch.all(tuned[f"follow.net.{last}.weight"] == 0)
     assert torch.all(tuned[f"follow.net.{last}.bias"] == -3.0)
     cfg = json.loads((folder / "config.json").read_text())["config"]
     gate = (cfg["follow"], cfg["follow_ttc"], cfg["follow_heading_cos"], cfg["follow_gate_steps"])
     assert gate == (True, 3.0, 0.7, 5)
-    history = json.loads((folder / "align_history_stage3.json").read_text())
-    assert history["config"]["groups"] == ["steer"] and len(history["history"]) == 70
+    for stage in (1, 2, 3):
+        history = json.loads((folder / f"align_history_stage{stage}.json").read_text())
+        assert history["config"]["groups"] == ["steer"] and len(history["history"]) == 70
 
 
 def test_random_draws_are_made_on_the_generators_device() -> None:
-    """A seeded CPU generator cannot draw on a GPU (session 51 found CTG failing there): draws are made where the
-    generator lives and moved, so a GPU run gets the CPU run's noise."""
+    """A seeded CPU generator cannot draw on a GPU: draws are made where the generator lives and moved, so a GPU
+    run gets the CPU run's noise."""
     from ctg_reference.model import draw_device
 
     assert draw_device(torch.Generator(), "cuda") == torch.device("cpu")
@@ -137,7 +106,7 @@ def test_random_draws_are_made_on_the_generators_device() -> None:
 def test_sampling_on_cuda_follows_the_cpu_run(scenes) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_ctg import CTGAdapter
 
-    path = str(REPO / "reference_models/aligned/ctg_4s_follow")
+    path = str(REPO / "reference_models/aligned/ctg")
     cpu = CTGAdapter(checkpoint=path, seed=0).sample(scenes, 2, None, torch.Generator().manual_seed(0))
     gpu = CTGAdapter(checkpoint=path, seed=0, device="cuda").sample(scenes.to("cuda"), 2, None,
                                                                     torch.Generator().manual_seed(0))

@@ -21,6 +21,41 @@ from trafficrlhf_sdk.scenario import default_data_root
 HAS_DATA = os.path.isdir(os.path.join(default_data_root(), "nuscenes_pred", "label"))
 needs_data = pytest.mark.skipif(not HAS_DATA, reason="nuscenes_pred data not found")
 REPO = Path(__file__).resolve().parents[3]
+ALIGNED = REPO / "reference_models/aligned/ctg"
+ROAD_ONLY_KEYS = ("steer_gate", "steer_gate_traffic", "steer_lateral_only", "steer_neighbours",
+                  "steer_neighbour_scale")
+
+
+def _steered_checkpoint(folder: Path, gated: bool) -> str:
+    """The committed aligned CTG without its gap-keeping head (config fields of ``follow`` and ``rear`` left to
+    their defaults, ``follow.*`` tensors dropped): a saved steering head alone, with its gate (``gated``) or
+    without (a plain road head, the gate fields left to their defaults)."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    folder.mkdir(parents=True)
+    saved = json.loads((ALIGNED / "config.json").read_text())
+    drop = [k for k in saved["config"] if k.startswith(("follow", "rear"))]
+    if not gated:
+        drop += ROAD_ONLY_KEYS
+    saved["config"] = {k: v for k, v in saved["config"].items() if k not in drop}
+    (folder / "config.json").write_text(json.dumps(saved))
+    tensors = load_file(str(ALIGNED / "model.safetensors"))
+    save_file({k: v for k, v in tensors.items() if not k.startswith("follow.")}, str(folder / "model.safetensors"))
+    return str(folder)
+
+
+@pytest.fixture(scope="module")
+def gated_head(tmp_path_factory) -> str:  # type: ignore[no-untyped-def]
+    """A saved, gated road-and-traffic steering head on the 4 s base (no gap-keeping head)."""
+    return _steered_checkpoint(tmp_path_factory.mktemp("ctg") / "gated", gated=True)
+
+
+@pytest.fixture(scope="module")
+def road_head(tmp_path_factory) -> str:  # type: ignore[no-untyped-def]
+    """A saved road steering head on the 4 s base without a gate."""
+    return _steered_checkpoint(tmp_path_factory.mktemp("ctg") / "road", gated=False)
 
 
 @needs_data
@@ -191,15 +226,15 @@ def test_the_road_profile_reads_the_crop_cells_the_plan_passes_and_their_side_ne
     assert torch.all(road_profile(crop, far, res, offset=res) == 0)
 
 
-def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_cannot_act() -> None:
+def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_cannot_act(road_head: str,
+                                                                                       gated_head: str) -> None:
     from trafficrlhf_ctg import CTGAdapter
 
-
-    road = str(REPO / "reference_models/aligned/ctg_4s_road")
+    road = road_head
     gated = CTGAdapter(checkpoint=road, steer_gate=True, steer_gate_offset=2.0)
     assert gated.cfg.steer_gate and gated.model.cfg.steer_gate and gated.model.cfg.steer_gate_offset == 2.0
     assert not CTGAdapter(checkpoint=road).cfg.steer_gate
-    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    committed = gated_head
     assert CTGAdapter(checkpoint=committed).cfg.steer_gate
     assert not CTGAdapter(checkpoint=committed, steer_gate=False).cfg.steer_gate
     with pytest.raises(TrafficRLHFError, match="needs a steering head"):
@@ -213,14 +248,14 @@ def test_the_gate_options_apply_to_a_saved_head_and_are_refused_where_they_canno
         CTGAdapter(checkpoint=str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s"), steer_lateral_only=True)
 
 
-def test_widening_a_saved_road_head_to_read_the_traffic_keeps_its_output_until_fine_tuned(tmp_path: Path) -> None:
+def test_widening_a_saved_road_head_to_read_the_traffic_keeps_its_output_until_fine_tuned(tmp_path: Path,
+                                                                                         gated_head: str) -> None:
     """``steer_neighbours=true`` on a saved road head: the new neighbour inputs get zero weights, so with the gate
     reading the road alone (``steer_gate_traffic=false``) the shift equals the saved head's exactly; with the
     traffic gate a neighbour on the plan opens the gate where the road left it shut."""
     from trafficrlhf_ctg import CTGAdapter
 
-
-    committed = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    committed = gated_head
     saved = CTGAdapter(checkpoint=committed).model
     widened = CTGAdapter(checkpoint=committed, steer_neighbours=True, steer_gate_traffic=False).model
     traffic = CTGAdapter(checkpoint=committed, steer_neighbours=True).model
@@ -366,8 +401,8 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
 
 @needs_data
 def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_and_saves(
-        scenes, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """``follow=True`` on the committed gated model adds a zero gap-keeping head next to its steering head: same
+        scenes, tmp_path, gated_head) -> None:  # type: ignore[no-untyped-def]
+    """``follow=True`` on a saved gated steering head adds a zero gap-keeping head next to its steering head: same
     guided futures and log-probabilities under one generator, every saved tensor kept; it is the ``follow`` group.
     With a non-zero output layer its shift is exactly 0 for rows with nobody ahead (the gate), non-zero behind a
     close lead and on the acceleration channel only; the guided log-probability stays exact, a log-probability's
@@ -375,7 +410,7 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
     from ctg_reference.model import CTGConfig, CTGModel
     from trafficrlhf_ctg import CTGAdapter
 
-    path = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    path = gated_head
     base, follow = CTGAdapter(checkpoint=path, seed=0), CTGAdapter(checkpoint=path, seed=0, follow=True)
     assert follow.cfg.follow and follow.cfg.steer_gate and "follow" not in base.parameter_groups()
     assert set(follow.parameter_groups()) == {"encoder", "decoder", "steer", "follow"}
@@ -431,13 +466,13 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
     torch.testing.assert_close(again.futures, out.futures)
 
 
-def test_follow_options_start_the_head_braking_and_set_its_desired_gap() -> None:
+def test_follow_options_start_the_head_braking_and_set_its_desired_gap(gated_head: str) -> None:
     """``follow_brake`` sets a new head's output bias (weights stay zero); ``follow_standstill`` / ``follow_headway``
     override the desired gap (a new head: 1.5 m + 0.5 s, the logged 5 % calibration); each refuses to act without
     the head it configures, naming the option."""
     from trafficrlhf_ctg import CTGAdapter
 
-    path = str(REPO / "reference_models/aligned/ctg_4s_gated")
+    path = gated_head
     plain = CTGAdapter(checkpoint=path, seed=0, follow=True)
     assert (plain.cfg.follow_standstill, plain.cfg.follow_headway) == (1.5, 0.5)
     braking = CTGAdapter(checkpoint=path, seed=0, follow=True, follow_brake=-3.0, follow_standstill=2.0,
