@@ -55,7 +55,7 @@ def read_results(folder: str) -> dict:
 
 def _scene_counts(runs: list[dict]) -> list[dict] | None:
     """Each run's per-scene realism counts ``{preset: ...}``, each archive read once (None if any run lacks
-    them: results written before session 45)."""
+    them: results written without per-scene histograms)."""
     from trafficrlhf_sdk.evaluation.protocol import SCENE_HISTOGRAMS, load_scene_histograms
 
     paths = [os.path.join(run["_folder"], SCENE_HISTOGRAMS) for run in runs]
@@ -151,7 +151,8 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
     """Markdown table of the relative change from the first policy's runs to the last policy's (each pooled over
     its seeds) in the failure, collision and off-road rates, each with a paired bootstrap interval over scenes
     (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_change_interval`), and in the two realism deviations where
-    every run's folder has ``scene_histograms.npz`` (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_realism_interval`).
+    every run's folder has ``scene_histograms.npz``
+    (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_realism_interval`).
     ``target``: a relative change such as -0.7; adds the share of the failure-rate draws at or below it."""
     from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, paired_realism_interval, pooled_per_scene
 

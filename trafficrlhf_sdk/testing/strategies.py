@@ -15,9 +15,10 @@ Two strategies:
   padding agents, states zeroed where invalid, yaw in [-pi, pi) (float32), optional small uint8 map rasters
   with a scaled and shifted ``world_to_pixel`` and optional polylines. The states are not dynamically
   feasible; use them for shape, masking and IO properties.
-- :func:`feasible_trajectories`: scenarios whose states come from :func:`~trafficrlhf_sdk.simulation.dynamics.unicycle_rollout`
-  of random actions drawn inside :func:`~trafficrlhf_sdk.simulation.dynamics.action_bounds` (every agent valid at every
-  step), so ``scenario.actions()`` recovers the actions.
+- :func:`feasible_trajectories`: scenarios whose states come from
+  :func:`~trafficrlhf_sdk.simulation.dynamics.unicycle_rollout` of random actions drawn inside
+  :func:`~trafficrlhf_sdk.simulation.dynamics.action_bounds` (every agent valid at every step), so
+  ``scenario.actions()`` recovers the actions.
 
 Needs ``hypothesis`` and ``numpy`` (the ``test`` extra).
 """
@@ -32,7 +33,13 @@ import torch
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from trafficrlhf_sdk.simulation.dynamics import DEFAULT_BOUNDS, UnicycleBounds, action_bounds, unicycle_rollout, unicycle_step
+from trafficrlhf_sdk.simulation.dynamics import (
+    DEFAULT_BOUNDS,
+    UnicycleBounds,
+    action_bounds,
+    unicycle_rollout,
+    unicycle_step,
+)
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.map import DEFAULT_LAYERS, MapRaster, PolylineType
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor

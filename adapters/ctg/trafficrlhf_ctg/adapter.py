@@ -103,13 +103,11 @@ class CTGOptions(AdapterOptions):
                                             "1.5 m).")
     follow_headway: float | None = Field(None, ge=0, description="The gap-keeping head's desired time gap at the "
                                          "planned speed (s); None keeps the checkpoint's setting (a new head: "
-                                         "0.5 s, which with 1.5 m holds 5 % of the logged following steps, "
-                                         "scripts/following_gaps.py).")
+                                         "0.5 s).")
     follow_ttc: float | None = Field(None, gt=0, description="Gate the gap-keeping head by the time to collision "
                                      "with the agent ahead instead of the desired gap: clamp(1 - TTC / follow_ttc, "
-                                     "0, 1) while closing in, 0 otherwise (s; logged train driving is below 2 s on "
-                                     "1.1 % of the controlled agent-steps, below 3 s on 2.4 %). None keeps the "
-                                     "checkpoint's setting (a new head: the desired-gap gate).")
+                                     "0, 1) while closing in, 0 otherwise (s). None keeps the checkpoint's "
+                                     "setting (a new head: the desired-gap gate).")
     follow_heading_cos: float | None = Field(None, ge=-1, le=1, description="Only agents heading the plan's way "
                                              "lead the gap-keeping head: the cosine of the heading difference at "
                                              "least this (0.7: within about 45 degrees), so oncoming and crossing "
@@ -438,8 +436,9 @@ class CTGAdapter(TrafficModelAdapter):
 
         With a guidance the planner draws ``plan_samples`` futures and executes the lowest guidance loss, so the
         score is minus that loss; for a scene-level guidance (``no_collision``) it is the scene's total over its
-        controlled agents, the same for each of them, as :func:`~trafficrlhf_sdk.simulation.guidance.select_samples` sums
-        it. Without a guidance the planner executes its one sample: zeros and ``k = 1``."""
+        controlled agents, the same for each of them, as
+        :func:`~trafficrlhf_sdk.simulation.guidance.select_samples` sums it. Without a guidance the planner executes its
+        one sample: zeros and ``k = 1``."""
         if guidance is None:
             return torch.zeros_like(output.futures[..., 0, 0]), 1
         controlled = context.controlled[:, None].to(output.futures.dtype)  # (B, 1, A)

@@ -137,13 +137,11 @@ class CTGConfig:
     follow: bool = False
     follow_hidden: int = 64
     follow_lane_margin: float = 0.5  # m beyond half of both widths to the side that still counts as in the path
-    # desired gap: 1.5 m + 0.5 s x speed holds 5 % of the logged following steps of the train scenes (the first
-    # default, 2 m + 1.5 s, held 41 %: the head acted on ordinary following); scripts/following_gaps.py
+    # desired gap: follow_standstill + follow_headway x speed, short enough that ordinary following is left alone
     follow_standstill: float = 1.5  # m: desired bumper-to-bumper gap at standstill
     follow_headway: float = 0.5  # s: desired time gap at the planned speed
     # s: if set, the gate reads the time to collision with the agent ahead instead of the desired gap,
-    # clamp(1 - TTC / follow_ttc, 0, 1) while closing in (logged train driving: TTC < 2 s on 1.1 % of the controlled
-    # agent-steps, < 3 s on 2.4 %), so steady following at a short gap is left alone
+    # clamp(1 - TTC / follow_ttc, 0, 1) while closing in, so steady following at a short gap is left alone
     follow_ttc: float | None = None
     # if set, only agents heading the plan's way lead (cosine of the heading difference at least this)
     follow_heading_cos: float | None = None
@@ -151,14 +149,13 @@ class CTGConfig:
     # as clamp(required / follow_decel - 1, 0, 1) instead (a plan braking at a constant a <= follow_decel reads none)
     follow_decel: float | None = None
     # if set, the gate reads only the first this many plan steps (5 at 0.1 s: what runs before the next 2 Hz replan);
-    # the head still reads them all. Plans that stop in time read a short time to collision at their end, and a gate
-    # over the whole plan braked them too (session 50: open on 8-12 % of plans)
+    # the head still reads them all. Plans that stop in time read a short time to collision at their end, which a
+    # gate over the whole plan would brake too
     follow_gate_steps: int | None = None
     # yielding to the rear (a second FollowHead, ``rear``): acceleration channel only, reading the agent behind in
     # each step's clean plan (lead_gaps(behind=True)) and gated by its time to collision, clamp(1 - TTC / rear_ttc,
     # 0, 1) over the first rear_gate_steps plan steps; same-direction agents only when follow_heading_cos is set.
-    # Agents replayed from the log do not react, so a plan slower than the log is run into from behind (the
-    # largest failure group of the session-51 model on the mirrored train scenes)
+    # Agents replayed from the log do not react, so a plan slower than the log is run into from behind
     rear: bool = False
     rear_ttc: float = 3.0  # s
     rear_gate_steps: int | None = 5
