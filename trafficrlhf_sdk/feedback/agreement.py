@@ -1,7 +1,8 @@
 """Inter-annotator agreement over items labeled by several annotators.
 
 Categories are what an answer *means*, not the slot pressed (slots are shuffled per annotator): the candidate
-index, or "none realistic". Only items with at least two labels count.
+index, "none realistic", or "equally realistic" (a tie). Only items with at least two labels count; gold items
+never do (they measure accuracy, not agreement).
 
 - **Pairwise agreement** P̄: per item, the share of ordered annotator pairs that gave the same answer,
   ``P_i = sum_j n_ij (n_ij - 1) / (n_i (n_i - 1))``, averaged over items.
@@ -19,9 +20,10 @@ from itertools import combinations
 from collections.abc import Iterable
 from typing import Any
 
-__all__ = ["agreement_report", "campaign_agreement", "fleiss_kappa"]
+__all__ = ["agreement_report", "annotator_agreement", "campaign_agreement", "fleiss_kappa"]
 
 NONE = "none"
+TIE = "tie"
 
 
 def fleiss_kappa(item_counts: Iterable[Counter[Any]]) -> tuple[float | None, float | None, int]:
@@ -42,8 +44,9 @@ def fleiss_kappa(item_counts: Iterable[Counter[Any]]) -> tuple[float | None, flo
     return kappa, p_bar, len(items)
 
 
-def agreement_report(labels: Iterable[tuple[int, str, int | None]]) -> dict[str, Any]:
-    """Agreement statistics from ``(item, annotator, candidate or None)`` triples (one per item and annotator).
+def agreement_report(labels: Iterable[tuple[int, str, int | str | None]]) -> dict[str, Any]:
+    """Agreement statistics from ``(item, annotator, answer)`` triples (one per item and annotator); the answer
+    is a candidate index, None ("none realistic") or ``"tie"``.
 
     Returns a JSON-ready dict: ``items_multi`` (items with >= 2 labels), ``fleiss_kappa``,
     ``pairwise_agreement``, ``annotators`` (per annotator: labels, shared, agree_with_majority) and ``pairs``
@@ -51,7 +54,7 @@ def agreement_report(labels: Iterable[tuple[int, str, int | None]]) -> dict[str,
     """
     by_item: dict[int, dict[str, Any]] = defaultdict(dict)
     for item, annotator, candidate in labels:
-        by_item[item][annotator] = NONE if candidate is None else int(candidate)
+        by_item[item][annotator] = NONE if candidate is None else TIE if candidate == TIE else int(candidate)
     kappa, p_bar, n_items = fleiss_kappa(Counter(answers.values()) for answers in by_item.values())
     per: dict[str, dict[str, int]] = defaultdict(lambda: {"labels": 0, "shared": 0, "agree": 0})
     pairs: dict[tuple[str, str], list[int]] = defaultdict(lambda: [0, 0])
@@ -86,5 +89,14 @@ def agreement_report(labels: Iterable[tuple[int, str, int | None]]) -> dict[str,
 def campaign_agreement(store: Any, campaign: Any) -> dict[str, Any]:
     """:func:`agreement_report` over the labels of ``campaign`` in ``store`` (a ``FeedbackStore``)."""
     names = {a.id: a.name for a in store.annotators()}
-    return agreement_report((label.context_id, names[label.annotator_id], label.candidate)
+    return agreement_report((label.context_id, names[label.annotator_id], TIE if label.tie else label.candidate)
                             for label in store.labels(campaign))
+
+
+def annotator_agreement(store: Any, campaign: Any, annotator: str) -> dict[str, Any]:
+    """Only ``annotator``'s own figures (what an annotator may see): items shared with others and agreement with
+    their majority, without anybody else's name or counts."""
+    report = campaign_agreement(store, campaign)
+    own = next((a for a in report["annotators"] if a["annotator"] == annotator),
+               {"annotator": annotator, "labels": 0, "shared": 0, "agree_with_majority": None})
+    return {"annotator": own}

@@ -15,6 +15,11 @@ exists, and the same command reproduces the same candidates.
 
 The logged future over the same window is stored as the hidden reference ("none realistic" makes it the
 winner). Maps are cropped to the agents' area plus a margin so the database stays small.
+
+**Several models in one set.** ``candidate_models`` names the model of each of the N slots (e.g. two from one
+model, three from another); each model rolls out its own copies of the scene (seeded per model and scene) and
+the candidates are stored in slot order with their model recorded, so the export can tell which model each
+winner and loser came from (``PreferenceDataset.context_keys[i]["models"]``). The annotators never see it.
 """
 
 from __future__ import annotations
@@ -24,9 +29,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
 from trafficrlhf_sdk.scenario.map import crop_map
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -62,6 +68,21 @@ class CampaignConfig(BaseModel):
         None, ge=1, description="Annotators per item; None: every annotator labels every item."
     )
     map_margin_m: float = Field(25.0, ge=0, description="Map kept around the agents' positions (m).")
+    candidate_models: list[str] | None = Field(
+        None, description="The traffic model of each of the N candidates, in slot order (several models in one "
+                          "set, e.g. ['a', 'a', 'b', 'b', 'c']); None: all N from `model`. Guidance and "
+                          "model_options apply to every model.")
+    annotation: AnnotationSettings = Field(
+        default_factory=AnnotationSettings, description="Playback, guidelines, gold items, qualification, leases "
+                                                        "and ties (changeable later).")
+
+    @model_validator(mode="after")
+    def _check_models(self) -> CampaignConfig:
+        if self.candidate_models is not None and len(self.candidate_models) != self.num_candidates:
+            raise ValueError(f"`candidate_models` must name one model per candidate ({self.num_candidates}); got "
+                             f"{len(self.candidate_models)}: {self.candidate_models}. Repeat a model to give it "
+                             "several slots.")
+        return self
 
 
 @dataclass(frozen=True)
@@ -138,10 +159,12 @@ def create_campaign(store: FeedbackStore, config: CampaignConfig,
 
     source = _open_source(config)
     source.check_split(config.split)
-    policy_check = build_policy(config.model, config.guidance, config.seed, config.model_options)  # fail early
-    del policy_check
+    for model in dict.fromkeys(config.candidate_models or [config.model]):  # fail early
+        build_policy(model, config.guidance, config.seed, config.model_options)
     stored = config.model_dump(mode="json")
     stored["provenance"] = _provenance(config.model)
+    if config.candidate_models:
+        stored["provenance"]["candidate_models"] = {m: _provenance(m) for m in dict.fromkeys(config.candidate_models)}
     campaign = store.create_campaign(config.name, config.model, config.guidance, config.seed, config.num_candidates,
                                      stored, __version__)
     return _fill(store, campaign, source, _scene_list(source, config), on_context)
@@ -190,13 +213,45 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
             skipped.append(scene_id)
             continue
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
-        policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
         scene = source.load_scene(cfg["split"], scene_id)
-        with torch.no_grad():
-            context, cands, cand_valid, logged, logged_valid = generate_candidates(
-                policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
+        slots = cfg.get("candidate_models")
+        if not slots:
+            policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
+            with torch.no_grad():
+                context, cands, cand_valid, logged, logged_valid = generate_candidates(
+                    policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
+        else:
+            context, cands, cand_valid, logged, logged_valid = _mixed_candidates(
+                campaign, scene, slots, cfg, (cfg["source"], cfg["split"], scene_id))
         added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
-                                       cand_valid, logged, logged_valid, __version__))
+                                       cand_valid, logged, logged_valid, __version__, candidate_models=slots))
         if on_context is not None:
             on_context(scene_id)
     return CampaignReport(store.campaign(campaign.id), added, skipped)
+
+
+def _mixed_candidates(campaign: Campaign, scene: ScenarioTensor, slots: list[str], cfg: dict[str, Any],
+                      key: tuple[str, str, str]) -> tuple[ScenarioTensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                           torch.Tensor]:
+    """Candidates of several models in slot order: each model rolls out as many copies as it has slots."""
+    parts: dict[str, tuple[Any, ...]] = {}
+    for model in dict.fromkeys(slots):
+        seed = context_seed(campaign.seed, *key) if model == slots[0] else \
+            _shuffle_key(campaign.seed, model, *key) % (2**31 - 1)
+        policy = build_policy(model, campaign.guidance, seed, cfg.get("model_options"))
+        with torch.no_grad():
+            parts[model] = generate_candidates(policy, scene, slots.count(model), cfg["candidate_seconds"],
+                                               cfg["map_margin_m"])
+    taken = dict.fromkeys(parts, 0)
+    cands, valid = [], []
+    for model in slots:
+        cands.append(parts[model][1][taken[model]])
+        valid.append(parts[model][2][taken[model]])
+        taken[model] += 1
+    context, _, _, logged, logged_valid = parts[slots[0]]
+    candidates, candidate_valid = torch.stack(cands), torch.stack(valid)
+    if scene.map is not None:
+        shown = torch.cat([context.xy[0][context.valid[0]], candidates[..., :2][candidate_valid]])
+        context = context.replace_unchecked(map=crop_map(scene.map, shown, cfg["map_margin_m"]))
+        context = ScenarioTensor(**{f: getattr(context, f) for f in context.__dataclass_fields__})
+    return context, candidates, candidate_valid, logged, logged_valid

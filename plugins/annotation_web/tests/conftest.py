@@ -15,11 +15,14 @@ from trafficrlhf_annotation_web.testing import Server
 
 @pytest.fixture()
 def campaign_db(tmp_path) -> tuple[str, dict[str, str]]:  # type: ignore[no-untyped-def]
-    """A database with campaign ``tiny`` (4 items, N = 5) and annotators alice and bob; returns (path, tokens)."""
+    """A database with campaign ``tiny`` (4 items, N = 5, labels accepted without waiting for the playback),
+    annotators alice and bob and the admin owner; returns (path, tokens) with the admin token as "admin"."""
     path = str(tmp_path / "fb.db")
     store = FeedbackStore(path)
     make_tiny_campaign(store, num_contexts=4)
+    store.update_settings("tiny", playback_required=False)
     tokens = {name: store.add_annotator(name)[1] for name in ("alice", "bob")}
+    tokens["admin"] = store.add_admin("owner")
     store.close()
     return path, tokens
 

@@ -114,7 +114,11 @@ def test_agreement_and_done(client, campaign_db) -> None:  # type: ignore[no-unt
         while not (item := client.get("/api/campaigns/tiny/next", headers=auth(token)).json()).get("done"):
             client.post(f"/api/campaigns/tiny/items/{item['item']}/label", json={"choice": 0}, headers=auth(token))
         assert item["progress"]["done"] == 4
-    report = client.get("/api/campaigns/tiny/agreement", headers=auth(campaign_db[1]["alice"])).json()
+    own = client.get("/api/campaigns/tiny/agreement", headers=auth(campaign_db[1]["alice"])).json()
+    assert own["annotator"] == {"annotator": "alice", "labels": 4, "shared": 4, "agree_with_majority": 1.0}
+    assert "bob" not in str(own) and "pairs" not in own  # annotators see only their own figures
+    assert client.get("/api/admin/campaigns/tiny", headers=auth(campaign_db[1]["alice"])).status_code == 401
+    report = client.get("/api/admin/campaigns/tiny", headers=auth(campaign_db[1]["admin"])).json()["agreement"]
     assert report["items_multi"] == 4 and report["pairwise_agreement"] == 1.0
     assert report["fleiss_kappa"] is None  # every label in one category: kappa undefined
     assert report["pairs"] == [{"a": "alice", "b": "bob", "shared": 4, "agreement": 1.0}]

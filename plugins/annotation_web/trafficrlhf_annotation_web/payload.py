@@ -1,8 +1,10 @@
 """What the page receives for one item: a north-up map image, the agents, the shared history and the N
 candidate futures, all in a local metric frame centred on the view (so the numbers stay small).
 
-The logged future is never sent. Candidates are listed in the annotator's display order (slot 1..N), so the
-page never learns the candidate indices behind the slots.
+The logged future is never sent, nor whether an item is a gold item, nor which model made which candidate.
+Candidates are listed in the annotator's display order (slot 1..N), so the page never learns the candidate
+indices behind the slots. ``view`` is the whole area (the map image covers it); ``focus`` is the default view:
+the controlled agents over the shown history and every candidate future, plus a margin.
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from PIL import Image
 from trafficrlhf_sdk.feedback.store import Assignment, ContextRecord
 from trafficrlhf_sdk.scenario.agents import AgentType
 
-__all__ = ["item_base", "item_payload", "map_image"]
+__all__ = ["item_base", "item_payload", "map_image", "playback_seconds"]
 
 HISTORY_SHOWN_S = 2.0  # history played before the candidates start (s)
 VIEW_MARGIN_M = 12.0
+FOCUS_MARGIN_M = 6.0  # around the controlled agents and their futures in the default view
+FOCUS_MIN_M = 30.0  # the default view spans at least this much in each direction
 MAP_PX_PER_M = 4.0
 MAX_MAP_PX = 1400
 LAYER_RGB = (("drivable", (205, 205, 205)), ("lane_divider", (255, 255, 255)), ("road_divider", (236, 192, 52)))
@@ -76,6 +80,14 @@ def item_base(record: ContextRecord) -> dict[str, Any]:
     lo, hi = xy.min(0).values - VIEW_MARGIN_M, xy.max(0).values + VIEW_MARGIN_M
     centre = (float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
     world_view = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+    controlled = record.controlled
+    focus_xy = torch.cat([history_states[controlled][..., :2][history_valid[controlled]],
+                          record.candidates[:, controlled][..., :2][record.candidate_valid[:, controlled]]]).double()
+    if focus_xy.numel() == 0:
+        focus_xy = xy
+    f_lo, f_hi = focus_xy.min(0).values - FOCUS_MARGIN_M, focus_xy.max(0).values + FOCUS_MARGIN_M
+    grow = (FOCUS_MIN_M - (f_hi - f_lo)).clamp_min(0) / 2
+    f_lo, f_hi = torch.maximum(f_lo - grow, lo), torch.minimum(f_hi + grow, hi)
     present = scenario.valid[0].any(-1) | record.candidate_valid.any(0).any(-1)
     ids = scenario.agent_ids[0] if scenario.agent_ids else tuple(str(a) for a in range(scenario.num_agents))
     agents = []
@@ -97,6 +109,8 @@ def item_base(record: ContextRecord) -> dict[str, Any]:
         "agents": agents,
         "view": {"x0": world_view[0] - centre[0], "x1": world_view[1] - centre[0],
                  "y0": world_view[2] - centre[1], "y1": world_view[3] - centre[1]},
+        "focus": {"x0": float(f_lo[0]) - centre[0], "x1": float(f_hi[0]) - centre[0],
+                  "y0": float(f_lo[1]) - centre[1], "y1": float(f_hi[1]) - centre[1]},
         "map": map_image(record, world_view),
         "history": _track(history_states, history_valid, centre),
         "futures": [_track(record.candidates[k], record.candidate_valid[k], centre)
@@ -104,11 +118,17 @@ def item_base(record: ContextRecord) -> dict[str, Any]:
     }
 
 
+def playback_seconds(payload: dict[str, Any]) -> float:
+    """How long one play-through of an item takes at 1x speed (s): the shown history and the future."""
+    return float((payload["history_steps"] + payload["future_steps"] - 1) * payload["dt"])
+
+
 def item_payload(base: dict[str, Any], assignment: Assignment, progress: dict[str, int]) -> dict[str, Any]:
     """The page's view of one item for one annotator: candidates in their shuffled display order."""
     out = {k: v for k, v in base.items() if k != "futures"}
     out["candidates"] = [{"slot": slot + 1, **base["futures"][index]}
                          for slot, index in enumerate(assignment.permutation)]
-    out.update({"position": assignment.position, "status": assignment.status, "answer": assignment.slot,
+    answer: int | str | None = "tie" if assignment.slot == -1 else assignment.slot
+    out.update({"position": assignment.position, "status": assignment.status, "answer": answer,
                 "skip_reason": assignment.skip_reason, "progress": progress, "done": False})
     return out
