@@ -1,8 +1,8 @@
 """``RewardConfig``: everything :class:`~trafficrlhf_sdk.reward.trainer.RewardTrainer` needs, in one frozen model.
 
 Fields are grouped as in TRL's ``RewardConfig``: the model, the loss, optimisation, early stopping, the
-ensemble and logging. Defaults train the paper's architecture on 400 contexts (1,600 pairs) of a feedback
-campaign in about a minute on two CPU cores and reach the accuracies in ``docs/explanation/reward-model.md``.
+ensemble and logging. Defaults train the paper's architecture on a feedback campaign of a few hundred
+contexts (``benchmarks/bench_reward_training.py`` times them).
 """
 
 from __future__ import annotations

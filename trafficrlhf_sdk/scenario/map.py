@@ -41,8 +41,8 @@ class MapRaster:
     - ``raster`` uint8 ``(R, C, H, W)``: 1 where the layer is present, 0 elsewhere (and in padding). Without
       ``rows``, R = B and scene b reads row b.
     - ``rows`` int64 ``(B,)`` or None: the raster row each scene reads. Scenes cut from the same map share a row:
-      ``index`` and ``repeat_scenes`` select rows and never copy pixels (16 nuScenes contexts repeated for 8
-      samples hold 47 MB of rasters instead of 379 MB, ``benchmarks/bench_map_rows.py``). Read pixels through
+      ``index`` and ``repeat_scenes`` select rows and never copy pixels (``benchmarks/bench_map_rows.py`` measures
+      what that saves). Read pixels through
       :meth:`lookup`, :meth:`lookup_points`, :meth:`layer`, :meth:`gather_pixels`, :meth:`scene_raster` or
       ``models.features.map_crops``; :meth:`dense` gives one row per scene.
     - ``world_to_pixel`` float32 ``(B, 3, 3)``: affine map from scene-frame metres to *fractional pixel

@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--neighbour-plan-steps", type=int, nargs="*", default=[], metavar="STEP",
                         help="Interaction: condition on the neighbours' planned positions this many steps ahead "
                              "(e.g. 10 20 30 40); the adapter then samples a proposal pass and a conditioned "
-                             "pass. Default: none (the committed layout).")
+                             "pass. Default: none (the bundled checkpoints' layout).")
     parser.add_argument("--plan-dropout-all", type=float, default=0.5,
                         help="With --neighbour-plan-steps: share of training windows that see no neighbour plan.")
     parser.add_argument("--plan-dropout-each", type=float, default=0.2,
