@@ -167,8 +167,7 @@ class TrafficModelAdapter(abc.ABC):
         """How :meth:`plan` would rank the samples of ``output`` (drawn from ``context``): ``(scores (B, S, A),
         k)``, higher executed first, for a planner that draws ``k`` samples and executes the best scored (per
         agent, or one index per scene when the scores are equal over a scene's agents). None (the default): the
-        planner executes what :meth:`sample` draws, with no selection to credit. Used by
-        ``AlignConfig.selection_credit``."""
+        planner executes what :meth:`sample` draws, with no selection to credit."""
         return None
 
     # ------------------------------------------------------------ policy

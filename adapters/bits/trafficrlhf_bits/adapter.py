@@ -20,8 +20,8 @@
 * Only the goal network is offered for training (``goal_encoder``, ``goal_decoder``); the policy's parameters
   have ``requires_grad=False`` and are never offered.
 * :meth:`selection_scores` ranks the samples of ``sample`` as ``plan`` would (the same score, the other agents'
-  most likely goals as predictions, progress measured along the current heading in the scene frame), for
-  ``AlignConfig.selection_credit``: PPO then credits each goal with its best-of-``plan_samples`` return.
+  most likely goals as predictions, progress measured along the current heading in the scene frame), so a
+  trainer can credit each goal with its best-of-``plan_samples`` return.
 * Stationary agents (|v| <= ``stationary_speed``) are held still, as the ``ctg`` adapter and upstream do, decided
   by ``stationary_rule`` (upstream's ``"rollout_start"``: once, from the speeds at ``reset``; a direct ``sample``
   call treats its context's current step as the start); their goal is still sampled and scored, so ``log_prob``
