@@ -468,7 +468,7 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
 
 def test_follow_options_start_the_head_braking_and_set_its_desired_gap(gated_head: str) -> None:
     """``follow_brake`` sets a new head's output bias (weights stay zero); ``follow_standstill`` / ``follow_headway``
-    override the desired gap (a new head: 1.5 m + 0.5 s, the logged 5 % calibration); each refuses to act without
+    override the desired gap (a new head: 1.5 m + 0.5 s); each refuses to act without
     the head it configures, naming the option."""
     from trafficrlhf_ctg import CTGAdapter
 
