@@ -1,6 +1,6 @@
-"""What shared raster rows save: 16 nuScenes train contexts, each repeated for 8 samples (the alignment recipe's
-128 futures per epoch), their maps held as shared rows (``MapRaster.rows``, what ``repeat_scenes`` gives) against
-one copied row per scene (``MapRaster.dense()``, what ``repeat_scenes`` did before session 52).
+"""What shared raster rows save: 16 nuScenes train contexts, each repeated for 8 samples (an alignment epoch's 128
+futures), their maps held as shared rows (``MapRaster.rows``, what ``repeat_scenes`` gives) against one copied row
+per scene (``MapRaster.dense()``).
 
 Prints, for each layout: the seconds to repeat the contexts, the raster megabytes held, and the seconds of the
 map reads every epoch makes on the repeated batch (``map_crops`` of every agent at 48 px, the off-road lookup of

@@ -1,9 +1,11 @@
 """Reward-model training time: 400 contexts x 4 pairs (about 1,600 pairs), default ``RewardConfig``, 2 cores.
 
-Data: the train-split campaign of ``scripts/train_reward_model.sh`` (CTG + no-collision guidance, 5 candidates
-of 5 s; nuScenes, CC BY-NC-SA 4.0) labeled by its noisy synthetic annotator, the first 400 contexts of the
-export's "train" side. Without that database (``--db``), the model-free tiny campaign of
-``trafficrlhf_sdk.testing.feedback`` stands in (400 contexts of three cars; shorter, 3 s candidates).
+Data: the campaign database behind the bundled reward model ``reference_models/reward/ctg_no_collision``
+(``--db``): campaign ``ctg-nc-train``, CTG + no-collision candidates (``trafficrlhf feedback create --model ctg
+--guidance no_collision --candidates 5 --seconds 5``) on every long-enough nuScenes train scene (CC BY-NC-SA 4.0),
+labeled by the noisy synthetic annotator ``synth-noisy`` (``trafficrlhf feedback label --synthetic --beta 20
+--epsilon 0.1``); the first 400 contexts of the export's "train" side. Without that database the model-free tiny
+campaign of ``trafficrlhf_sdk.testing.feedback`` stands in (400 contexts of three cars; shorter, 3 s candidates).
 
 Times the featurization (every future once) and the training itself: the paper's 512-512-512-128-32 MLP, up
 to ``max_epochs`` with early stopping on the held-out contexts. Target: <= 60 s for training.

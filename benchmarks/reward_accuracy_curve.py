@@ -1,11 +1,14 @@
 """Reward-model accuracy vs number of labeled training contexts (the paper's Figure 3), with spread over seeds.
 
-Data: the campaigns of ``scripts/train_reward_model.sh`` (CTG + no-collision guidance, 5 candidates of 5 s per
-context; nuScenes, CC BY-NC-SA 4.0). Training contexts come from the train-split campaign labeled by the noisy
-synthetic annotator (B-Pref style); the contexts of that campaign that the export marks "val" are the
-early-stopping set. Accuracy is measured on the held-out val-split campaign labeled by the noise-free annotator
-(beta -> inf, epsilon = 0): the share of its pairs with r(S_w) > r(S_l), over the pairs whose winner is strictly
-more realistic under the annotator's hidden judgment (ties carry no preference), and also over all its pairs.
+Data: the campaign database behind the bundled reward model ``reference_models/reward/ctg_no_collision``
+(``--db``): CTG + no-collision candidates (``trafficrlhf feedback create --model ctg --guidance no_collision
+--candidates 5 --seconds 5``) on every long-enough nuScenes train scene (campaign ``ctg-nc-train``) and on the
+first 100 val scenes (``ctg-nc-val``); nuScenes, CC BY-NC-SA 4.0. Training contexts come from the train-split
+campaign labeled by the noisy synthetic annotator (B-Pref style); the contexts of that campaign that the export
+marks "val" are the early-stopping set. Accuracy is measured on the held-out val-split campaign labeled by the
+noise-free annotator (beta -> inf, epsilon = 0): the share of its pairs with r(S_w) > r(S_l), over the pairs whose
+winner is strictly more realistic under the annotator's hidden judgment (ties carry no preference), and also over
+all its pairs.
 
 Every future is featurized once; each (size, seed) run trains a fresh single model (default ``RewardConfig``;
 smaller batches and more epochs for small sizes) on the first ``size`` contexts of a seeded permutation of the
