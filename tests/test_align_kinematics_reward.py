@@ -138,19 +138,22 @@ def test_num_samples_keeps_the_first_future_samples_only() -> None:
         RealismReward(kinematics_weight=0.5, kinematics_samples=0)
 
 
-def test_every_builtin_reward_builds_and_is_named_in_the_help() -> None:
+def test_every_builtin_reward_builds_and_is_listed_by_the_plugins_command() -> None:
     from click.testing import CliRunner
 
-    from trafficrlhf_sdk.alignment import rewards
     from trafficrlhf_sdk.cli import get_cli
-    from trafficrlhf_sdk.cli.align_commands import BUILTIN_REWARDS
+    from trafficrlhf_sdk.plugins import registry
+    from trafficrlhf_sdk.reward import builtin
 
-    for name, (class_name, defaults) in BUILTIN_REWARDS.items():
+    names = registry("rewards").names()
+    assert {"failure", "failure-margins", "realism-margins", "random"} <= set(names)
+    for name in names:
         reward = load_reward(f"builtin:{name}")
-        assert type(reward) is getattr(rewards, class_name)
-        assert all(getattr(reward, key) == value for key, value in defaults.items() if hasattr(reward, key))
-    help_text = "".join(CliRunner().invoke(get_cli(), ["align", "--help"]).output.split())  # click wraps at "-"
-    for name in BUILTIN_REWARDS:
-        assert f"builtin:{name}" in help_text
-    with pytest.raises(TrafficRLHFError, match="builtin:realism-heading"):
+        assert isinstance(reward, (builtin.FailureReward, builtin.RandomReward))
+        assert callable(reward.step_rewards)
+    assert load_reward("builtin:collision").offroad is False
+    assert load_reward("builtin:realism-kinematics").kinematics_weight == 0.5
+    listing = CliRunner().invoke(get_cli(), ["plugins", "--json"]).output
+    assert all(name in listing for name in names)
+    with pytest.raises(TrafficRLHFError, match="builtin:realism-margins"):
         load_reward("builtin:no-such-reward")

@@ -5,7 +5,6 @@
 - :func:`average_checkpoints`: the weight average of several aligned runs (a model soup), e.g. training seeds.
 - :func:`extrapolate_checkpoint`: base + factor x (aligned - base), past the aligned weights (ExPO) or back
   towards the base (WiSE-FT).
-- :func:`graft_checkpoint`: one checkpoint's module (e.g. a CTG steering head) on another checkpoint's weights.
 - :class:`TrafficRLHFEnv`: the closed-loop simulator as a Gymnasium environment with the reward model as reward,
   for stable-baselines3 agents (imported lazily: it needs ``gymnasium``).
 """
@@ -15,32 +14,38 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from trafficrlhf_sdk.alignment.averaging import average_checkpoints, extrapolate_checkpoint, graft_checkpoint
+from trafficrlhf_sdk.alignment.averaging import average_checkpoints, extrapolate_checkpoint
 from trafficrlhf_sdk.alignment.config import PAPER_ALPHA, AlignConfig, paper_alpha
 from trafficrlhf_sdk.alignment.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
 
 __all__ = ["PAPER_ALPHA", "AlignConfig", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
-           "average_checkpoints", "extrapolate_checkpoint", "graft_checkpoint", "paper_alpha", "scenario_scores"]
+           "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "scenario_scores"]
 
 
-def align(model: Any, reward_model: Any, alpha: float = 0.3, *, scenes: Any = None, eval_scenes: Any = None,
-          reference: Any = None, callback: Callable[[int, dict[str, float]], bool | None] | None = None,
-          **config: Any) -> AlignResult:
+def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: Any = None, reference: Any = None,
+          callback: Callable[[int, dict[str, float]], bool | None] | None = None, **config: Any) -> AlignResult:
     """Fine-tune ``model`` (an adapter, or the name of a registered traffic model) against ``reward_model``.
 
-    ``alpha`` weighs the PPO surrogate against the model's imitation loss (paper: CTG 0.1, BITS 0.5,
-    TrafficGen 0.3); every other :class:`AlignConfig` field can be passed as a keyword (e.g. ``epochs=70,
-    guidance="no_collision", groups=("decoder",), output_dir="out/ctg"``). ``scenes`` replaces the source's
-    training split; ``eval_scenes`` (with ``eval_every``) the held-out scenes; ``reference`` the frozen model
-    the KL terms hold the policy to (None: ``model`` as it starts). The adapter is updated in place and
-    returned with the per-epoch history.
+    ``reward_model``: a reward model object, a saved reward-model folder, or ``"builtin:NAME"`` (a hand-written
+    baseline). ``alpha`` weighs the PPO surrogate against the model's imitation loss; None takes the paper's
+    value for the model (CTG 0.1, BITS 0.5, TrafficGen 0.3; 0.3 otherwise), as ``trafficrlhf align`` does. Every
+    other :class:`AlignConfig` field can be passed as a keyword (e.g. ``epochs=70, guidance="no_collision",
+    groups=("decoder",), output_dir="out/ctg"``). ``scenes`` replaces the source's training split; ``reference``
+    the frozen model the KL terms hold the policy to (None: ``model`` as it starts). The adapter is updated in
+    place and returned with the per-epoch history.
     """
     if isinstance(model, str):
         from trafficrlhf_sdk import get_traffic_model
 
         model = get_traffic_model(model)
+    if isinstance(reward_model, str):
+        from trafficrlhf_sdk.reward.loading import load_reward
+
+        reward_model = load_reward(reward_model)
+    if alpha is None:
+        alpha = paper_alpha(str(getattr(model, "name", "") or ""))
     trainer = AlignTrainer(model, reward_model, AlignConfig(alpha=alpha, **config), scenes=scenes,
-                           eval_scenes=eval_scenes, reference=reference)
+                           reference=reference)
     history = trainer.train(callback)
     return AlignResult(model, history)
 

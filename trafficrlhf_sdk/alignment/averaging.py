@@ -1,22 +1,16 @@
 """Weight averaging (a "model soup", Wortsman et al. 2022) and extrapolation (ExPO) of aligned checkpoints.
 
 Runs fine-tuned from the same starting weights with different seeds often end close together in weight space,
-and then their elementwise mean scores at least as well as the average run and varies less: on nuScenes val,
-CTG seeds at 0.1292 / 0.1425 / 0.1273 averaged to 0.1190. Not always: for TrafficGen, whose six modes are trained
-winner-takes-all, one average of two seeds (0.2035) was worse than either seed (0.1795 / 0.1793), so evaluate
-an average on held-out scenes before using it (docs/explanation/alignment-log.md).
+and then their elementwise mean scores at least as well as the average run and varies less; not always (a
+multi-modal decoder trained winner-takes-all may average badly), so evaluate an average on held-out scenes
+before using it.
 
 :func:`extrapolate_checkpoint` moves further along the direction alignment took: base + factor x (aligned - base),
-optionally plus weighted changes of later fine-tuning stages (``directions``).
-Factors in [0, 1) interpolate back towards the base (WiSE-FT); factors above 1 extrapolate past the aligned
-weights (ExPO, Zheng et al. 2024, "Weak-to-Strong Extrapolation Expedites Alignment"). PPO with a KL term and an
-imitation loss stops short of where the reward points; on nuScenes the aligned TrafficGen extrapolated with factor
-2 failed 0.1199 on val against 0.1537 unextrapolated and 0.2417 for its base. Choose the factor on held-out scenes
-(``scripts/extrapolation_sweep.py``): too far and the model leaves the region where its imitation loss holds.
-
-:func:`graft_checkpoint` puts one checkpoint's module (tensors under a name prefix, e.g. a CTG steering head
-``steer.``) onto another checkpoint of the same architecture: a head trained on one body, reused on a body
-fine-tuned separately.
+optionally plus weighted changes of later fine-tuning stages (``directions``). Factors in [0, 1) interpolate back
+towards the base (WiSE-FT); factors above 1 extrapolate past the aligned weights (ExPO, Zheng et al. 2024,
+"Weak-to-Strong Extrapolation Expedites Alignment"): PPO with a KL term and an imitation loss stops short of where
+the reward points. Choose the factor on held-out scenes: too far and the model leaves the region where its
+imitation loss holds.
 
 Works on any adapter checkpoint written by ``save_pretrained`` (``config.json`` + ``model.safetensors``); the
 SDK never looks inside the tensors beyond their names, shapes and dtypes.
@@ -36,12 +30,10 @@ from safetensors.torch import save_file
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.scenario.io import safe_load_file
 
-__all__ = ["AVERAGE_FILE", "EXTRAPOLATE_FILE", "GRAFT_FILE", "average_checkpoints", "extrapolate_checkpoint",
-           "graft_checkpoint"]
+__all__ = ["AVERAGE_FILE", "EXTRAPOLATE_FILE", "average_checkpoints", "extrapolate_checkpoint"]
 
 AVERAGE_FILE = "averaged_from.json"  # provenance: the source folders and their weights
 EXTRAPOLATE_FILE = "extrapolated_from.json"  # provenance: base, aligned and the factor
-GRAFT_FILE = "grafted_from.json"  # provenance: body, part and the prefixes taken from the part
 
 
 def _read(directory: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
@@ -153,51 +145,6 @@ def extrapolate_checkpoint(base_dir: str, aligned_dir: str, output_dir: str, fac
     if terms:
         record["directions"] = [{"from": a, "to": b, "weight": float(w)} for a, b, w in terms]
     _write(output_dir, _merged(configs), base, moved, "extrapolation", EXTRAPOLATE_FILE, record)
-    return output_dir
-
-
-def graft_checkpoint(body_dir: str, part_dir: str, output_dir: str, prefixes: Sequence[str] = ("steer.",)) -> str:
-    """Write ``body_dir``'s weights with every tensor whose name starts with one of ``prefixes`` taken from
-    ``part_dir`` (added where the body has none) to ``output_dir``; returns it.
-
-    Args:
-        body_dir: the checkpoint that gives every other tensor (e.g. a fully fine-tuned model without a head).
-        part_dir: the checkpoint that gives the prefixed tensors and the config (e.g. a steered model whose head
-            was trained on another body); the same adapter, and outside the prefixes the same tensor names,
-            shapes and dtypes as the body.
-        output_dir: where ``config.json`` (the part's), ``model.safetensors`` and ``grafted_from.json`` go (not one
-            of the inputs).
-        prefixes: tensor-name prefixes taken from the part; at least one of its tensors must match.
-
-    Tensors are copied bitwise; nothing is recomputed.
-    """
-    prefixes = tuple(str(p) for p in prefixes)
-    if not prefixes or any(not p for p in prefixes):
-        raise TrafficRLHFError(f"`prefixes` is {list(prefixes)}; give non-empty tensor-name prefixes such as 'steer.'.")
-    if os.path.abspath(output_dir) in {os.path.abspath(body_dir), os.path.abspath(part_dir)}:
-        raise TrafficRLHFError(f"`output_dir` {output_dir!r} is one of the inputs; write the result elsewhere.")
-    body_config, body = _read(body_dir)
-    part_config, part = _read(part_dir)
-    if body_config.get("adapter") != part_config.get("adapter"):
-        raise DataFormatError(f"{body_dir!r} holds adapter {body_config.get('adapter')!r} weights but {part_dir!r} "
-                              f"{part_config.get('adapter')!r}; graft only within one adapter.")
-    taken = {name: t for name, t in part.items() if name.startswith(prefixes)}
-    if not taken:
-        raise DataFormatError(f"{part_dir!r} has no tensor whose name starts with {list(prefixes)}; name the "
-                              "prefix of the module to take (e.g. 'steer.').")
-    kept = {name: t for name, t in body.items() if not name.startswith(prefixes)}
-    rest = {name: t for name, t in part.items() if not name.startswith(prefixes)}
-    if kept.keys() != rest.keys():
-        extra = sorted(kept.keys() ^ rest.keys())[:5]
-        raise DataFormatError(f"outside {list(prefixes)}, {body_dir!r} and {part_dir!r} hold different tensors "
-                              f"(e.g. {extra}); graft between checkpoints of one architecture.")
-    for name, tensor in kept.items():
-        if tensor.shape != rest[name].shape or tensor.dtype != rest[name].dtype:
-            raise DataFormatError(f"tensor {name!r} is {tuple(tensor.shape)} {tensor.dtype} in {body_dir!r} but "
-                                  f"{tuple(rest[name].shape)} {rest[name].dtype} in {part_dir!r}.")
-    combined = {**kept, **taken}
-    record = {"body": str(body_dir), "part": str(part_dir), "prefixes": list(prefixes)}
-    _write(output_dir, part_config, combined, combined, "graft", GRAFT_FILE, record)
     return output_dir
 
 

@@ -1,6 +1,6 @@
 """Checkpoints of an :class:`~trafficrlhf_sdk.alignment.AlignTrainer` run (``output_dir/checkpoints/checkpoint-N``):
 the adapter's weights (``save_pretrained``), the optimizer state as safetensors and ``trainer_state.json``
-(epochs done, history, optimizer hyper-parameters, RNG state, the held-out best and the reused failure drive),
+(epochs done, history, optimizer hyper-parameters, RNG state),
 enough for a resumed run to match an uninterrupted one."""
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from typing import Any
 import torch
 from safetensors.torch import save_file
 
-from trafficrlhf_sdk.alignment.contexts import FailureDrive
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario.io import safe_load_file
 
@@ -21,22 +20,18 @@ __all__ = ["TrainerCheckpoints"]
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
-BEST_FILE = "best_model.safetensors"  # weights of the best held-out evaluation so far (keep_best)
-DRIVE_FILE = "failure_drive.safetensors"  # the failure run reused by later epochs (failure_refresh_every > 1)
+SAVE_TOTAL_LIMIT = 2  # checkpoints kept; older ones are deleted
 
 
 class TrainerCheckpoints:
     """Saving and restoring a trainer's state; mixed into :class:`~trafficrlhf_sdk.alignment.AlignTrainer`, whose
-    ``model``, ``optimizer``, ``config``, ``group_names``, ``history``, ``held_out``, ``context_sampler`` and
-    ``start_epoch`` it reads and writes."""
+    ``model``, ``optimizer``, ``config``, ``group_names``, ``history`` and ``start_epoch`` it reads and writes."""
 
     model: Any
     optimizer: torch.optim.Optimizer
     config: Any
     group_names: list[str]
     history: list[dict[str, float]]
-    held_out: Any
-    context_sampler: Any
     start_epoch: int
 
     def _checkpoint_root(self) -> str | None:
@@ -62,12 +57,6 @@ class TrainerCheckpoints:
                 else:
                     scalars[f"{index}.{key}"] = value
         save_file(tensors, os.path.join(tmp, OPTIMIZER_FILE), metadata={"format": "pt"})
-        if self.held_out is not None and self.held_out.best_state is not None:
-            save_file({k: v.contiguous() for k, v in self.held_out.best_state.items()},
-                      os.path.join(tmp, BEST_FILE), metadata={"format": "pt"})
-        drive = self.context_sampler.failure_drive
-        if drive is not None and self.config.failure_refresh_every > 1:
-            save_file(drive.to_tensors(), os.path.join(tmp, DRIVE_FILE), metadata={"format": "pt"})
         payload = {
             "epochs_done": epochs_done,
             "groups": list(self.group_names),
@@ -76,16 +65,13 @@ class TrainerCheckpoints:
             "optimizer_param_groups": state["param_groups"],
             "optimizer_scalars": scalars,
             "torch_rng_state": torch.get_rng_state().tolist(),
-            "held_out": None if self.held_out is None else self.held_out.state(),
         }
         with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
             json.dump(payload, handle, indent=1)
         shutil.rmtree(final, ignore_errors=True)
         os.replace(tmp, final)
-        limit = self.config.save_total_limit
-        if limit is not None:
-            for old in self.list_checkpoints()[:-limit]:
-                shutil.rmtree(old, ignore_errors=True)
+        for old in self.list_checkpoints()[:-SAVE_TOTAL_LIMIT]:
+            shutil.rmtree(old, ignore_errors=True)
         return final
 
     def list_checkpoints(self) -> list[str]:
@@ -121,11 +107,3 @@ class TrainerCheckpoints:
         torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
         self.history = list(payload["history"])
         self.start_epoch = int(payload["epochs_done"])
-        best = payload.get("held_out")
-        if self.held_out is not None and best and best.get("best_epoch") is not None:
-            self.held_out.best_epoch = int(best["best_epoch"])
-            self.held_out.best_failure_rate = float(best["best_failure_rate"])
-            self.held_out.best_state, _ = safe_load_file(os.path.join(directory, BEST_FILE))
-        drive_file = os.path.join(directory, DRIVE_FILE)
-        if os.path.isfile(drive_file):
-            self.context_sampler.failure_drive = FailureDrive.from_tensors(safe_load_file(drive_file)[0])

@@ -33,9 +33,6 @@ class Rollout:
     rewards: torch.Tensor  # (B, S) scene rewards; with credit="agent" the mean over the sampled agents
     advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
-    winners: ScenarioTensor | None = None  # best sample per context (agent) as a scene, winner_coef > 0 only
-    imitation: ScenarioTensor | None = None  # windows the imitation loss learns from; None: ``logged``
-    anchor: tuple[ScenarioTensor, PolicyTrace] | None = None  # uniform log contexts and their samples (anchor_coef)
     passing: torch.Tensor | None = None  # (B, A) sampled agents none of whose samples fails (passing_anchor_coef)
 
 
@@ -120,12 +117,8 @@ class PPOUpdate:
         passing = rollout.passing if cfg.passing_anchor_coef > 0 else None
         if self.reference is not None and (cfg.kl_coef > 0 or passing is not None):
             ref = self._log_probs(self.reference, rollout.contexts, rollout.trace, first)
-        anchor_ref = None
-        if rollout.anchor is not None and self.reference is not None and cfg.anchor_coef > 0:
-            anchor_ref = self._log_probs(self.reference, *rollout.anchor, first)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
-                                                         "clip_fraction", "kl_ref", "grad_norm",
-                                                         "winner_loss", "anchor_kl", "passing_kl")}
+                                                         "clip_fraction", "kl_ref", "grad_norm", "passing_kl")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -143,15 +136,9 @@ class PPOUpdate:
                 loss = -cfg.alpha * surrogate
                 if cfg.imitation_coef > 0:
                     torch.manual_seed(derived_seed(cfg.seed, epoch, "imitation", p, j))
-                    windows = rollout.logged if rollout.imitation is None else rollout.imitation
-                    imitation = self.model.imitation_loss(windows[idx])
+                    imitation = self.model.imitation_loss(rollout.logged[idx])
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
-                if rollout.winners is not None and cfg.winner_coef > 0:
-                    torch.manual_seed(derived_seed(cfg.seed, epoch, "winners", p, j))
-                    winner_loss = self.model.imitation_loss(rollout.winners[idx])
-                    loss = loss + cfg.winner_coef * winner_loss
-                    stats["winner_loss"].append(float(winner_loss.detach()))
                 if ref is not None:
                     # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
                     # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
@@ -165,14 +152,6 @@ class PPOUpdate:
                         passing_kl = _masked_mean(k3, _entry_mask(new, passing[idx]))
                         loss = loss + cfg.passing_anchor_coef * passing_kl
                         stats["passing_kl"].append(float(passing_kl.detach()))
-                if anchor_ref is not None and rollout.anchor is not None:
-                    anchor_contexts, anchor_trace = rollout.anchor
-                    anchor_trace = _select_trace(anchor_trace, idx)
-                    current = self._steps(self.model.log_prob(anchor_contexts[idx], anchor_trace))
-                    d = (anchor_ref[idx] - current).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
-                    anchor_kl = _masked_mean(torch.exp(d) - 1 - d, _entry_mask(current, anchor_trace.agents))
-                    loss = loss + cfg.anchor_coef * anchor_kl
-                    stats["anchor_kl"].append(float(anchor_kl.detach()))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 grads = [p.grad for p in self.trainable if p.grad is not None]

@@ -62,8 +62,9 @@ def _fmt(value: float | None) -> str:
 
 
 @cli.command("evaluate")
-@click.option("--model", "model", default="constant_velocity", show_default=True,
-              help="Registered traffic model or built-in policy (see `trafficrlhf plugins`).")
+@click.option("--model", "model", default=None,
+              help="Registered traffic model or built-in policy (see `trafficrlhf plugins`) [default: the one "
+                   "--checkpoint was saved by].")
 @click.option("--source", default="nuscenes_pred", show_default=True, help="Registered scenario source.")
 @click.option("--split", default="val", show_default=True, help="Split of the source.")
 @click.option("--root", default=None, help="Data directory of the source (default: ../shared/data/...).")
@@ -72,7 +73,8 @@ def _fmt(value: float | None) -> str:
 @click.option("--scene-id", "scene_id", multiple=True,
               help="Evaluate only this scene (repeatable), e.g. one that `--worst-scenes` listed; overrides --scenes.")
 @click.option("--guidance", default=None, help="Guidance name(s), comma separated, for models that support it.")
-@click.option("--checkpoint", default=None, help="Weights directory for models that load one.")
+@click.option("--checkpoint", default=None,
+              help="Weights: a folder, or a bundled checkpoint's name such as ctg-aligned (`trafficrlhf plugins`).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
 @click.option("--seeds", "seed_list", default=None,
               help="Comma-separated seeds, e.g. 0,1,2,3,4,5: one run per seed (in --out/seed_S), then their mean "
@@ -92,7 +94,7 @@ def _fmt(value: float | None) -> str:
               help="Traffic-model option (JSON value), repeatable, e.g. stationary_rule=every_replan or "
                    "plan_samples=8 (the adapter's Options class lists them).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
-def evaluate_command(model: str, source: str, split: str, root: str | None, num_scenes: int,
+def evaluate_command(model: str | None, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,
                      checkpoint: str | None, seed: int, seed_list: str | None, batch_size: int, out_dir: str | None,
                      reward_model_dir: str | None, worst_scenes: int, render_worst: int, model_options: tuple[str, ...],
@@ -123,6 +125,7 @@ def evaluate_command(model: str, source: str, split: str, root: str | None, num_
     # build the model first: a bad --model/--guidance fails before any data is read
     extra = parse_key_values(model_options, "--model-option")
     policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
+    model = model or str(getattr(policy, "name", None) or type(policy).__name__)
     options = {"root": root} if root else {}
     scenario_source = get_scenario_source(source, **options)
     scene_ids = _chosen_scenes(scenario_source.scene_ids(split), scene_id, split) if scene_id else \

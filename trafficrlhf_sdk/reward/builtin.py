@@ -18,7 +18,7 @@ from trafficrlhf_sdk.metrics.geometry import pairwise_collisions, path_gaps
 from trafficrlhf_sdk.metrics.realism import STAT_DT, HistogramSpec, kinematics
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["FailureReward", "PessimisticReward", "RandomReward", "RealismReward", "kinematic_log_ratio",
+__all__ = ["FailureReward", "RandomReward", "RealismReward", "kinematic_log_ratio",
            "time_to_collision"]
 
 
@@ -158,45 +158,6 @@ class RandomReward:
     def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
         """``(B, A)`` values in [-1, 1), one per agent from its states over the window."""
         return self._uniform(scenario.states, scenario.valid, (2,))
-
-
-class PessimisticReward:
-    """Ensemble rewards minus ``beta`` times the members' standard deviation, a guard against reward hacking:
-    where the policy drifts away from the states the reward model was trained on, its bootstrap members
-    disagree and the reward drops.
-
-    Args:
-        ensemble: a :class:`~trafficrlhf_sdk.reward.RewardEnsemble` (anything with ``members``, each offering
-            ``score``/``forward``, ``step_rewards`` and ``agent_scores``).
-        beta: weight of the standard deviation (0: the plain ensemble mean).
-    """
-
-    def __init__(self, ensemble: object, beta: float) -> None:
-        members = getattr(ensemble, "members", None)
-        if members is None or len(members) < 2:
-            raise TrafficRLHFError("`ensemble` needs at least two members for a pessimistic reward (a reward-model "
-                                   f"ensemble folder); got {type(ensemble).__name__} with "
-                                   f"{0 if members is None else len(members)}.")
-        if beta < 0:
-            raise TrafficRLHFError(f"`beta` is {beta}; use beta >= 0.")
-        self.members = list(members)
-        self.beta = beta
-
-    def _combine(self, values: list[torch.Tensor]) -> torch.Tensor:
-        stacked = torch.stack(values)
-        return stacked.mean(0) - self.beta * stacked.std(0)
-
-    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Scenario rewards ``(B,)``."""
-        return self._combine([m(scenario) for m in self.members])
-
-    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Per-step rewards ``(B, T)``."""
-        return self._combine([m.step_rewards(scenario) for m in self.members])
-
-    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Per-agent rewards ``(B, A)``."""
-        return self._combine([m.agent_scores(scenario) for m in self.members])
 
 
 class RealismReward(FailureReward):

@@ -1,0 +1,111 @@
+"""``AlignRecipe``: everything one alignment run needs, as one TOML file (``trafficrlhf align --config FILE``).
+
+A recipe names the traffic model and its starting weights, the reward, the adapter options and the
+:class:`~trafficrlhf_sdk.alignment.AlignConfig` fields (table ``[align]``); command-line options override it::
+
+    model = "ctg"
+    checkpoint = "ctg-4s"                  # a folder or a bundled checkpoint's name
+    reward_model = "out/rm"                # a reward-model folder, or builtin:NAME (a hand-written baseline)
+    model_options = { steer_road = true }
+
+    [align]
+    guidance = "no_collision"
+    epochs = 70
+    credit = "agent"
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import tomllib
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from trafficrlhf_sdk.alignment.config import AlignConfig, paper_alpha
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
+
+__all__ = ["AlignRecipe", "run_recipe"]
+
+
+class AlignRecipe(BaseModel):
+    """One alignment run: model, starting weights, reward and :class:`AlignConfig` fields."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: str | None = Field(None, description="Registered traffic model; None: the one `checkpoint` was saved by.")
+    checkpoint: str | None = Field(None, description="Starting weights: a folder or a bundled checkpoint's name "
+                                                     "(None: the model's bundled default).")
+    reward_model: str = Field(description="A reward-model folder (`trafficrlhf rm train`), or builtin:NAME for a "
+                                          "hand-written baseline reward.")
+    reward_options: dict[str, Any] = Field(default_factory=dict, description="Keyword arguments of a built-in "
+                                                                              "reward.")
+    model_options: dict[str, Any] = Field(default_factory=dict, description="Adapter options while training.")
+    threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
+    align: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields; `alpha` defaults to the "
+                                                                    "paper's value for the model.")
+
+    @classmethod
+    def load(cls, path: str) -> AlignRecipe:
+        """Read and validate a TOML recipe; errors name the file."""
+        if not os.path.isfile(path):
+            raise DataNotFoundError(f"--config {path!r}: no such file; give a TOML recipe (see "
+                                    "reference_models/aligned/*/recipe*.toml).")
+        try:
+            with open(path, "rb") as handle:
+                data = tomllib.load(handle)
+        except tomllib.TOMLDecodeError as exc:
+            raise DataFormatError(f"--config {path!r}: not valid TOML ({exc}).") from None
+        try:
+            recipe = cls(**data)
+            AlignConfig(**recipe.align)  # fail early, naming the file
+        except ValidationError as exc:
+            raise DataFormatError(f"--config {path!r}: {_one_line(exc)}") from None
+        return recipe
+
+    def config(self, model_name: str, **overrides: Any) -> AlignConfig:
+        """The run's :class:`AlignConfig`: the recipe's fields, then ``overrides`` (None values ignored)."""
+        fields = {**self.align, **{k: v for k, v in overrides.items() if v is not None}}
+        fields.setdefault("alpha", paper_alpha(model_name))
+        return AlignConfig(**fields)
+
+
+def _one_line(exc: ValidationError) -> str:
+    return "; ".join(f"{'.'.join(map(str, e['loc'])) or '<recipe>'}: {e['msg']}" for e in exc.errors())
+
+
+def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[str, Any]:
+    """Build the model and reward of ``recipe``, align, save the model and its history in ``output_dir`` and
+    return a summary (also written as ``align_summary.json``). ``overrides``: AlignConfig fields."""
+    import torch
+
+    from trafficrlhf_sdk.alignment.trainer import AlignTrainer
+    from trafficrlhf_sdk.plugins import build_policy
+    from trafficrlhf_sdk.reward.loading import load_reward
+
+    if recipe.threads is not None:
+        torch.set_num_threads(recipe.threads)
+    reward = load_reward(recipe.reward_model, recipe.reward_options)
+    seed = overrides.get("seed", recipe.align.get("seed", 0))
+    adapter = build_policy(recipe.model, {**recipe.model_options, "checkpoint": recipe.checkpoint, "seed": seed})
+    if not hasattr(adapter, "parameter_groups"):
+        raise TrafficRLHFError(f"{recipe.model!r} is not a trainable traffic model (no parameter groups).")
+    name = str(getattr(adapter, "name", None) or recipe.model or "")
+    config = recipe.config(name, output_dir=output_dir, **overrides)
+    torch.manual_seed(config.seed)
+    start = time.perf_counter()
+    trainer = AlignTrainer(adapter, reward, config)
+    history = trainer.train()
+    wall = time.perf_counter() - start
+    summary = {"model": name, "checkpoint": recipe.checkpoint, "reward_model": recipe.reward_model,
+               "reward_options": recipe.reward_options, "model_options": recipe.model_options,
+               "alpha": config.alpha, "epochs": len(history), "groups": list(trainer.group_names),
+               "wall_time_s": wall, "threads": torch.get_num_threads(),
+               "reward_first": history[0]["reward_mean"] if history else None,
+               "reward_last": history[-1]["reward_mean"] if history else None}
+    os.makedirs(output_dir, exist_ok=True)
+    with open(os.path.join(output_dir, "align_summary.json"), "w", encoding="utf-8") as handle:
+        json.dump(summary, handle, indent=2)
+    return summary
