@@ -8,12 +8,17 @@
   const CAMPAIGN_KEY = "trafficrlhf.campaign";
   const TRAIL_S = 3.0;        // trail length behind each vehicle (s)
   const HOLD_S = 1.0;         // pause on the last frame before looping (s)
+  const GUIDE_KEY = "trafficrlhf.guidelines.";  // + campaign: the guidelines version last acknowledged
   const COLOURS = { controlled: "#1f5fbf", vehicle: "#f28e2b", pedestrian: "#d62728", cyclist: "#2ca02c",
                     other: "#8c6d31", unset: "#7f7f7f" };
+  const MIN_LENGTH_PX = 14;   // agents are drawn at least this long and wide on screen (CSS px)
+  const MIN_WIDTH_PX = 7;
+  const GAP_PX = 8;
 
   const state = {
-    token: null, campaign: null, item: null, frame: 0, clock: 0, playing: false, lastTick: null,
-    speed: 1, loop: true, busy: false, shownAt: 0, cards: [], mapImage: null,
+    token: null, campaign: null, campaignInfo: null, item: null, frame: 0, clock: 0, playing: false, lastTick: null,
+    speed: 1, loop: true, busy: false, shownAt: 0, cards: [], mapImage: null, played: true, overlay: false,
+    whole: false, freshSignIn: false, guidelines: null,
     zoom: 1, panX: 0, panY: 0, drag: null, dragEnded: false,  // shared by every canvas, so zooming one zooms all
   };
   const ICON_PLAY = '<svg viewBox="0 0 16 16" width="14" height="14"><path d="M4 2v12l10-6z"/></svg>';
@@ -38,7 +43,7 @@
 
   // ------------------------------------------------------------------------------------------ screens
   function show(id) {
-    for (const s of ["login", "picker", "done", "work"]) $(s).classList.toggle("hidden", s !== id);
+    for (const s of ["login", "picker", "guidelines", "done", "work"]) $(s).classList.toggle("hidden", s !== id);
   }
 
   function signOut(message) {
@@ -70,6 +75,7 @@
     const fromUrl = params.get("token");
     if (fromUrl) {  // keep the token out of the address bar and the history
       localStorage.setItem(TOKEN_KEY, fromUrl);
+      state.freshSignIn = true;
       params.delete("token");
       const rest = params.toString();
       history.replaceState(null, "", location.pathname + (rest ? "?" + rest : ""));
@@ -98,17 +104,62 @@
       return;
     }
     state.campaign = chosen;
+    state.campaignInfo = me.campaigns.find((c) => c.name === chosen);
     localStorage.setItem(CAMPAIGN_KEY, chosen);
     $("campaign-name").textContent = chosen;
     $("agreement-link").href = "/agreement?campaign=" + encodeURIComponent(chosen);
     const deepLink = Number(params.get("item"));  // ?item=ID opens that item (e.g. to discuss it)
-    if (deepLink > 0) await loadItem(deepLink); else await loadNext();
+    state.start = () => (deepLink > 0 ? loadItem(deepLink) : loadNext());
+    await loadGuidelines();
+    const version = state.campaignInfo.guidelines_version;
+    $("guidelines-button").classList.toggle("hidden", !version);
+    if (version && (state.freshSignIn || localStorage.getItem(GUIDE_KEY + chosen) !== version)) {
+      $("guidelines-body").innerHTML = window.renderMarkdown(state.guidelines);
+      show("guidelines");
+      $("guidelines-ok").focus();
+      return;
+    }
+    await state.start();
+  }
+
+  async function loadGuidelines() {
+    state.guidelines = null;
+    if (!state.campaignInfo.guidelines_version) return;
+    const g = await api("GET", campaignPath() + "/guidelines");
+    state.guidelines = g.markdown;
+  }
+
+  async function acknowledgeGuidelines() {
+    localStorage.setItem(GUIDE_KEY + state.campaign, state.campaignInfo.guidelines_version);
+    state.freshSignIn = false;
+    await state.start();
+  }
+
+  function openGuidelines() {
+    if (!state.guidelines) { toast("This campaign has no guidelines.", true); return; }
+    play(false);
+    $("guidelines-dialog-body").innerHTML = window.renderMarkdown(state.guidelines);
+    $("guidelines-dialog").showModal();
   }
 
   async function loadNext() {
     const data = await api("GET", campaignPath() + "/next");
     setProgress(data.progress);
-    if (data.done) { state.item = null; state.playing = false; show("done"); return; }
+    if (data.done) {
+      state.item = null; state.playing = false;
+      const texts = {
+        finished: ["All done — thank you!", "Every item of this campaign that needs you is labeled."],
+        qualification_failed: ["Thank you", "Your answers on this campaign's check items did not reach the level it " +
+          "needs, so no further items are assigned to you. Please contact the campaign owner."],
+        qualification_unavailable: ["Please wait", "There is no check item for you right now; the campaign owner " +
+          "has been asked to add some. Try again later."],
+      };
+      const [title, text] = texts[data.reason] || texts.finished;
+      $("done-title").textContent = title;
+      $("done-text").textContent = text;
+      show("done");
+      return;
+    }
     showItem(data);
   }
 
@@ -133,11 +184,7 @@
     $("hist-s").textContent = ((item.history_steps - 1) * item.dt).toFixed(1);
     $("scene-id").textContent = `item ${item.item} · position ${item.position}`;
     const grid = $("grid");
-    grid.style.setProperty("--cols", n <= 5 ? n : Math.ceil(n / 2));
-    const v = item.view;
-    const aspect = Math.min(1.9, Math.max(0.7, (v.y1 - v.y0) / (v.x1 - v.x0)));
-    grid.style.setProperty("--aspect", `1 / ${aspect.toFixed(3)}`);
-    state.zoom = 1; state.panX = 0; state.panY = 0;
+    state.zoom = 1; state.panX = 0; state.panY = 0; state.whole = false;
     grid.innerHTML = "";
     state.cards = item.candidates.map((cand) => {
       const card = document.createElement("div");
@@ -160,11 +207,16 @@
     note.classList.toggle("hidden", item.status === "open");
     if (item.status === "labeled") {
       note.textContent = item.answer === 0 ? "You answered: none realistic — press a key to change it"
+        : item.answer === "tie" ? "You answered: equally realistic — press a key to change it"
         : `You answered: ${item.answer} — press a key to change it`;
     } else if (item.status === "skipped") {
       note.textContent = `You skipped this item (${item.skip_reason}) — choose now to label it`;
     }
     $("forward").classList.toggle("hidden", item.status === "open");
+    $("tie").classList.toggle("hidden", !item.allow_tie);
+    $("tie-help").classList.toggle("hidden", !item.allow_tie);
+    state.played = !item.playback_required || item.status !== "open";
+    updateGate();
     show("work");
     resize();
     state.clock = 0;
@@ -172,15 +224,29 @@
     play(true);
   }
 
+  function updateGate() {
+    const locked = !state.played;
+    $("grid").classList.toggle("locked", locked);
+    $("watch-note").classList.toggle("hidden", !locked);
+    for (const b of document.querySelectorAll(".choice")) b.disabled = locked;
+  }
+
   function markAnswer(slot) {
     for (const c of state.cards) c.card.classList.toggle("chosen", slot !== null && c.cand.slot === slot);
     $("none").classList.toggle("chosen", slot === 0);
+    $("tie").classList.toggle("chosen", slot === "tie");
   }
 
   // ------------------------------------------------------------------------------------------ actions
   async function choose(slot) {
     const item = state.item;
-    if (state.busy || !item || slot < 0 || slot > item.candidates.length) return;
+    if (state.busy || !item) return;
+    if (slot === "tie" ? !item.allow_tie : (slot < 0 || slot > item.candidates.length)) return;
+    if (!state.played) {
+      toast("Watch the futures play through once before choosing.", true);
+      if (!state.playing) play(true);
+      return;
+    }
     state.busy = true;
     markAnswer(slot);
     const body = { choice: slot, time_ms: Math.round(performance.now() - state.shownAt) };
@@ -188,10 +254,10 @@
     try {
       if (item.status === "labeled") {
         await api("PUT", url, body);
-        toast(slot === 0 ? "Changed to: none realistic" : `Changed to: ${slot}`);
+        toast(`Changed to: ${describe(slot)}`);
       } else {
         await api("POST", url, body);
-        toast(slot === 0 ? "Saved: none realistic" : `Saved: ${slot}`);
+        toast(`Saved: ${describe(slot)}`);
       }
       await loadNext();
     } catch (err) {
@@ -202,6 +268,8 @@
       state.busy = false;
     }
   }
+
+  function describe(slot) { return slot === 0 ? "none realistic" : slot === "tie" ? "equally realistic" : String(slot); }
 
   function openSkip() {
     if (!state.item || state.busy) return;
@@ -266,6 +334,7 @@
       const dt = state.item.dt;
       const last = totalFrames() - 1;
       let f = Math.floor(state.clock / dt + 1e-6);
+      if (f >= last && !state.played) { state.played = true; updateGate(); }
       if (f > last) {
         if (!state.loop) { f = last; play(false); }
         else if (state.clock > last * dt + HOLD_S) { state.clock = 0; f = 0; }
@@ -277,13 +346,43 @@
   }
 
   // ------------------------------------------------------------------------------------------ drawing
-  function resize() {
+  function currentView() { return state.whole || !state.item.focus ? state.item.view : state.item.focus; }
+
+  // the panels take all the room left under the header and above the controls: pick the number of columns
+  // that gives the largest drawing scale for the current view
+  function layout() {
+    const item = state.item;
+    if (!item || !state.cards.length) return;
+    const grid = $("grid");
+    const n = state.cards.length;
+    const v = currentView();
+    const vw = v.x1 - v.x0, vh = v.y1 - v.y0;
+    const below = ["transport", "actions", "help"].map((c) => document.querySelector("#work ." + c))
+      .reduce((sum, el) => sum + el.getBoundingClientRect().height + 10, 0);
+    const availW = grid.clientWidth;
+    const availH = Math.max(160, window.innerHeight - grid.getBoundingClientRect().top - below - 12);
+    let best = null;
+    for (let cols = 1; cols <= n; cols++) {
+      const rows = Math.ceil(n / cols);
+      const w = (availW - GAP_PX * (cols - 1)) / cols;
+      const h = (availH - GAP_PX * (rows - 1)) / rows;
+      const scale = Math.min(w / vw, h / vh);
+      if (!best || scale > best.scale + 1e-9) best = { cols, w, h, scale };
+    }
+    const w = Math.floor(Math.min(best.w, best.scale * vw * 1.25));
+    const h = Math.floor(Math.min(best.h, best.scale * vh * 1.25));
+    grid.style.gridTemplateColumns = `repeat(${best.cols}, ${w}px)`;
     const dpr = window.devicePixelRatio || 1;
     for (const c of state.cards) {
-      const w = c.canvas.clientWidth, h = c.canvas.clientHeight;
+      c.canvas.style.width = w + "px";
+      c.canvas.style.height = h + "px";
       c.canvas.width = Math.max(1, Math.round(w * dpr));
       c.canvas.height = Math.max(1, Math.round(h * dpr));
     }
+  }
+
+  function resize() {
+    layout();
     draw();
   }
 
@@ -309,7 +408,7 @@
   function drawCanvas(canvas, item, cand, f) {
     const ctx = canvas.getContext("2d");
     const W = canvas.width, Hpx = canvas.height;
-    const v = item.view;
+    const v = currentView(), whole = item.view;
     const s = Math.min(W / (v.x1 - v.x0), Hpx / (v.y1 - v.y0)) * state.zoom;
     const cx = (v.x0 + v.x1) / 2 + state.panX, cy = (v.y0 + v.y1) / 2 + state.panY;
     const X = (x) => W / 2 + (x - cx) * s;
@@ -319,10 +418,11 @@
     ctx.fillRect(0, 0, W, Hpx);
     if (state.mapImage) {
       ctx.imageSmoothingEnabled = false;
-      ctx.drawImage(state.mapImage, X(v.x0), Y(v.y1), (v.x1 - v.x0) * s, (v.y1 - v.y0) * s);
+      ctx.drawImage(state.mapImage, X(whole.x0), Y(whole.y1), (whole.x1 - whole.x0) * s, (whole.y1 - whole.y0) * s);
     }
     const trail = Math.round(TRAIL_S / item.dt);
     const dpr = window.devicePixelRatio || 1;
+    if (state.overlay) drawOverlay(ctx, item, cand, X, Y, dpr);
     const boxes = [];
     item.agents.forEach((agent, a) => {
       if (!agent.present) return;
@@ -350,7 +450,8 @@
     for (const [agent, colour, p] of boxes) {
       const [x, y, yaw] = p;
       const c = Math.cos(yaw), sn = Math.sin(yaw);
-      const L = agent.length / 2, Wd = agent.width / 2;
+      const L = Math.max(agent.length, (MIN_LENGTH_PX * dpr) / s) / 2;  // never smaller than readable
+      const Wd = Math.max(agent.width, (MIN_WIDTH_PX * dpr) / s) / 2;
       const pt = (lx, ly) => [X(x + c * lx - sn * ly), Y(y + sn * lx + c * ly)];
       const corners = [pt(L, Wd), pt(-L, Wd), pt(-L, -Wd), pt(L, -Wd)];
       ctx.beginPath();
@@ -391,18 +492,46 @@
     }
   }
 
+  // every candidate's future path of the model's agents: this panel's solid, the others' dashed
+  function drawOverlay(ctx, item, cand, X, Y, dpr) {
+    const H = item.history_steps;
+    const path = (src, a) => {
+      ctx.beginPath();
+      let pen = false;
+      for (let t = 0; t < item.future_steps; t++) {
+        if (!src.valid[a][t]) { pen = false; continue; }
+        const u = X(src.x[a][t]), w = Y(src.y[a][t]);
+        if (pen) ctx.lineTo(u, w); else { ctx.moveTo(u, w); pen = true; }
+      }
+      ctx.stroke();
+    };
+    item.agents.forEach((agent, a) => {
+      if (!agent.controlled || !agent.present) return;
+      ctx.lineWidth = 1.2 * dpr;
+      ctx.setLineDash([4 * dpr, 3 * dpr]);
+      ctx.strokeStyle = "rgba(60,60,60,0.55)";
+      for (const other of item.candidates) if (other !== cand) path(other, a);
+      ctx.setLineDash([]);
+      ctx.lineWidth = 2.2 * dpr;
+      ctx.strokeStyle = "rgba(31,95,191,0.75)";
+      path(cand, a);
+      const p = agentAt(item, cand, a, H - 1);
+      if (p) { ctx.fillStyle = "#1f5fbf"; ctx.beginPath(); ctx.arc(X(p[0]), Y(p[1]), 2.5 * dpr, 0, 2 * Math.PI); ctx.fill(); }
+    });
+  }
+
   // wheel zooms about the cursor, drag pans (all canvases together); a click without a drag chooses the panel
-  function resetView() { state.zoom = 1; state.panX = 0; state.panY = 0; draw(); }
+  function resetView(whole) { state.zoom = 1; state.panX = 0; state.panY = 0; state.whole = !!whole; resize(); }
 
   function scaleOf(canvas) {
-    const v = state.item.view, rect = canvas.getBoundingClientRect();
+    const v = currentView(), rect = canvas.getBoundingClientRect();
     return [Math.min(rect.width / (v.x1 - v.x0), rect.height / (v.y1 - v.y0)), rect];
   }
 
   function attachViewControls(card, canvas, slot) {
     canvas.addEventListener("wheel", (e) => {
       e.preventDefault();
-      const v = state.item.view;
+      const v = currentView();
       const [base, rect] = scaleOf(canvas);
       const u = e.clientX - rect.left - rect.width / 2, w = e.clientY - rect.top - rect.height / 2;
       const wx = (v.x0 + v.x1) / 2 + state.panX + u / (base * state.zoom);
@@ -440,9 +569,26 @@
   });
 
   // ------------------------------------------------------------------------------------------ wiring
+  function toggleOverlay(on) {
+    state.overlay = on;
+    $("overlay").checked = on;
+    $("overlay-legend").classList.toggle("hidden", !on);
+    draw();
+  }
+
+  function toggleFullscreen() {
+    if (document.fullscreenElement) document.exitFullscreen().catch(() => {});
+    else document.documentElement.requestFullscreen().catch((err) => toast("Full screen refused: " + err.message, true));
+  }
+
   function onKey(e) {
-    if ($("skip-dialog").open || e.ctrlKey || e.metaKey || e.altKey) return;
+    if ($("skip-dialog").open || $("guidelines-dialog").open || e.ctrlKey || e.metaKey || e.altKey) return;
     if (e.target instanceof HTMLInputElement && e.target.type !== "range" && e.target.type !== "checkbox") return;
+    if (!$("guidelines").classList.contains("hidden")) {
+      if (e.key === "Enter") { e.preventDefault(); acknowledgeGuidelines().catch((err) => toast(err.message, true)); }
+      return;
+    }
+    if ((e.key === "g" || e.key === "G") && state.guidelines) { openGuidelines(); e.preventDefault(); return; }
     if (!state.item || $("work").classList.contains("hidden")) {
       if ((e.key === "b" || e.key === "B") && !$("done").classList.contains("hidden")) { back(); e.preventDefault(); }
       return;
@@ -450,11 +596,15 @@
     const n = state.item.candidates.length;
     let handled = true;
     if (/^[0-9]$/.test(e.key) && Number(e.key) <= n) choose(Number(e.key));
+    else if ((e.key === "e" || e.key === "E") && state.item.allow_tie) choose("tie");
     else if (e.key === " ") play(!state.playing);
     else if (e.key === "ArrowLeft") step(e.shiftKey ? -Math.round(1 / state.item.dt) : -1);
     else if (e.key === "ArrowRight") step(e.shiftKey ? Math.round(1 / state.item.dt) : 1);
     else if (e.key === "Home") { state.clock = 0; setFrame(0); }
-    else if (e.key === "z" || e.key === "Z") resetView();
+    else if (e.key === "z" || e.key === "Z") resetView(false);
+    else if (e.key === "w" || e.key === "W") resetView(true);
+    else if (e.key === "o" || e.key === "O") toggleOverlay(!state.overlay);
+    else if (e.key === "f" || e.key === "F") toggleFullscreen();
     else if (e.key === "s" || e.key === "S") openSkip();
     else if (e.key === "b" || e.key === "B" || e.key === "Backspace") back().catch((err) => toast(err.message, true));
     else if ((e.key === "n" || e.key === "N" || e.key === "Enter") && state.item.status !== "open") loadNext();
@@ -467,7 +617,15 @@
   $("play").addEventListener("click", () => play(!state.playing));
   $("restart").addEventListener("click", () => { state.clock = 0; setFrame(0); });
   $("scrub").addEventListener("input", (e) => { play(false); setFrame(Number(e.target.value)); state.clock = state.frame * state.item.dt; });
-  $("reset-view").addEventListener("click", resetView);
+  $("reset-view").addEventListener("click", () => resetView(false));
+  $("whole-view").addEventListener("click", () => resetView(true));
+  $("overlay").addEventListener("change", (e) => toggleOverlay(e.target.checked));
+  $("fullscreen").addEventListener("click", toggleFullscreen);
+  $("tie").addEventListener("click", () => choose("tie"));
+  $("guidelines-ok").addEventListener("click", () => acknowledgeGuidelines().catch((err) => toast(err.message, true)));
+  $("guidelines-button").addEventListener("click", openGuidelines);
+  $("guidelines-close").addEventListener("click", () => $("guidelines-dialog").close());
+  document.addEventListener("fullscreenchange", () => setTimeout(resize, 50));
   $("speed").addEventListener("change", (e) => { state.speed = Number(e.target.value); });
   $("loop").addEventListener("change", (e) => { state.loop = e.target.checked; });
   $("none").addEventListener("click", () => choose(0));
@@ -484,7 +642,8 @@
     if (!t) return;
     localStorage.setItem(TOKEN_KEY, t);
     $("token-input").value = "";
-    boot();
+    state.freshSignIn = true;
+    boot().catch((err) => toast(err.message, true));
   });
   requestAnimationFrame(tick);
   boot().catch((err) => toast(err.message, true));
