@@ -1,4 +1,5 @@
-"""``trafficrlhf feedback ...``: campaigns, annotators, synthetic labeling, export, renders, status.
+"""``trafficrlhf feedback ...``: campaigns, annotators, admins, settings, gold items, priorities, synthetic
+labeling, export, renders, status.
 
 ``feedback serve`` (the browser app) is added by the ``trafficrlhf-annotation-web`` plugin through the
 ``register_commands(cli)`` hook; it finds this group as ``cli.commands["feedback"]``.
@@ -43,7 +44,9 @@ def feedback() -> None:
 @feedback.command("create")
 @db_option
 @click.option("--name", required=True, help="Campaign name (unique in the database).")
-@click.option("--model", default=None, help="Registered traffic model (required for a new campaign).")
+@click.option("--model", "models", multiple=True,
+              help="Registered traffic model (required for a new campaign). Repeat it to mix models in one set: "
+                   "candidate k comes from the (k mod M)-th model.")
 @click.option("--guidance", default=None, help="Guidance spec for models that accept one.")
 @click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
               help="Extra traffic-model option (JSON value), repeatable, e.g. checkpoint=dir.")
@@ -61,7 +64,8 @@ def feedback() -> None:
 @click.option("--labels-per-item", type=click.IntRange(min=1), default=None,
               help="Annotators per item (default: every annotator labels every item).")
 @click.option("--extend", is_flag=True, help="Add contexts to an existing campaign (its stored settings are kept).")
-def create_command(db_path: str, name: str, model: str | None, guidance: str | None, model_options: tuple[str, ...],
+def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: str | None,
+                   model_options: tuple[str, ...],
                    source: str, split: str, root: str | None, num_contexts: int | None, scene_ids: tuple[str, ...],
                    num_candidates: int, candidate_seconds: float, seed: int, labels_per_item: int | None,
                    extend: bool) -> None:
@@ -74,14 +78,17 @@ def create_command(db_path: str, name: str, model: str | None, guidance: str | N
         report = extend_campaign(store, name, scene_ids=list(scene_ids) or None, num_contexts=num_contexts,
                                  root=root, on_context=report_line)
     else:
-        if model is None:
+        if not models:
             raise click.UsageError("--model is required for a new campaign (or pass --extend).")
+        slots = [models[k % len(models)] for k in range(num_candidates)] if len(models) > 1 else None
         config = CampaignConfig(
-            name=name, model=model, guidance=guidance, model_options=_parse_options(model_options), source=source,
+            name=name, model=models[0], candidate_models=slots, guidance=guidance,
+            model_options=_parse_options(model_options), source=source,
             split=split, root=root, scene_ids=list(scene_ids) or None, num_contexts=num_contexts or 10,
             num_candidates=num_candidates, candidate_seconds=candidate_seconds, seed=seed,
             labels_per_item=labels_per_item)
-        click.echo(f"campaign {name!r}: {config.model} ({config.guidance or 'no guidance'}), N = {num_candidates}, "
+        shown = ", ".join(slots) if slots else config.model
+        click.echo(f"campaign {name!r}: {shown} ({config.guidance or 'no guidance'}), N = {num_candidates}, "
                    f"{candidate_seconds:g} s candidates")
         report = create_campaign(store, config, on_context=report_line)
     items = store.counts(report.campaign)["items"]
@@ -117,6 +124,99 @@ def annotator_list(db_path: str) -> None:
     """List annotators."""
     for a in _store(db_path).annotators():
         click.echo(f"{a.name}\tcreated {a.created_at}{'' if a.active else ' (revoked)'}")
+
+
+@annotator_group.command("deactivate")
+@db_option
+@click.argument("name")
+def annotator_deactivate(db_path: str, name: str) -> None:
+    """Revoke NAME's token and release their open items (`annotator token NAME` reactivates with a new token)."""
+    _store(db_path).set_active(name, False)
+    click.echo(f"{name}: deactivated")
+
+
+@feedback.command("admin")
+@db_option
+@click.argument("name")
+def admin_command(db_path: str, name: str) -> None:
+    """Create (or re-key) campaign owner NAME and print the admin token for the app's /admin page."""
+    click.echo(_store(db_path).add_admin(name))
+
+
+@feedback.command("settings")
+@db_option
+@campaign_option
+@click.option("--guidelines", "guidelines_path", type=click.Path(dir_okay=False, exists=True, path_type=str),
+              default=None, help="Markdown file of guidelines shown at sign-in and on demand.")
+@click.option("--no-guidelines", is_flag=True, help="Remove the guidelines.")
+@click.option("--playback-required/--playback-optional", default=None,
+              help="Whether the future must play through before a choice is accepted.")
+@click.option("--gold-rate", type=click.FloatRange(0, 0.5), default=None, help="Share of gold items served.")
+@click.option("--qualification-gold", type=click.IntRange(0, 100), default=None,
+              help="N: gold items an annotator answers first; their labels count once they pass.")
+@click.option("--qualification-accuracy", type=click.FloatRange(0, 1), default=None,
+              help="Share of the N qualification items to answer right.")
+@click.option("--lease-seconds", type=click.FloatRange(min=1, max=86400), default=None,
+              help="How long an opened item stays reserved (with labels_per_item).")
+@click.option("--allow-tie/--no-tie", default=None, help="Offer 'equally realistic'.")
+def settings_command(db_path: str, campaign: str, guidelines_path: str | None, no_guidelines: bool,
+                     playback_required: bool | None, gold_rate: float | None, qualification_gold: int | None,
+                     qualification_accuracy: float | None, lease_seconds: float | None,
+                     allow_tie: bool | None) -> None:
+    """Show or change a campaign's annotation settings (only the options given change)."""
+    changes: dict[str, Any] = {k: v for k, v in {
+        "playback_required": playback_required, "gold_rate": gold_rate, "qualification_gold": qualification_gold,
+        "qualification_accuracy": qualification_accuracy, "lease_seconds": lease_seconds, "allow_tie": allow_tie,
+    }.items() if v is not None}
+    if guidelines_path and no_guidelines:
+        raise click.UsageError("pass --guidelines FILE or --no-guidelines, not both.")
+    if guidelines_path:
+        with open(guidelines_path, encoding="utf-8") as handle:
+            changes["guidelines"] = handle.read()
+    if no_guidelines:
+        changes["guidelines"] = None
+    store = _store(db_path)
+    camp = store.update_settings(campaign, **changes) if changes else store.campaign(campaign)
+    shown = camp.settings.model_dump()
+    if shown["guidelines"]:
+        shown["guidelines"] = f"{len(shown['guidelines'])} characters of Markdown"
+    click.echo(json.dumps(shown, indent=2))
+
+
+@feedback.command("gold")
+@db_option
+@campaign_option
+@click.option("--count", type=click.IntRange(1, 1000), required=True, help="Gold items to add.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Seed of the broken futures and of the answer's position.")
+def gold_command(db_path: str, campaign: str, count: int, seed: int) -> None:
+    """Add gold items (the logged future against broken copies of it) built from the campaign's items."""
+    from trafficrlhf_sdk.feedback.gold import add_gold_items
+
+    store = _store(db_path)
+    added = add_gold_items(store, campaign, count, seed)
+    total = store.counts(store.campaign(campaign))["gold_items"]
+    click.echo(f"added {len(added)} gold items to {campaign!r}; it has {total} in all")
+
+
+@feedback.command("prioritize")
+@db_option
+@campaign_option
+@click.option("--ranking", "ranking_path", required=True, type=click.Path(dir_okay=False, exists=True, path_type=str),
+              help="Text file of item ids, most wanted first (e.g. by reward-model disagreement), one per line.")
+def prioritize_command(db_path: str, campaign: str, ranking_path: str) -> None:
+    """Serve the items of a ranking first, in its order (the others follow as before)."""
+    from trafficrlhf_sdk.feedback.selection import priorities_from_ranking
+
+    with open(ranking_path, encoding="utf-8") as handle:
+        lines = [line.strip() for line in handle if line.strip() and not line.startswith("#")]
+    try:
+        ids = [int(line) for line in lines]
+    except ValueError as exc:
+        raise click.BadParameter(f"every line must be an item id; {exc}", param_hint="--ranking") from exc
+    store = _store(db_path)
+    n = store.set_priorities(store.campaign(campaign), priorities_from_ranking(ids))
+    click.echo(f"{n} items of {campaign!r} ranked; they are served first, in the file's order")
 
 
 @feedback.command("label")
@@ -157,12 +257,18 @@ def label_command(db_path: str, campaign: str, synthetic: bool, name: str, beta:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the train/val split.")
 @click.option("--only", type=click.Choice(["all", "human", "synthetic"]), default="all", show_default=True,
               help="Which labels to export.")
-def export_command(db_path: str, campaign: str, out_dir: str, val_fraction: float, seed: int, only: str) -> None:
+@click.option("--ties", type=click.Choice(["drop", "soft"]), default="drop", show_default=True,
+              help="'Equally realistic' labels: no pair, or soft 0.5 pairs between all candidates.")
+@click.option("--include-unqualified", is_flag=True,
+              help="Also export labels of annotators who have not passed the campaign's qualification.")
+def export_command(db_path: str, campaign: str, out_dir: str, val_fraction: float, seed: int, only: str,
+                   ties: str, include_unqualified: bool) -> None:
     """Export a PreferenceDataset (N-1 pairs per choice; logged ≻ each candidate on 'none')."""
     from trafficrlhf_sdk.feedback.preference import export_preferences
 
     sources = ("human", "synthetic") if only == "all" else (only,)
-    dataset = export_preferences(_store(db_path), campaign, val_fraction=val_fraction, seed=seed, sources=sources)
+    dataset = export_preferences(_store(db_path), campaign, val_fraction=val_fraction, seed=seed, sources=sources,
+                                 ties=ties, qualified_only=not include_unqualified)  # type: ignore[arg-type]
     dataset.save(out_dir)
     n_val = sum(s == "val" for s in dataset.context_split)
     click.echo(f"{len(dataset)} pairs from {dataset.num_choices} choices over {dataset.num_contexts} contexts "
@@ -222,6 +328,7 @@ def status_command(db_path: str, campaign: str | None, as_json: bool) -> None:
     fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
     for r in rows:
         click.echo(f"{r['campaign']}: model {r['model']} ({r['guidance'] or 'no guidance'}), N = {r['candidates']}, "
-                   f"{r['items']} items, {r['labels']} labels ({r['none_realistic']} none) by {r['annotators']} "
-                   f"annotators, {r['skips']} skips; Fleiss' kappa {fmt(r['fleiss_kappa'])}, pairwise agreement "
+                   f"{r['items']} items (+{r['gold_items']} gold), {r['labels']} labels ({r['none_realistic']} none, "
+                   f"{r['ties']} ties) by {r['annotators']} annotators, {r['skips']} skips, {r['items_over_cap']} "
+                   f"items over the cap; Fleiss' kappa {fmt(r['fleiss_kappa'])}, pairwise agreement "
                    f"{fmt(r['pairwise_agreement'])} over {r['items_multi']} items with >= 2 labels")
