@@ -4,11 +4,10 @@
 right answer) and the others are the same log with one controlled vehicle visibly broken, so a careful
 annotator cannot miss which is realistic:
 
-- ``offroad``: the vehicle drifts sideways, up to 8 m by the end of the window;
+- ``offroad``: the vehicle drifts sideways, 12 m by the end of the window;
 - ``freeze``: it stops dead at the first future step and stays there;
-- ``zigzag``: it swerves ±2 m across its path once a second;
-- ``overspeed``: it covers 2.5 times the logged distance;
-- ``reverse``: it backs up along its path at the logged speed.
+- ``zigzag``: it swerves ±3 m across its path, a full swing every 3 s;
+- ``overspeed``: it keeps speeding up, to 3 times the logged speed at the end.
 
 The broken vehicle is the controlled vehicle that moves the most in the log (a parked car would hide a
 ``freeze``). Gold items share the campaign's candidate count, are never capped by ``labels_per_item``, and
@@ -28,7 +27,7 @@ from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore
 
 __all__ = ["BREAKS", "add_gold_items", "broken_future", "gold_candidates"]
 
-BREAKS = ("offroad", "freeze", "zigzag", "overspeed", "reverse")
+BREAKS = ("offroad", "freeze", "zigzag", "overspeed")
 GOLD_SUFFIX = "#gold"
 
 
@@ -45,17 +44,15 @@ def broken_future(states: torch.Tensor, valid: torch.Tensor, agent: int, kind: s
     xy = track[:, :2]
     first = xy[int(ok.nonzero()[0]) if ok.any() else 0]
     if kind == "offroad":
-        xy = xy + normal * (8.0 * (t / span) ** 1.5)[:, None]
+        xy = xy + normal * (12.0 * (t / span) ** 1.5)[:, None]
     elif kind == "freeze":
         xy = first.expand_as(xy).clone()
         out[agent, :, 2] = 0.0
     elif kind == "zigzag":
-        xy = xy + normal * (2.0 * torch.sin(2 * torch.pi * t))[:, None]
+        xy = xy + normal * (3.0 * torch.sin(2 * torch.pi * t / 3.0))[:, None]
     elif kind == "overspeed":
-        xy = first + 2.5 * (xy - first)
-        out[agent, :, 2] = states[agent, :, 2] * 2.5
-    elif kind == "reverse":
-        xy = first - (xy - first)
+        xy = first + (1.0 + 2.0 * t / span)[:, None] * (xy - first)
+        out[agent, :, 2] = states[agent, :, 2] * (1.0 + 4.0 * t / span).to(out.dtype)
     else:
         raise InvalidChoiceError(f"unknown break {kind!r}; pick one of {BREAKS}.")
     out[agent, :, :2] = xy.to(out.dtype)
