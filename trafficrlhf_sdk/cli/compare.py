@@ -35,3 +35,24 @@ def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool
         click.echo("")
         click.echo(change_interval_table(list(folders), level=0.95 if level is None else level,
                                          target=None if target is None else target / 100.0))
+
+
+@cli.command("report")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=str))
+@click.option("--run", "runs", multiple=True, required=True, metavar="LABEL=FOLDER",
+              help="An evaluation folder (`trafficrlhf evaluate --out`) and its label, repeatable; the base first.")
+@click.option("--reward-model", "reward_model_dir", default=None, help="The loop's reward model folder.")
+@click.option("--align", "align_dir", default=None, help="The loop's `trafficrlhf align --out` folder.")
+@click.option("--title", default="TrafficRLHF loop", show_default=True, help="Title of the report.")
+def report_command(out_dir: str, runs: tuple[str, ...], reward_model_dir: str | None, align_dir: str | None,
+                   title: str) -> None:
+    """Write OUT_DIR/report.md (+ PNGs): reward model, training curve, closed-loop metrics, worst scenes."""
+    from trafficrlhf_sdk.evaluation.report import write_report
+
+    pairs = []
+    for run in runs:
+        label, sep, folder = run.partition("=")
+        if not sep or not label or not folder:
+            raise click.BadParameter(f"expected LABEL=FOLDER, got {run!r}", param_hint="--run")
+        pairs.append((label, folder))
+    click.echo(f"wrote {write_report(out_dir, pairs, reward_model_dir, align_dir, title)}")

@@ -4,7 +4,8 @@ and drawings of failures.
 - :func:`evaluate_policy` + :class:`EvaluationConfig` -> :class:`EvaluationReport` (``protocol``);
 - :func:`pooled_per_scene`, :func:`worst_scenes`, :func:`paired_change_interval`, ... (``breakdown``);
 - :func:`comparison_table` and friends over saved runs (``compare``);
-- :func:`first_failures`, :func:`save_failure_png` (``failures``).
+- :func:`first_failures`, :func:`save_failure_png` (``failures``);
+- :func:`write_report`, the one-page report of an RLHF loop (``report``).
 """
 
 from trafficrlhf_sdk._lazy import lazy_exports
@@ -36,6 +37,7 @@ _EXPORTS = {
     "first_failures": "failures",
     "save_failure_png": "failures",
     "render_failures": "failures",
+    "write_report": "report",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -103,9 +103,9 @@ def build_policy(model: str, guidance: str | None, seed: int, options: dict[str,
     """Instantiate registered traffic model ``model``: ``guidance`` for a model that takes none is an error
     (silently dropping it would mislabel the campaign); ``seed`` is passed where accepted (deterministic policies
     have none); other ``options`` must be accepted."""
-    from trafficrlhf_sdk.plugins import build_traffic_model
+    from trafficrlhf_sdk.plugins import build_policy
 
-    return build_traffic_model(model, {**(options or {}), "guidance": guidance, "seed": seed}, optional=("seed",))
+    return build_policy(model, {**(options or {}), "guidance": guidance, "seed": seed})
 
 
 def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int, seconds: float,
