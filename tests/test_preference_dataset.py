@@ -96,7 +96,7 @@ def test_cli_export_render_status(labeled: FeedbackStore, tmp_path, capsys) -> N
         assert exit_info.value.code == 0, capsys.readouterr().err
     out = capsys.readouterr().out
     assert "54 pairs from 12 choices over 6 contexts (3 train / 3 val)" in out
-    assert "Fleiss' kappa" in out and "12 labels (6 none) by 2 annotators" in out
+    assert "Fleiss' kappa" in out and "12 labels (6 none, 0 ties) by 2 annotators" in out
     assert open(tmp_path / "strip.png", "rb").read(8) == b"\x89PNG\r\n\x1a\n"
 
 

@@ -277,9 +277,9 @@ def export_preferences(store: FeedbackStore, campaign: Campaign | str, val_fract
     if ties == "drop":
         labels = [label for label in labels if not label.tie]
     if not labels:
-        raise DataFormatError(f"campaign {campaign.name!r} has no exportable labels from {list(sources)} yet (ties "
-                              f"{ties!r}, {num_ties} ties; unqualified annotators left out: {excluded}); label it "
-                              "first.")
+        raise DataFormatError(f"campaign {campaign.name!r} has no labels from {list(sources)} to export yet (ties "
+                              f"{ties!r}: {num_ties} ties; unqualified annotators left out: {excluded}); label it "
+                              "first, or export ties as 'soft'.")
     names = {a.id: a.name for a in store.annotators()}
     context_ids = sorted({label.context_id for label in labels})
     records = [store.load_context(cid, campaign) for cid in context_ids]

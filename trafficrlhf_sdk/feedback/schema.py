@@ -86,7 +86,6 @@ CREATE INDEX IF NOT EXISTS assignments_by_context ON assignments (context_id);
 """
 
 _V1_TO_V2 = """
-PRAGMA defer_foreign_keys = ON;
 ALTER TABLE contexts ADD COLUMN gold_answer INTEGER;
 ALTER TABLE contexts ADD COLUMN priority REAL NOT NULL DEFAULT 0;
 ALTER TABLE candidates ADD COLUMN model TEXT;
@@ -112,8 +111,9 @@ UPDATE candidates SET model = (SELECT c.model FROM contexts x JOIN campaigns c O
 def migrate(execute: Callable[[str], object], version: int) -> None:
     """Upgrade a database of schema ``version`` to :data:`SCHEMA_VERSION` inside the caller's transaction.
 
-    ``execute`` runs one SQL statement. Version 0 is a new file (nothing to upgrade); the tables and indexes
-    of the current schema are created afterwards by the caller.
+    ``execute`` runs one SQL statement; the connection must have foreign keys off (``labels`` is rebuilt), and
+    the caller checks them (``PRAGMA foreign_key_check``) before committing. Version 0 is a new file (nothing
+    to upgrade); the tables and indexes of the current schema are created afterwards by the caller.
     """
     if version == 1:
         for statement in _V1_TO_V2.split(";"):

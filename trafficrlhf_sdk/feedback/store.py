@@ -105,6 +105,9 @@ class FeedbackStore:
         self._lock = threading.Lock()
         conn = self._conn()
         conn.execute("PRAGMA journal_mode=WAL")
+        upgrading = conn.execute("PRAGMA user_version").fetchone()[0] == 1
+        if upgrading:  # rebuilding a table needs foreign keys off (checked below); the pragma is per connection
+            conn.execute("PRAGMA foreign_keys = OFF")
         with self.transaction() as tx:
             version = tx.execute("PRAGMA user_version").fetchone()[0]
             if version not in (0, 1, SCHEMA_VERSION):
@@ -114,7 +117,12 @@ class FeedbackStore:
                 )
             migrate(tx.execute, version)
             tx.executescript_safe(SCHEMA_SQL)
+            if version == 1 and tx.execute("PRAGMA foreign_key_check").fetchone() is not None:
+                raise DataFormatError(f"{self.path!r}: upgrading schema 1 to {SCHEMA_VERSION} broke a foreign key; "
+                                      "nothing was changed. Report this with the file.")
             tx.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        if upgrading:
+            conn.execute("PRAGMA foreign_keys = ON")
 
     # ------------------------------------------------------------------------ connections, transactions
     def _conn(self) -> sqlite3.Connection:
