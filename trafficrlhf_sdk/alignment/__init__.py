@@ -2,6 +2,7 @@
 
 - :func:`align`: one call, ``align(model, reward_model, alpha=0.3, **config) -> AlignResult(model, history)``.
 - :class:`AlignConfig` + :class:`AlignTrainer`: the same with full control (checkpoints, resume, logging).
+- :class:`AlignRecipe` + :func:`run_recipe`: one run as a TOML file (``trafficrlhf align --config``).
 - :func:`average_checkpoints`: the weight average of several aligned runs (a model soup), e.g. training seeds.
 - :func:`extrapolate_checkpoint`: base + factor x (aligned - base), past the aligned weights (ExPO) or back
   towards the base (WiSE-FT).
@@ -16,10 +17,11 @@ from typing import Any
 
 from trafficrlhf_sdk.alignment.averaging import average_checkpoints, extrapolate_checkpoint
 from trafficrlhf_sdk.alignment.config import PAPER_ALPHA, AlignConfig, paper_alpha
+from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
 from trafficrlhf_sdk.alignment.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
 
-__all__ = ["PAPER_ALPHA", "AlignConfig", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
-           "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "scenario_scores"]
+__all__ = ["PAPER_ALPHA", "AlignConfig", "AlignRecipe", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
+           "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "run_recipe", "scenario_scores"]
 
 
 def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: Any = None, reference: Any = None,

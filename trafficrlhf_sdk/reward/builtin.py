@@ -1,8 +1,7 @@
 """Hand-written per-step rewards with the reward-model protocol (``step_rewards(scenario) -> (B, T)``).
 
-They need no training and serve as stand-ins for a learned r_HF: tests, the Gymnasium environment's default,
-and the committed aligned models (docs/explanation/alignment-log.md says which reward each used and what a
-learned reward model did under the same optimization).
+They need no training and serve as baselines and ablations for a learned r_HF: tests, the Gymnasium
+environment's default, and the recipes of the committed baseline models (their model cards name the reward).
 """
 
 from __future__ import annotations
@@ -38,8 +37,7 @@ class FailureReward:
     With ``ttc_weight > 0`` the margins also price closing in on the agent ahead before any box is touched:
     ``ttc_weight * clamp(1 - TTC / ttc_threshold_s, 0, 1)`` per step, TTC the smallest time to collision
     (:func:`time_to_collision`) with an agent in the path ahead. A step at half the threshold costs half the
-    weight; an agent keeping its gap or pulling away costs nothing. Logged driving (120 nuScenes train scenes)
-    is below 1.5 s on 0.46 % of the controlled agent-steps, at a mean cost of 0.0020 per step and unit weight.
+    weight; an agent keeping its gap or pulling away costs nothing.
 
     Args:
         collision: count collisions; offroad: count off-road centres; margins: add the near-failure terms;
@@ -130,8 +128,7 @@ class RandomReward:
     Every per-agent score and per-step reward is a fixed pseudo-random function of the states it scores,
     uniform in [-1, 1] and unrelated to failures or realism (``seed`` picks the function). PPO against it moves
     the weights without a preference, so what such a run changes in the closed loop is the noise floor a real
-    reward's gain has to clear (the closed loop compounds small weight changes; see the alignment results,
-    session 17). A function of the states rather than a random stream, so the same samples get the same scores
+    reward's gain has to clear (the closed loop compounds small weight changes). A function of the states rather than a random stream, so the same samples get the same scores
     and an interrupted run resumes exactly.
 
     Args:
@@ -184,15 +181,11 @@ class RealismReward(FailureReward):
       histogram density-ratio discriminator (the reward GAIL learns, here counted instead of learned): samples
       whose accelerations the model produces more often than the log lose, rarer ones gain, so the policy is
       pushed towards the logged histograms the realism metric compares with. The failure terms alone narrow
-      them (the aligned 4 s CTG brakes and accelerates less hard than the log: realism (body) 0.102 -> 0.127).
-      Measured on the 4 s CTG (docs/explanation/alignment-log.md, session 11): it brings the paper-style
-      realism deviation below the base's, and takes most of the failure gain with it.
+      them (an aligned model brakes and accelerates less hard than the log).
     * heading mismatch (``heading_weight > 0``): per future step where the log drives faster than
       ``stall_log_speed``, ``min(1, relu(|wrap(yaw - yaw_log)| - heading_tolerance) / heading_scale)``,
-      averaged over those steps. The compact CTG under-steers in turns (its sampled heading change is 0.80-0.90
-      of the logged one) and most of its off-road failures start there (alignment log, session 7); this term
-      asks for the logged turn itself rather than for a recovery at the road edge. Angles in radians. Measured
-      on the 4 s CTG (session 36) it removes fewer failures than the plain margins reward.
+      averaged over those steps. A model that under-steers in turns leaves the road there; this term
+      asks for the logged turn itself rather than for a recovery at the road edge. Angles in radians.
 
     ``corner_weight``, ``near_weight``, ``near_buffer_m``, ``ttc_weight`` and ``ttc_threshold_s`` set the margins
     as in :class:`FailureReward` (``--reward-option near_weight=1`` on ``builtin:realism-margins``).
