@@ -140,15 +140,19 @@ class FeedbackStore:
 
     @contextlib.contextmanager
     def transaction(self) -> Iterator[_Tx]:
-        """A write transaction (``BEGIN IMMEDIATE``): committed on exit, rolled back on any exception."""
+        """A write transaction (``BEGIN IMMEDIATE``): committed on exit, rolled back on any exception (including a
+        failed commit, e.g. on a full disk), so a failed write leaves nothing behind."""
         conn = self._conn()
         conn.execute("BEGIN IMMEDIATE")
         try:
             yield _Tx(conn)
+            conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            # SQLite may already have rolled back (e.g. "database or disk is full"): keep the original error
+            if conn.in_transaction:
+                with contextlib.suppress(sqlite3.Error):
+                    conn.execute("ROLLBACK")
             raise
-        conn.execute("COMMIT")
 
     @contextlib.contextmanager
     def snapshot(self) -> Iterator[sqlite3.Connection]:
