@@ -10,6 +10,9 @@ import os
 import shutil
 import sqlite3
 import time
+import zipfile
+
+import httpx
 
 import pytest
 
@@ -98,3 +101,102 @@ def test_play_press_key_and_find_the_row(page, server, campaign_db) -> None:  # 
     shot = os.environ.get("TRAFFICRLHF_SCREENSHOT")
     if shot:
         page.screenshot(path=shot)
+
+
+GUIDELINES = """# How to judge
+
+Watch the five futures play, then pick the **most realistic** one.
+
+- blue vehicles are driven by the model, orange ones replay the recording
+- press `0` when none is realistic, `E` when the best ones are equally realistic
+"""
+
+
+def test_whole_campaign_by_keyboard(page, server, campaign_db) -> None:  # type: ignore[no-untyped-def]
+    """Sign in, read the guidelines, label every item with the keyboard only (the future must play first), then
+    check what the export makes of it: N - 1 pairs per choice, N per 'none realistic', none per tie."""
+    from trafficrlhf_sdk.feedback import FeedbackStore, export_preferences
+
+    db, tokens = campaign_db
+    store = FeedbackStore(db)
+    store.update_settings("tiny", playback_required=True, guidelines=GUIDELINES)
+    page.goto(server.url + "/")
+    page.wait_for_selector("#login:not(.hidden)")
+    page.focus("#token-input")
+    page.keyboard.type(tokens["alice"])
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#guidelines:not(.hidden)")
+    assert page.locator("#guidelines-body h2").inner_text() == "How to judge"
+    assert page.locator("#guidelines-body strong").inner_text() == "most realistic"
+    page.keyboard.press("Enter")
+    keys = ["2", "0", "e", "4"]
+    seen = []
+    for n, key in enumerate(keys):
+        page.wait_for_function(f"window.trafficrlhf.item && window.trafficrlhf.item.position === {n + 1}",
+                               timeout=15000)
+        item = page.evaluate("window.trafficrlhf.item.item")
+        seen.append(item)
+        assert not page.evaluate("window.trafficrlhf.played")
+        page.keyboard.press(key)  # too early: refused by the page, nothing stored
+        time.sleep(0.3)
+        assert len(_labels(db)) == n and page.locator("#toast").inner_text().startswith("Watch the futures")
+        page.wait_for_function("window.trafficrlhf.played", timeout=15000)
+        assert page.locator("#none").is_enabled()
+        page.keyboard.press(key)
+        _wait(lambda want=n + 1: len(_labels(db)) == want)
+    page.wait_for_selector("#done:not(.hidden)")
+    assert page.locator("#progress-text").inner_text().startswith("4 / 4")
+    stored = _labels(db)
+    assert [row[0] for row in stored] == seen and [row[1] for row in stored] == [2, 0, -1, 4]
+    dataset = export_preferences(store, "tiny", val_fraction=0.0)
+    per_label = {int(k): int(v) for k, v in zip(*torch_unique(dataset.pair_label))}
+    assert sorted(per_label.values()) == [4, 4, 5] and dataset.num_choices == 3  # the tie gives no pair
+    assert len(dataset) == 13 and dataset.metadata["num_ties"] == 1
+    soft = export_preferences(store, "tiny", val_fraction=0.0, ties="soft")
+    assert len(soft) == 13 + 10 and float(soft.labels.sum()) == 13 + 5
+    for label_id, slot, candidate in [(r[0], r[1], r[2]) for r in _label_ids(db)]:
+        rows = dataset.pairs[dataset.pair_label == label_id]
+        if slot > 0:  # the chosen candidate beats each of the other N - 1
+            assert set(rows[:, 1].tolist()) == {candidate} and sorted(rows[:, 2].tolist()) == sorted(
+                set(range(5)) - {candidate})
+        elif slot == 0:  # none realistic: the logged future (index N) beats all N candidates
+            assert set(rows[:, 1].tolist()) == {5} and sorted(rows[:, 2].tolist()) == list(range(5))
+    store.close()
+
+
+def torch_unique(values):  # type: ignore[no-untyped-def]
+    import torch
+
+    return torch.unique(values, return_counts=True)
+
+
+def _label_ids(db: str) -> list[tuple]:  # type: ignore[type-arg]
+    return sqlite3.connect(db).execute("SELECT id, slot, candidate FROM labels ORDER BY id").fetchall()
+
+
+def test_admin_page_adds_an_annotator_and_downloads_the_export(page, server, campaign_db) -> None:  # type: ignore[no-untyped-def]
+    db, tokens = campaign_db
+    page.goto(server.url + "/admin")
+    page.wait_for_selector("#admin-login:not(.hidden)")
+    page.fill("#admin-token", tokens["admin"])
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#admin-main:not(.hidden)")
+    page.wait_for_function("document.querySelectorAll('#annotators tr').length === 2")
+    page.fill("#new-name", "carol")
+    page.click("#add-form button")
+    page.wait_for_function("document.querySelectorAll('#annotators tr').length === 3")
+    token_text = page.locator("#token-out").inner_text()
+    assert token_text.startswith("carol: ")
+    carol = token_text.split()[1]
+    assert sqlite3.connect(db).execute("SELECT COUNT(*) FROM annotators WHERE name = 'carol'").fetchone()[0] == 1
+    me = httpx.get(server.url + "/api/me", headers={"Authorization": f"Bearer {carol}"}).json()
+    assert me["annotator"] == "carol"
+    item = httpx.get(server.url + "/api/campaigns/tiny/next", headers={"Authorization": f"Bearer {carol}"}).json()
+    httpx.post(f"{server.url}/api/campaigns/tiny/items/{item['item']}/label", json={"choice": 3},
+               headers={"Authorization": f"Bearer {carol}"})
+    with page.expect_download() as download:
+        page.click("#export-form button")
+    path = download.value.path()
+    with zipfile.ZipFile(path) as archive:
+        assert "tiny/preferences.safetensors" in archive.namelist()
+    assert page.locator("#export-out").inner_text() == "4 pairs from 1 choices"
