@@ -93,12 +93,18 @@ def _fmt(value: float | None) -> str:
 @click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
               help="Traffic-model option (JSON value), repeatable, e.g. stationary_rule=every_replan or "
                    "plan_samples=8 (the adapter's Options class lists them).")
+@click.option("--late-agents", type=click.Choice(["drop", "replay"]), default="drop", show_default=True,
+              help="Agents that appear in the log after the rollout starts: left out (drop, upstream CTG) or "
+                   "replayed from the log as context and collision partners (replay).")
+@click.option("--after-log-end", type=click.Choice(["end", "continue"]), default="end", show_default=True,
+              help="A driven agent whose logged track ends before the rollout does: removed from the scene from "
+                   "then on (end) or driven to the end of the rollout (continue, upstream).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str | None, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,
                      checkpoint: str | None, seed: int, seed_list: str | None, batch_size: int, out_dir: str | None,
                      reward_model_dir: str | None, worst_scenes: int, render_worst: int, model_options: tuple[str, ...],
-                     as_json: bool) -> None:
+                     late_agents: str, after_log_end: str, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -108,6 +114,7 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
     from trafficrlhf_sdk import get_scenario_source
     from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy, seeds_summary
     from trafficrlhf_sdk.plugins import build_policy
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
     if render_worst and not out_dir:
         raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
@@ -134,7 +141,9 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
     metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
-                "reward_model": reward_model_dir, "model_options": extra, "scene_ids": list(scene_ids)}
+                "reward_model": reward_model_dir, "model_options": extra, "late_agents": late_agents,
+                "after_log_end": after_log_end, "scene_ids": list(scene_ids)}
+    simulation = SimulationConfig(late_agents=late_agents, after_log_end=after_log_end)  # type: ignore[arg-type]
     if seeds:
         import os
 
@@ -144,7 +153,8 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
                 torch.manual_seed(run_seed)
                 policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint,
                                               "seed": run_seed})
-            run = evaluate_policy(policy, scenario, EvaluationConfig(batch_size=batch_size, seed=run_seed),
+            run = evaluate_policy(policy, scenario, EvaluationConfig(simulation=simulation, batch_size=batch_size,
+                                                                   seed=run_seed),
                                   extra_metrics=extra_metrics, progress=True, metadata=metadata)
             results.append(run.to_json())
             if out_dir:
@@ -157,7 +167,7 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
         else:
             _print_seeds(folders, worst_scenes)
         return
-    config = EvaluationConfig(batch_size=batch_size, seed=seed)
+    config = EvaluationConfig(simulation=simulation, batch_size=batch_size, seed=seed)
     report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata)
     paths = report.save(out_dir) if out_dir else []
     if render_worst and out_dir:

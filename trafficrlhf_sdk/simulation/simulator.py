@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -30,6 +31,16 @@ class SimulationConfig(BaseModel):
     )
     remove_offroad_at_start: bool = Field(
         True, description="Agents whose centre is off the drivable layer at the start are not controlled (upstream)."
+    )
+    late_agents: Literal["drop", "replay"] = Field(
+        "drop", description="Agents absent from the log at the start step: 'drop' (upstream CTG, whose simulation "
+        "freezes the set of agents at the start) leaves them out of the rollout, so they are neither context nor "
+        "collision partners; 'replay' replays them from the log from the step they appear."
+    )
+    after_log_end: Literal["end", "continue"] = Field(
+        "end", description="A driven agent after the last step of its logged track: 'end' (default) removes it "
+        "from the scene from then on, so no metric counts it where neither the log nor the map says it could "
+        "be; 'continue' (upstream) keeps driving it to the end of the rollout."
     )
 
     @model_validator(mode="after")
@@ -89,10 +100,26 @@ def _prepare(scenario: ScenarioTensor, config: SimulationConfig) -> tuple[Scenar
         )
     logged = scenario.time_slice(0, end + 1)
     logged = logged.replace_unchecked(current_index=start)
+    if config.late_agents == "drop":
+        present = logged.valid[:, :, start]
+        valid = logged.valid.clone()
+        valid[:, :, start + 1 :] &= present[:, :, None]
+        logged = logged.replace_unchecked(valid=valid)
     controlled = logged.controlled & logged.valid[:, :, start]
     if config.remove_offroad_at_start and logged.map is not None and "drivable" in logged.map.layers:
         controlled = controlled & logged.map.lookup(logged.xy[:, :, start].double())  # as the off-road metric
     return logged, controlled, start, end
+
+
+def _alive(logged: ScenarioTensor, config: SimulationConfig) -> torch.Tensor:
+    """bool ``(B, A, T)``: steps at which a driven agent may exist: up to the last valid step of its logged track
+    (``after_log_end="end"``), or every step (``"continue"``)."""
+    valid = logged.valid
+    if config.after_log_end == "continue":
+        return torch.ones_like(valid)
+    steps = torch.arange(valid.shape[-1], device=valid.device)
+    last = torch.where(valid, steps, torch.full_like(steps, -1)).amax(-1)  # (B, A); -1: never valid
+    return steps <= last[..., None]
 
 
 def simulate(
@@ -125,8 +152,10 @@ def simulate(
     policy.reset(logged)
     states = logged.states.clone()
     valid = logged.valid.clone()
-    # controlled agents exist for the whole rollout unless their plan says otherwise
-    valid[:, :, start + 1 :] |= controlled[:, :, None]
+    # controlled agents exist for the whole rollout (or until their logged track ends) unless their plan says
+    # otherwise
+    alive = _alive(logged, config)
+    valid[:, :, start + 1 :] |= controlled[:, :, None] & alive[:, :, start + 1 :]
     scene_of, agent_of = controlled.nonzero(as_tuple=True)  # controlled rows: only they take the plan
 
     replans = range(start, end, config.replan_every)
@@ -164,7 +193,8 @@ def simulate(
                     f"policy {type(policy).__name__} returned plan valid of shape {tuple(plan.valid.shape)} and dtype "
                     f"{plan.valid.dtype}; expected bool ({logged.num_scenes}, {logged.num_agents}, >= {n})."
                 )
-            valid[scene_of, agent_of, window] = plan_valid.to(valid.device)[scene_of, agent_of]
+            valid[scene_of, agent_of, window] = plan_valid.to(valid.device)[scene_of, agent_of] \
+                & alive[scene_of, agent_of, window]
     wall = time.perf_counter() - began
     # Only the controlled agents' simulated steps changed. Zero the steps their plans marked invalid with where()
     # (a policy may leave NaN there, and NaN * 0 is NaN), then require the valid ones to be finite.

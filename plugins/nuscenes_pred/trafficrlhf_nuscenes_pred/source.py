@@ -73,25 +73,29 @@ def parse_label_file(path: str) -> LabelTable:
 
 
 def _keyframe_speed(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, present: np.ndarray) -> np.ndarray:
-    """Signed speed along the heading at keyframes ``(A, F)`` by central (or one-sided) differences."""
-    speed = np.zeros_like(x)
-    nxt = np.zeros_like(present)
+    """Signed speed along the heading at keyframes ``(A, F)`` from the past only.
+
+    At a keyframe whose track was also present at the previous keyframe, the speed is the displacement since that
+    keyframe along the current heading over 0.5 s (a backward difference). At a track's first keyframe (or the
+    first after a gap) there is no past observation and the speed is 0. A state never reads a later keyframe, so
+    the state at "now" carries no information about the future (a central difference would carry 0.25 s of it).
+    """
     prv = np.zeros_like(present)
-    nxt[:, :-1] = present[:, 1:] & present[:, :-1]
     prv[:, 1:] = present[:, :-1] & present[:, 1:]
-    hx, hy = np.cos(yaw), np.sin(yaw)
-    fwd = np.zeros_like(x)
     bwd = np.zeros_like(x)
-    fwd[:, :-1] = ((x[:, 1:] - x[:, :-1]) * hx[:, :-1] + (y[:, 1:] - y[:, :-1]) * hy[:, :-1]) / KEYFRAME_DT
-    bwd[:, 1:] = ((x[:, 1:] - x[:, :-1]) * hx[:, 1:] + (y[:, 1:] - y[:, :-1]) * hy[:, 1:]) / KEYFRAME_DT
-    count = nxt.astype(float) + prv.astype(float)
-    speed = np.where(count > 0, (fwd * nxt + bwd * prv) / np.maximum(count, 1), 0.0)
-    return speed
+    bwd[:, 1:] = ((x[:, 1:] - x[:, :-1]) * np.cos(yaw[:, 1:]) + (y[:, 1:] - y[:, :-1]) * np.sin(yaw[:, 1:])) \
+        / KEYFRAME_DT
+    return np.where(prv, bwd, 0.0)
 
 
 class NuScenesPredSource(ScenarioSource):
     """nuScenes prediction scenes, resampled from 2 Hz keyframes to ``config.dt`` (positions linear, yaw
-    unwrapped, speed from motion), in a scene frame whose origin is the map raster's corner."""
+    unwrapped, speed from the motion since the previous keyframe), in a scene frame whose origin is the map
+    raster's corner.
+
+    Every state up to a keyframe reads that keyframe and earlier ones only: "now" (``history_s``) must fall on a
+    keyframe, and the speed at a keyframe is a backward difference (0 at a track's first keyframe).
+    """
 
     name = "nuscenes_pred"
 
@@ -159,6 +163,11 @@ class NuScenesPredSource(ScenarioSource):
         factor = round(KEYFRAME_DT / self.config.dt)
         if abs(factor * self.config.dt - KEYFRAME_DT) > 1e-9:
             raise DataFormatError(f"dt={self.config.dt} must divide the keyframe interval {KEYFRAME_DT} s.")
+        if self.config.history_steps % factor:
+            raise DataFormatError(
+                f"history_s={self.config.history_s} puts 'now' between two {KEYFRAME_DT} s keyframes, so the state "
+                f"at 'now' would be interpolated from the next (future) keyframe; use a multiple of {KEYFRAME_DT} s."
+            )
         states, valid = _upsample(np.stack([kx, ky, kspeed, kyaw], -1), present, factor)
         states[..., 3] = (states[..., 3] + np.pi) % (2 * np.pi) - np.pi
 
