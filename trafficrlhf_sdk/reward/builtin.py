@@ -128,8 +128,8 @@ class RandomReward:
     Every per-agent score and per-step reward is a fixed pseudo-random function of the states it scores,
     uniform in [-1, 1] and unrelated to failures or realism (``seed`` picks the function). PPO against it moves
     the weights without a preference, so what such a run changes in the closed loop is the noise floor a real
-    reward's gain has to clear (the closed loop compounds small weight changes). A function of the states rather than a random stream, so the same samples get the same scores
-    and an interrupted run resumes exactly.
+    reward's gain has to clear (the closed loop compounds small weight changes). A function of the states rather
+    than a random stream, so the same samples get the same scores and an interrupted run resumes exactly.
 
     Args:
         seed: picks the function.

@@ -32,6 +32,11 @@ class RewardConfig(BaseModel):
     logit_scale: float = Field(10.0, gt=0, description="Bradley–Terry inverse temperature on reward differences; "
                                                       "rewards are means in [-1, 1], so differences are small.")
 
+    # > automatic contrast from recorded driving (trafficrlhf_sdk.reward.contrast)
+    contrast_weight: float = Field(0.5, ge=0, description="Weight of the contrast pairs' loss (log preferred to "
+                                   "the same log made faster, slower, jerky, off its lane or tailgating) next to "
+                                   "the labelled pairs' loss; used only when a contrast dataset is given.")
+
     # > optimisation
     learning_rate: float = Field(3e-4, gt=0, description="Adam learning rate.")
     weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay.")

@@ -105,11 +105,15 @@ class RewardTrainer:
         model: a model to fine-tune; default a fresh ``config.architecture`` (one per ensemble member).
         labels: soft labels ``(P,)`` of ``train_dataset``'s pairs (probability the winner is preferred).
         log: called with each epoch's metrics dict (e.g. ``print`` or a logger's ``record``).
+        contrast_dataset: automatic contrast pairs (:func:`~trafficrlhf_sdk.reward.contrast.contrast_dataset`):
+            every optimiser step adds ``config.contrast_weight`` times their Bradley–Terry loss on a batch of
+            them; they never enter the validation figures.
     """
 
     def __init__(self, config: RewardConfig | None = None, train_dataset: PreferenceDataset | PairData | None = None,
                  eval_dataset: PreferenceDataset | PairData | None = None, model: RewardModel | None = None,
-                 labels: torch.Tensor | None = None, log: Callable[[dict[str, float]], None] | None = None) -> None:
+                 labels: torch.Tensor | None = None, log: Callable[[dict[str, float]], None] | None = None,
+                 contrast_dataset: PreferenceDataset | None = None) -> None:
         self.config = config or RewardConfig()
         training_device(self.config.device)  # before featurizing, which can take a while
         self.architecture = get_reward_model_architecture(self.config.architecture)
@@ -128,13 +132,19 @@ class RewardTrainer:
             self.train_data, self.eval_data = train.split_subset("train"), train.split_subset("val")
         else:
             self.train_data, self.eval_data = train, None
+        self.contrast_data = None
+        if contrast_dataset is not None:
+            contrast_split = tuple("train" for _ in range(contrast_dataset.num_contexts))
+            self.contrast_data = build_pair_data(self._template.prepare, contrast_dataset, None, contrast_split,
+                                                 progress=self.config.progress)
         self.featurize_seconds = time.perf_counter() - tic
         if len(self.train_data) == 0:
             raise DataFormatError("no training pairs left after the train/val split; lower `val_fraction`.")
         self.dataset_info = {"train_contexts": len(self.train_data.contexts_with_pairs()),
                              "train_pairs": len(self.train_data),
                              "val_contexts": 0 if self.eval_data is None else len(self.eval_data.contexts_with_pairs()),
-                             "val_pairs": 0 if self.eval_data is None else len(self.eval_data)}
+                             "val_pairs": 0 if self.eval_data is None else len(self.eval_data),
+                             "contrast_pairs": 0 if self.contrast_data is None else len(self.contrast_data)}
         if isinstance(train_dataset, PreferenceDataset):
             self.dataset_info["metadata"] = dict(train_dataset.metadata)
             self.dataset_info["annotators"] = sorted({train_dataset.annotators[int(i)]
@@ -203,6 +213,9 @@ class RewardTrainer:
         # exponential moving average of the weights (Polyak averaging): labels are noisy, so the raw weights
         # jitter from step to step; the average is what is evaluated, kept and saved
         ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if cfg.ema_decay else None
+        contrast = self.contrast_data
+        contrast_contexts = None if contrast is None else contrast.contexts_with_pairs()
+        contrast_at = 0
         for epoch in range(1, cfg.max_epochs + 1):
             tic = time.perf_counter()
             model.train()
@@ -214,6 +227,15 @@ class RewardTrainer:
                 w, l_, lab = w.to(scores.device), l_.to(scores.device), lab.to(scores.device)
                 loss = bradley_terry_loss(scores[w], scores[l_], lab, cfg.margin, cfg.center_rewards_coefficient,
                                           cfg.logit_scale)
+                if contrast is not None and contrast_contexts is not None and cfg.contrast_weight > 0:
+                    take = contrast_contexts[(torch.arange(cfg.batch_size) + contrast_at) % len(contrast_contexts)]
+                    contrast_at += cfg.batch_size
+                    c_inputs, cw, cl, c_lab = contrast.batch(take)
+                    c_scores = model.score_prepared(c_inputs)
+                    cw, cl = cw.to(c_scores.device), cl.to(c_scores.device)
+                    loss = loss + cfg.contrast_weight * bradley_terry_loss(
+                        c_scores[cw], c_scores[cl], c_lab.to(c_scores.device), cfg.margin,
+                        cfg.center_rewards_coefficient, cfg.logit_scale)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 if cfg.max_grad_norm:
