@@ -20,7 +20,8 @@ from trafficrlhf_sdk import hookspecs
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 
-__all__ = ["DEFAULT_PLUGINS", "build_policy", "build_traffic_model", "checkpoint_model", "resolve_checkpoint", "get_plugin_manager", "list_plugins", "registry"]
+__all__ = ["DEFAULT_PLUGINS", "build_policy", "build_traffic_model", "checkpoint_model", "get_plugin_manager",
+           "list_plugins", "registry", "resolve_checkpoint"]
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 DEFAULT_PLUGINS = (

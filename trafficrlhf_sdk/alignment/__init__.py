@@ -20,8 +20,8 @@ from trafficrlhf_sdk.alignment.config import PAPER_ALPHA, AlignConfig, paper_alp
 from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
 from trafficrlhf_sdk.alignment.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
 
-__all__ = ["PAPER_ALPHA", "AlignConfig", "AlignRecipe", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv", "align",
-           "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "run_recipe", "scenario_scores"]
+__all__ = ["PAPER_ALPHA", "AlignConfig", "AlignRecipe", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv",
+           "align", "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "run_recipe", "scenario_scores"]
 
 
 def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: Any = None, reference: Any = None,

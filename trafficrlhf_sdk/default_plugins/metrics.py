@@ -13,5 +13,6 @@ def register_metrics(register: Register) -> None:
     register("failure_corners", Lazy("trafficrlhf_sdk.metrics.failure:FailureMetric", "corners"))
     register("realism_ctg", Lazy("trafficrlhf_sdk.metrics.realism:RealismMetric", "ctg"))
     register("realism_body", Lazy("trafficrlhf_sdk.metrics.realism:RealismMetric", "body"))
-    register("guidance_objectives", Lazy("trafficrlhf_sdk.metrics.guidance_objectives:GuidanceObjectivesMetric", call=True))
+    register("guidance_objectives",
+             Lazy("trafficrlhf_sdk.metrics.guidance_objectives:GuidanceObjectivesMetric", call=True))
     register("speed", Lazy("trafficrlhf_sdk.metrics.speed:SpeedMetric", call=True))
