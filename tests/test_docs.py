@@ -65,7 +65,8 @@ SESSION = re.compile(r"[Ss]ession [0-9]+")
 
 
 def test_no_development_history_in_tracked_files() -> None:
-    """No tracked file speaks of work sessions (the word followed by a number): history lives in git, not the product."""
+    """No tracked file speaks of work sessions (the word followed by a number): history lives in git, not in the
+    product."""
     try:
         listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True)
     except (OSError, subprocess.CalledProcessError):
