@@ -18,7 +18,8 @@ Schema (``PRAGMA user_version`` = :data:`SCHEMA_VERSION`):
 - ``admins``: campaign owners' tokens (SHA-256 only), for the app's admin page.
 
 Version 2 added: ``contexts.gold_answer`` (the known answer of a gold item: a candidate index, NULL for a
-regular item) and ``contexts.priority`` (higher is served first, e.g. reward-model disagreement),
+regular item), ``contexts.priority`` (higher is served first, e.g. reward-model disagreement) and
+``contexts.labels_n`` (its number of labels, kept with every insert, so the queue is an index scan),
 ``candidates.model`` (the traffic model behind each candidate), ``assignments.lease_expires_at`` (unix seconds:
 until then the open item is reserved for its annotator) and ``assignments.released`` (1 when an expired lease
 was given up because others filled the item), the ``admins`` table, and ties (``slot`` -1) in ``labels`` and
@@ -42,7 +43,7 @@ CREATE TABLE IF NOT EXISTS contexts (
     id INTEGER PRIMARY KEY, campaign_id INTEGER NOT NULL REFERENCES campaigns(id), ordinal INTEGER NOT NULL,
     source TEXT NOT NULL, split TEXT NOT NULL, scene_id TEXT NOT NULL, seed INTEGER NOT NULL,
     start_index INTEGER NOT NULL, created_at TEXT NOT NULL, sdk_version TEXT NOT NULL, scenario BLOB NOT NULL,
-    gold_answer INTEGER, priority REAL NOT NULL DEFAULT 0,
+    gold_answer INTEGER, priority REAL NOT NULL DEFAULT 0, labels_n INTEGER NOT NULL DEFAULT 0,
     UNIQUE (campaign_id, source, split, scene_id), UNIQUE (campaign_id, ordinal)
 );
 CREATE TABLE IF NOT EXISTS candidates (
@@ -83,11 +84,16 @@ CREATE TABLE IF NOT EXISTS admins (
 CREATE INDEX IF NOT EXISTS labels_by_campaign ON labels (campaign_id, context_id);
 CREATE INDEX IF NOT EXISTS contexts_by_campaign ON contexts (campaign_id, ordinal);
 CREATE INDEX IF NOT EXISTS assignments_by_context ON assignments (context_id);
+CREATE INDEX IF NOT EXISTS contexts_queue ON contexts (campaign_id, priority DESC, labels_n, id)
+    WHERE gold_answer IS NULL;
+CREATE INDEX IF NOT EXISTS contexts_gold ON contexts (campaign_id, id) WHERE gold_answer IS NOT NULL;
 """
 
 _V1_TO_V2 = """
 ALTER TABLE contexts ADD COLUMN gold_answer INTEGER;
 ALTER TABLE contexts ADD COLUMN priority REAL NOT NULL DEFAULT 0;
+ALTER TABLE contexts ADD COLUMN labels_n INTEGER NOT NULL DEFAULT 0;
+UPDATE contexts SET labels_n = (SELECT COUNT(*) FROM labels l WHERE l.context_id = contexts.id);
 ALTER TABLE candidates ADD COLUMN model TEXT;
 ALTER TABLE assignments ADD COLUMN lease_expires_at REAL;
 ALTER TABLE assignments ADD COLUMN released INTEGER NOT NULL DEFAULT 0;

@@ -471,35 +471,34 @@ class FeedbackStore:
             "assignments WHERE context_id = ? AND annotator_id != ? AND released = 0 AND lease_expires_at > ?)",
             (context_id, annotator_id, context_id, annotator_id, now)).fetchone()[0])
 
-    def _regular_query(self, count_only: bool) -> str:
-        what = "COUNT(*)" if count_only else "c.id"
-        order = "" if count_only else " ORDER BY c.priority DESC, n ASC, (c.id * 2654435761 + ?) % 4294967311 LIMIT 1"
-        return (
-            f"SELECT {what} FROM (SELECT c.id, c.priority, COALESCE(l.n, 0) AS n, COALESCE(l.n, 0) + COALESCE(s.n, 0) "
-            "AS taken FROM contexts c "
-            "LEFT JOIN (SELECT context_id, COUNT(*) AS n FROM labels WHERE campaign_id = ? GROUP BY context_id) l "
-            "ON l.context_id = c.id "
-            "LEFT JOIN (SELECT context_id, COUNT(*) AS n FROM assignments WHERE campaign_id = ? AND released = 0 AND "
-            "lease_expires_at > ? GROUP BY context_id) s ON s.context_id = c.id "
-            "WHERE c.campaign_id = ? AND c.gold_answer IS NULL AND NOT EXISTS (SELECT 1 FROM assignments a WHERE "
-            f"a.annotator_id = ? AND a.context_id = c.id)) c WHERE ? IS NULL OR c.taken < ?{order}"
-        )
-
-    def _pick_regular(self, tx: _Tx, annotator: Annotator, campaign: Campaign, now: float) -> int | None:
+    @staticmethod
+    def _pick_regular(tx: _Tx, annotator: Annotator, campaign: Campaign, now: float) -> int | None:
         cap = campaign.labels_per_item
-        salt = _shuffle_key(campaign.seed, annotator.id) % 4294967311
-        sql = self._regular_query(False)
-        if cap is None:  # everybody labels everything: label counts do not steer the order
-            sql = sql.replace("n ASC, ", "")
-        row = tx.execute(sql, (campaign.id, campaign.id, now, campaign.id, annotator.id, cap, cap, salt)).fetchone()
+        mine = "NOT EXISTS (SELECT 1 FROM assignments a WHERE a.annotator_id = ? AND a.context_id = c.id)"
+        if cap is None:  # everybody labels everything: an order shuffled per annotator
+            salt = _shuffle_key(campaign.seed, annotator.id) % 4294967311
+            row = tx.execute(
+                f"SELECT c.id FROM contexts c WHERE c.campaign_id = ? AND c.gold_answer IS NULL AND {mine} "
+                "ORDER BY c.priority DESC, (c.id * 2654435761 + ?) % 4294967311 LIMIT 1",
+                (campaign.id, annotator.id, salt)).fetchone()
+        else:  # the queue index, in order: the first item with room left (labels plus others' live leases)
+            row = tx.execute(
+                f"SELECT c.id FROM contexts c INDEXED BY contexts_queue WHERE c.campaign_id = ? AND c.gold_answer "
+                f"IS NULL AND c.labels_n < ? AND {mine} AND c.labels_n + (SELECT COUNT(*) FROM assignments s WHERE "
+                "s.context_id = c.id AND s.released = 0 AND s.lease_expires_at > ?) < ? "
+                "ORDER BY c.priority DESC, c.labels_n, c.id LIMIT 1",
+                (campaign.id, cap, annotator.id, now, cap)).fetchone()
         return None if row is None else int(row[0])
 
     def _due_gold(self, tx: _Tx, annotator: Annotator, campaign: Campaign, settings: AnnotationSettings,
                   quality: dict[str, Any]) -> int | str | None:
         """A gold item to serve now, ``"stop"`` when the annotator failed (or cannot finish) qualification, or
         None for a regular item."""
+        if quality["status"] == "none" and settings.gold_rate <= 0:
+            return None
         unseen = tx.execute(
-            "SELECT c.id FROM contexts c WHERE c.campaign_id = ? AND c.gold_answer IS NOT NULL AND NOT EXISTS "
+            "SELECT c.id FROM contexts c INDEXED BY contexts_gold WHERE c.campaign_id = ? AND c.gold_answer IS NOT "
+            "NULL AND NOT EXISTS "
             "(SELECT 1 FROM assignments a WHERE a.annotator_id = ? AND a.context_id = c.id) ORDER BY "
             "(c.id * 2654435761 + ?) % 4294967311 LIMIT 1",
             (campaign.id, annotator.id, _shuffle_key(campaign.seed, annotator.id, "gold") % 4294967311)).fetchone()
@@ -660,6 +659,7 @@ class FeedbackStore:
                         (context_id, annotator.id, campaign.id, slot, candidate,
                          json.dumps(list(assignment.permutation)), time_on_item_ms, source, now))
                     label_id = cur.lastrowid
+                    tx.execute("UPDATE contexts SET labels_n = labels_n + 1 WHERE id = ?", (context_id,))
                     tx.execute("UPDATE assignments SET lease_expires_at = NULL WHERE id = ?", (assignment.id,))
             row = None if label_id is None else tx.execute("SELECT * FROM labels WHERE id = ?", (label_id,)).fetchone()
         if full is not None:
@@ -770,7 +770,8 @@ class FeedbackStore:
 
     # ----------------------------------------------------------------------------------------- progress
     def progress(self, annotator: Annotator, campaign: Campaign) -> dict[str, int]:
-        """``labeled``, ``skipped``, ``done`` and ``total`` (items this annotator can still get, plus done)."""
+        """``labeled``, ``skipped``, ``done`` and ``total``: the items assigned to the annotator plus those still
+        open to them (below ``labels_per_item``; items others hold right now are counted as open)."""
         with self.snapshot() as conn:
             labeled = conn.execute("SELECT COUNT(*) FROM labels WHERE annotator_id = ? AND campaign_id = ?",
                                    (annotator.id, campaign.id)).fetchone()[0]
@@ -778,10 +779,14 @@ class FeedbackStore:
                                    (annotator.id, campaign.id)).fetchone()[0]
             assigned = conn.execute("SELECT COUNT(*) FROM assignments WHERE annotator_id = ? AND campaign_id = ? AND "
                                     "released = 0", (annotator.id, campaign.id)).fetchone()[0]
-            cap = campaign.labels_per_item
-            available = conn.execute(self._regular_query(True), (campaign.id, campaign.id, time.time(), campaign.id,
-                                                                 annotator.id, cap, cap)).fetchone()[0]
-        return {"labeled": labeled, "skipped": skipped, "done": labeled + skipped, "total": assigned + available}
+            cap = SQLITE_MAX_INT if campaign.labels_per_item is None else campaign.labels_per_item
+            open_items = conn.execute("SELECT COUNT(*) FROM contexts INDEXED BY contexts_queue WHERE campaign_id = ? "
+                                      "AND gold_answer IS NULL AND labels_n < ?", (campaign.id, cap)).fetchone()[0]
+            seen = conn.execute("SELECT COUNT(*) FROM assignments a JOIN contexts c ON c.id = a.context_id WHERE "
+                                "a.annotator_id = ? AND a.campaign_id = ? AND c.gold_answer IS NULL AND c.labels_n < ?",
+                                (annotator.id, campaign.id, cap)).fetchone()[0]
+        return {"labeled": labeled, "skipped": skipped, "done": labeled + skipped,
+                "total": assigned + open_items - seen}
 
     def counts(self, campaign: Campaign) -> dict[str, int]:
         """Regular items, labels (ties and 'none realistic' among them), skips, distinct annotators, gold items,
