@@ -37,7 +37,7 @@ def test_judgment_ranks_faults(store: FeedbackStore) -> None:
 def test_rational_annotator_picks_the_faithful_candidate(store: FeedbackStore) -> None:
     campaign = store.campaign("tiny")
     counts = SyntheticAnnotator(store, "oracle", SyntheticAnnotatorConfig(beta=None)).label(campaign)
-    assert counts == {"labeled": 5, "none_realistic": 0, "skipped": 0}
+    assert counts == {"labeled": 5, "none_realistic": 0, "ties": 0, "skipped": 0}
     ordinal = {k["id"]: k["ordinal"] for k in store.context_keys(campaign)}
     for label in store.labels(campaign):
         assert label.source == "synthetic"
@@ -54,7 +54,7 @@ def test_none_threshold_mistakes_and_skips(store: FeedbackStore) -> None:
     wrong = [lab for lab in store.labels(campaign) if lab.annotator_id == store.annotator("wrong").id]
     assert all(_variant(ordinal[lab.context_id], lab.candidate) != "faithful" for lab in wrong)  # type: ignore[arg-type]
     skipper = SyntheticAnnotator(store, "skipper", SyntheticAnnotatorConfig(skip_rate=1.0)).label(campaign, limit=3)
-    assert skipper == {"labeled": 0, "none_realistic": 0, "skipped": 3}
+    assert skipper == {"labeled": 0, "none_realistic": 0, "ties": 0, "skipped": 3}
 
 
 def test_seeded_and_reproducible(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -93,3 +93,63 @@ def test_cli_label_synthetic(tmp_path, capsys) -> None:  # type: ignore[no-untyp
     with pytest.raises(SystemExit) as exit_info:
         main(["feedback", "status", "--db", db, "--campaign", "nope"])
     assert exit_info.value.code == 2 and "no campaign 'nope'" in capsys.readouterr().err
+
+
+def _record_with(candidates: torch.Tensor, scenario, logged, logged_valid):  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.feedback.records import ContextRecord
+
+    return ContextRecord(id=1, campaign_id=1, ordinal=0, source="tiny", split="test", scene_id="tiny-0000", seed=0,
+                         start_index=scenario.current_index, scenario=scenario, candidates=candidates,
+                         candidate_valid=torch.ones(candidates.shape[:3], dtype=torch.bool), logged=logged,
+                         logged_valid=logged_valid)
+
+
+def test_judgment_notices_pace_stop_and_go_and_lane_keeping() -> None:
+    """The log re-timed faster or slower costs pace, an oscillating clock stop-and-go, a sideways drift lane
+    keeping; the faithful copy costs nothing, and every fault ranks below it."""
+    from trafficrlhf_sdk.reward.contrast import perturb_future
+    from trafficrlhf_sdk.testing.feedback import tiny_context
+
+    scenario, _, _, logged, logged_valid = tiny_context(["faithful"])
+    now = scenario.current_index
+    variants = {"faithful": scenario.states[0, :, now + 1:]}
+    for kind in ("faster", "slower", "jerky", "off_lane"):
+        variants[kind] = perturb_future(scenario, kind, 0.5)[0].states[0, :, now + 1:]
+    judgment = judge_realism(_record_with(torch.stack(list(variants.values())), scenario, logged, logged_valid),
+                             include_logged=False)
+    realism = dict(zip(variants, judgment.realism.tolist()))
+    c = {k: dict(zip(variants, v.tolist())) for k, v in judgment.components.items()}
+    assert realism["faithful"] == pytest.approx(1.0)
+    assert all(realism[k] < realism["faithful"] - 0.05 for k in variants if k != "faithful"), realism
+    assert c["pace"]["faster"] > 0 and c["pace"]["slower"] > 0 and c["pace"]["faithful"] == 0
+    assert c["stop_go"]["jerky"] > 0 and c["lane"]["off_lane"] > 0 and c["lane"]["faithful"] == 0
+
+
+def test_judgment_notices_tailgating_and_driving_against_the_flow() -> None:
+    from trafficrlhf_sdk.testing.feedback import tiny_context
+
+    scenario, _, _, logged, logged_valid = tiny_context(["faithful"])
+    tail = logged.clone()
+    tail[0, :, 0] = logged[2, :, 0] - 6.0  # car 0 right behind car 2 ...
+    tail[0, :, 1] = logged[2, :, 1]  # ... in its lane
+    tail[0, :, 2] = logged[2, :, 2]
+    wrong = logged.clone()
+    wrong[1, :, 3] = logged[1, :, 3] + torch.pi  # car 1 drives with its nose backwards
+    judgment = judge_realism(_record_with(torch.stack([logged, tail, wrong]), scenario, logged, logged_valid),
+                             include_logged=False)
+    assert judgment.components["tailgate"][1] > 0 and judgment.components["tailgate"][0] == 0
+    assert judgment.components["wrong_way"][2] > 0 and judgment.components["wrong_way"][0] == 0
+
+
+def test_profiles_disagree_and_ties_are_answered_when_allowed() -> None:
+    from trafficrlhf_sdk.feedback.records import TIE_SLOT
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES
+
+    assert len({(p.weight_pace, p.weight_collision, p.beta, p.epsilon) for p in PROFILES.values()}) == len(PROFILES)
+    annotator = SyntheticAnnotator.__new__(SyntheticAnnotator)
+    annotator.config = SyntheticAnnotatorConfig(tie_margin=0.05)
+    even = torch.tensor([0.90, 0.92, 0.91])
+    gen = torch.Generator().manual_seed(0)
+    assert annotator.choose(even, gen, allow_tie=True) == TIE_SLOT
+    assert annotator.choose(even, gen, allow_tie=False) in (0, 1, 2)
+    assert annotator.choose(torch.tensor([0.5, 0.95, 0.6]), gen, allow_tie=True) != TIE_SLOT

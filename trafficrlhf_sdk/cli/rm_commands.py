@@ -65,6 +65,9 @@ def rm() -> None:
 @click.option("--test-annotator", "test_annotators", multiple=True, help="Its annotator(s), e.g. a noise-free one.")
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Test pairs whose hidden realism differs by at most this count as ties (strict accuracy).")
+@click.option("--contrast-scenes", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Add automatic contrast pairs from the last N train scenes' logs (the log preferred to it made "
+                   "faster, slower, jerky, off its lane or tailgating), weighed by RewardConfig.contrast_weight.")
 @click.option("--title", default=None, help="Title of the model card.")
 @click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
@@ -74,7 +77,7 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
                   seed: int, threads: int | None, device: str,
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
-                  title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
+                  contrast_scenes: int | None, title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card."""
     import torch
 
@@ -95,10 +98,17 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                                                                               "val_acc", "val_margin"))}
             click.echo(f"  member {int(row['member'])} epoch {int(row['epoch'])}: {shown} ({row['seconds']:.1f} s)")
 
-    trainer = RewardTrainer(config, train_dataset=dataset, log=log)
+    contrast = None
+    if contrast_scenes is not None:
+        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
+
+        source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
+        contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, from_end=True))
+    trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast)
     info = trainer.dataset_info
     click.echo(f"training {architecture} on {info['train_pairs']} pairs / {info['train_contexts']} contexts, "
-               f"validating on {info['val_pairs']} pairs / {info['val_contexts']} contexts "
+               f"validating on {info['val_pairs']} pairs / {info['val_contexts']} contexts, "
+               f"{info['contrast_pairs']} contrast pairs "
                f"(featurized in {trainer.featurize_seconds:.1f} s)")
     result = trainer.train()
     model = result.model
@@ -147,23 +157,38 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
 @click.option("--split-seed", type=int, default=0, show_default=True, help="With --db: seed of that split.")
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="With --db: pairs whose hidden realism differs by at most this are ties (strict accuracy).")
+@click.option("--probes", "probe_scenes", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Also probe the model on N held-out val scenes: the logged future must score above the same "
+                   "future made faster, slower, jerky, off its lane or tailgating (pass rate per probe and member).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
                  annotators: tuple[str, ...], subset: str, val_fraction: float, split_seed: int,
-                 tie_tolerance: float, as_json: bool) -> None:
-    """Accuracy (share of pairs with r(S_w) > r(S_l)), margin and rewards on a campaign's preference pairs."""
+                 tie_tolerance: float, probe_scenes: int | None, as_json: bool) -> None:
+    """Accuracy (share of pairs with r(S_w) > r(S_l)), margin and rewards on a campaign's preference pairs, and
+    the probes on held-out logs (--probes)."""
     from trafficrlhf_sdk.reward import RewardModel
     from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
 
-    model = RewardModel.from_pretrained(model_dir)
-    dataset, store = load_preferences(db_path, campaign, data_dir, annotators, val_fraction, split_seed)
-    if subset != "all":
-        dataset = dataset.subset(subset)
-    metrics = evaluate_model(model, dataset, store, tie_tolerance)
+    model = RewardModel.from_pretrained(model_dir).eval()
+    result: dict[str, Any] = {}
+    if db_path is not None or data_dir is not None or probe_scenes is None:
+        dataset, store = load_preferences(db_path, campaign, data_dir, annotators, val_fraction, split_seed)
+        if subset != "all":
+            dataset = dataset.subset(subset)
+        result["pairs"] = evaluate_model(model, dataset, store, tie_tolerance)
+    if probe_scenes is not None:
+        from trafficrlhf_sdk.reward.contrast import probe_reward_model, recorded_windows
+
+        result["probes"] = probe_reward_model(model, recorded_windows("nuscenes_pred", "val", probe_scenes))
     if as_json:
-        click.echo(json.dumps(metrics, indent=2))
+        click.echo(json.dumps(result if "probes" in result else result["pairs"], indent=2))
         return
-    _echo_metrics(f"{model.architecture} from {model_dir} on {campaign or data_dir}", metrics)
+    if "pairs" in result:
+        _echo_metrics(f"{model.architecture} from {model_dir} on {campaign or data_dir}", result["pairs"])
+    for kind, entry in result.get("probes", {}).items():
+        members = " / ".join(f"{rate:.2f}" for rate in entry["members"])
+        click.echo(f"  probe {kind:<9} pass {entry['pass_rate']:.3f} on {entry['scenes']} scenes"
+                   + (f" (members {members})" if members else "") + f", mean gap {entry['mean_gap']:+.4f}")
 
 
 @rm.command("info")

@@ -1,19 +1,35 @@
-"""A synthetic annotator: a hidden realism judgment plus B-Pref-style noise, labeling through the store API.
+"""A stand-in annotator: a hidden realism judgment plus B-Pref-style noise, labeling through the store API.
 
-**Hidden judgment.** Each candidate future (and the logged one) gets a penalty, a weighted sum of the share of
-controlled agents that collide, the share that leave the drivable area, soft excesses of longitudinal and
-lateral acceleration and of jerk over plausible bounds, and the share of time an agent stalls (nearly stopped)
-where the log drives on. Realism is ``exp(-penalty)`` in (0, 1]. Kinematics are measured in each vehicle's own
-frame on positions sampled every 1 s: the logged nuScenes tracks are 2 Hz keyframes with centimetre-level box
-noise, and on 0.5 s differences that noise alone gives logged jerk a 90th percentile of 7.9 m/s^3; at 1 s the
-log's 99th percentiles are 2.6 m/s^2 (longitudinal), 2.8 m/s^2 (lateral) and 3.0 m/s^3 (jerk) over the first
-20 val scenes, hence the default bounds of 3.
+It stands in for people in tests, experiments and the main job; it is not a truth about realism. Several
+:data:`PROFILES` weigh what they notice differently and make mistakes at different rates, so that their labels
+disagree as people's do. A reward model can only learn what the judgment contains: a term it lacks is a blind spot
+that an optimized policy will find.
+
+**Hidden judgment.** Each candidate future (and the logged one) gets a penalty, a weighted sum, per controlled
+agent and averaged, of what a person watching the video notices:
+
+- collisions and leaving the drivable area (shares of agents);
+- harsh kinematics: soft excesses of longitudinal and lateral acceleration and of jerk over plausible bounds;
+- stalling (nearly stopped where the log drives on), and **pace** against the flow: the agent's mean speed
+  against the logged agent's, outside a tolerance, faster or slower;
+- **tailgating**: the share of time with a time to collision to the agent ahead below ``ttc_s`` or a time headway
+  below ``headway_s`` while driving;
+- **lane keeping**: time spent on lane or road dividers beyond what the logged agent spends there, and box
+  corners off the drivable area;
+- **heading against the flow**: driving more than 90 degrees off the logged agent's heading;
+- **stop-and-go**: reversals of a longitudinal acceleration above 1 m/s^2 within the window.
+
+Realism is ``exp(-penalty)`` in (0, 1]. Kinematics are measured in each vehicle's own frame on positions sampled
+every 1 s: the logged nuScenes tracks are 2 Hz keyframes with centimetre-level box noise, which finer differences
+turn into spurious jerk.
 
 **Noisy choice** (B-Pref, Lee et al. 2021, ``teacher_beta`` / ``teacher_eps_mistake`` / skip threshold):
 
 1. if the best candidate's realism is at or below ``none_threshold``: answer "none realistic" (slot 0);
-2. with probability ``epsilon``: a mistake, one of the other candidates uniformly;
-3. otherwise sample from ``softmax(beta * realism)`` over the candidates (``beta=None``: perfectly rational,
+2. if every candidate's realism lies within ``tie_margin`` of the best and the campaign allows ties: answer
+   "equally realistic";
+3. with probability ``epsilon``: a mistake, one of the other candidates uniformly;
+4. otherwise sample from ``softmax(beta * realism)`` over the candidates (``beta=None``: perfectly rational,
    the argmax).
 
 Every draw comes from a generator seeded by (``seed``, annotator name, item id), so a labeling run is
@@ -29,11 +45,13 @@ from collections.abc import Callable
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from trafficrlhf_sdk.feedback.records import TIE_SLOT
 from trafficrlhf_sdk.feedback.store import Annotator, Campaign, ContextRecord, FeedbackStore
-from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
+from trafficrlhf_sdk.metrics.geometry import path_gaps
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["RealismJudgment", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "judge_realism"]
+__all__ = ["PROFILES", "RealismJudgment", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "judge_realism"]
 
 STAT_DT = 1.0  # s between the samples used for kinematics
 
@@ -60,6 +78,35 @@ class SyntheticAnnotatorConfig(BaseModel):
     max_jerk: float = Field(3.0, gt=0, description="Plausible |longitudinal jerk| bound (m/s^3).")
     stall_log_speed: float = Field(2.0, ge=0, description="The log counts as driving above this speed (m/s).")
     stall_ratio: float = Field(0.25, gt=0, lt=1, description="Stalled: speed below this fraction of the log's.")
+    weight_pace: float = Field(2.0, ge=0, description="Penalty per unit of pace error: |log(speed / logged speed)| "
+                               "beyond `pace_tolerance`, over 0.3, capped at 3.")
+    pace_tolerance: float = Field(0.15, ge=0, description="Pace error (|log speed ratio|) noticed by nobody.")
+    weight_tailgate: float = Field(2.0, ge=0, description="Penalty per unit share of time tailgating.")
+    ttc_s: float = Field(1.5, gt=0, description="Tailgating: time to collision to the agent ahead below this (s).")
+    headway_s: float = Field(0.6, gt=0, description="Tailgating: time headway to the agent ahead below this (s) "
+                             "while driving above `stall_log_speed`.")
+    weight_lane: float = Field(1.5, ge=0, description="Penalty per unit of lane keeping error: share of time on a "
+                               "divider beyond the logged agent's, plus the mean share of box corners off-road.")
+    weight_wrong_way: float = Field(3.0, ge=0, description="Penalty per unit share of time heading more than 90 "
+                                    "degrees off the logged agent's heading while driving.")
+    weight_stop_go: float = Field(0.5, ge=0, description="Penalty per reversal of a longitudinal acceleration above "
+                                  "1 m/s^2 (per agent, capped at 3).")
+    tie_margin: float = Field(0.0, ge=0, le=1, description="Answer 'equally realistic' when every candidate's "
+                              "realism is within this of the best (campaigns that allow ties); 0: never.")
+
+
+PROFILES: dict[str, SyntheticAnnotatorConfig] = {
+    "attentive": SyntheticAnnotatorConfig(beta=40.0, epsilon=0.02, tie_margin=0.02),
+    "safety": SyntheticAnnotatorConfig(beta=25.0, epsilon=0.05, weight_collision=6.0, weight_offroad=4.0,
+                                       weight_tailgate=3.0, weight_accel=1.0, weight_jerk=0.5, weight_pace=1.0,
+                                       tie_margin=0.03),
+    "flow": SyntheticAnnotatorConfig(beta=25.0, epsilon=0.05, weight_pace=3.0, weight_stall=3.0, weight_stop_go=1.0,
+                                     weight_lane=2.0, tie_margin=0.03),
+    "hurried": SyntheticAnnotatorConfig(beta=10.0, epsilon=0.15, tie_margin=0.05),
+}
+"""Named stand-in annotators that weigh the judgment differently and err at different rates (so that their labels
+disagree as people's do): ``attentive`` (few mistakes), ``safety`` (collisions, off-road and tailgating first),
+``flow`` (pace, stalling, stop-and-go and lane keeping first) and ``hurried`` (noisy)."""
 
 
 @dataclass(frozen=True)
@@ -130,15 +177,68 @@ def judge_realism(record: ContextRecord, config: SyntheticAnnotatorConfig | None
     stalled = (kin["speed"] < cfg.stall_ratio * log_kin["speed"]) & driving & kin["speed_ok"]
     stall = stalled.sum(-1) / driving.sum(-1).clamp_min(1)
 
+    # pace against the logged agent's, over the steps where both are measured
+    both = kin["speed_ok"] & log_kin["speed_ok"]
+    mean_speed = _masked_mean(kin["speed"], both)
+    log_speed = _masked_mean(log_kin["speed"].expand_as(kin["speed"]), both)
+    moving = log_speed > cfg.stall_log_speed
+    ratio = torch.log(mean_speed.clamp_min(0.1) / log_speed.clamp_min(0.1))
+    pace = torch.where(moving, ((ratio.abs() - cfg.pace_tolerance).clamp_min(0) / 0.3).clamp_max(3.0),
+                       torch.zeros_like(ratio))
+    tailgate = _tailgating(batch, future_valid, cfg)
+    lane = _lane_error(batch, log, future_valid)
+    # heading against the logged agent's while driving (10 Hz steps)
+    off = torch.cos(batch.yaw - log.yaw) < 0
+    drives = (batch.states[..., 2] > cfg.stall_log_speed) & future_valid & log.valid
+    wrong_way = (off & drives).sum(-1) / future_valid.sum(-1).clamp_min(1)
+    # stop-and-go: reversals of a sizeable longitudinal acceleration
+    strong = kin["acc_ok"] & (kin["lon"].abs() > 1.0)
+    sign = torch.sign(kin["lon"]) * strong
+    flips = ((sign[:, :, 1:] * sign[:, :, :-1]) < 0).sum(-1).clamp_max(3)
+
     def per_agent(x: torch.Tensor) -> torch.Tensor:
         return (x * controlled).sum(-1) / n_agents
 
     components = {"collision": collided.double(), "offroad": offroad.double(), "accel": per_agent(acc_excess),
-                  "jerk": per_agent(jerk_excess), "stall": per_agent(stall.double())}
+                  "jerk": per_agent(jerk_excess), "stall": per_agent(stall.double()),
+                  "pace": per_agent(pace.double()), "tailgate": per_agent(tailgate.double()),
+                  "lane": per_agent(lane.double()), "wrong_way": per_agent(wrong_way.double()),
+                  "stop_go": per_agent(flips.double())}
     penalty = (cfg.weight_collision * components["collision"] + cfg.weight_offroad * components["offroad"]
                + cfg.weight_accel * components["accel"] + cfg.weight_jerk * components["jerk"]
-               + cfg.weight_stall * components["stall"])
+               + cfg.weight_stall * components["stall"] + cfg.weight_pace * components["pace"]
+               + cfg.weight_tailgate * components["tailgate"] + cfg.weight_lane * components["lane"]
+               + cfg.weight_wrong_way * components["wrong_way"] + cfg.weight_stop_go * components["stop_go"])
     return RealismJudgment(torch.exp(-penalty), components)
+
+
+def _tailgating(batch: ScenarioTensor, future_valid: torch.Tensor, cfg: SyntheticAnnotatorConfig) -> torch.Tensor:
+    """``(K, A)``: share of each agent's future steps with a short time to collision or time headway to the
+    nearest agent in its path ahead."""
+    speed = batch.states[..., 2]
+    gap, closing, in_path = path_gaps(batch.xy, batch.yaw, speed, batch.extent, batch.valid)
+    inf = torch.full_like(gap, float("inf"))
+    ttc = torch.where(in_path & (closing > 0), gap / closing.clamp_min(1e-6), inf).amin(2)
+    headway = torch.where(in_path, gap / speed[:, :, None].clamp_min(1e-6), inf).amin(2)
+    close = (ttc < cfg.ttc_s) | ((headway < cfg.headway_s) & (speed > cfg.stall_log_speed))
+    return (close & future_valid).sum(-1) / future_valid.sum(-1).clamp_min(1)
+
+
+def _lane_error(batch: ScenarioTensor, log: ScenarioTensor, future_valid: torch.Tensor) -> torch.Tensor:
+    """``(K, A)``: time on lane or road dividers beyond the logged agent's, plus the mean share of box corners
+    off the drivable layer (0 without a map)."""
+    if batch.map is None:
+        return torch.zeros(future_valid.shape[:2], dtype=torch.float64)
+    error = torch.zeros(future_valid.shape[:2], dtype=torch.float64)
+    steps = future_valid.sum(-1).clamp_min(1)
+    for layer in ("lane_divider", "road_divider"):
+        if layer in batch.map.layers:
+            on = batch.map.lookup(batch.xy, layer) & future_valid
+            on_log = log.map.lookup(log.xy, layer) & future_valid[:1] if log.map is not None else on[:1] & False
+            error += ((on.sum(-1) - on_log.sum(-1)).clamp_min(0) / steps).double()
+    if "drivable" in batch.map.layers:
+        error += ((offroad_corner_share(batch) * future_valid).sum(-1) / steps).double()
+    return error
 
 
 class SyntheticAnnotator:
@@ -162,11 +262,14 @@ class SyntheticAnnotator:
         digest = hashlib.sha256(f"{self.config.seed}:{self.annotator.name}:{context_id}".encode()).digest()
         return torch.Generator().manual_seed(int.from_bytes(digest[:8], "big") >> 1)
 
-    def choose(self, realism: torch.Tensor, generator: torch.Generator) -> int | None:
-        """The candidate index chosen from realism scores ``(N,)``, or None for "none realistic"."""
+    def choose(self, realism: torch.Tensor, generator: torch.Generator, allow_tie: bool = False) -> int | None:
+        """The candidate index chosen from realism scores ``(N,)``, None for "none realistic", or
+        :data:`~trafficrlhf_sdk.feedback.schema.TIE_SLOT` for "equally realistic" (when ``allow_tie``)."""
         cfg = self.config
         if float(realism.max()) <= cfg.none_threshold:
             return None
+        if allow_tie and cfg.tie_margin > 0 and float(realism.max() - realism.min()) <= cfg.tie_margin:
+            return TIE_SLOT
         if cfg.beta is None:
             best = int(torch.argmax(realism))
         else:
@@ -179,9 +282,9 @@ class SyntheticAnnotator:
 
     def label(self, campaign: Campaign | str, limit: int | None = None,
               on_label: Callable[[int, int | None], None] | None = None) -> dict[str, int]:
-        """Label up to ``limit`` items (all that are left when None); returns counts of labels, none, skips."""
+        """Label up to ``limit`` items (all that are left when None); returns counts of labels, none, ties, skips."""
         campaign = self.store.campaign(campaign) if isinstance(campaign, str) else campaign
-        counts = {"labeled": 0, "none_realistic": 0, "skipped": 0}
+        counts = {"labeled": 0, "none_realistic": 0, "ties": 0, "skipped": 0}
         while limit is None or counts["labeled"] + counts["skipped"] < limit:
             assignment = self.store.next_item(self.annotator, campaign)
             if assignment is None:
@@ -193,11 +296,15 @@ class SyntheticAnnotator:
                 continue
             record = self.store.load_context(assignment.context_id, campaign)
             realism = judge_realism(record, self.config, include_logged=False).realism
-            choice = self.choose(realism, generator)
-            slot = 0 if choice is None else assignment.permutation.index(choice) + 1  # what a person would press
+            choice = self.choose(realism, generator, allow_tie=bool(getattr(campaign.settings, "allow_tie", False)))
+            if choice == TIE_SLOT:
+                slot = TIE_SLOT
+            else:  # what a person would press
+                slot = 0 if choice is None else assignment.permutation.index(choice) + 1
             self.store.submit_label(self.annotator, campaign, assignment.context_id, slot, source="synthetic")
             counts["labeled"] += 1
             counts["none_realistic"] += int(choice is None)
+            counts["ties"] += int(choice == TIE_SLOT)
             if on_label is not None:
                 on_label(assignment.context_id, choice)
         return counts

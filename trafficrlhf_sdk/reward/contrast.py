@@ -12,7 +12,7 @@ kind       the controlled agents that drive (above 1 m/s now) ...
 faster     follow their own logged path ``1 + strength`` times as fast (time-warped; constant velocity past
            the end of the log)
 slower     follow it ``1 - strength / 2`` times as fast
-jerky      follow it with the clock oscillating by ``strength`` seconds over a 2 s period (stop-and-go)
+jerky      follow it with the clock oscillating by ``strength`` seconds over a 3 s period (stop-and-go)
 off_lane   drift sideways, ``4 * strength`` metres after 1.5 s, off their lane
 tailgate   close in on the agent ahead to a bumper gap of 1 m over 2 s (agents with a lead within 40 m only)
 ========== ===============================================================================================
@@ -40,12 +40,13 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 
 __all__ = ["CONTRAST_ANNOTATOR", "PERTURBATIONS", "contrast_dataset", "log_windows", "perturb_future",
-           "probe_reward_model"]
+           "probe_reward_model", "recorded_windows"]
 
 CONTRAST_ANNOTATOR = "contrast:log"
 PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate")
 MOVING_SPEED = 1.0  # m/s at "now": only agents that drive are perturbed
 DEFAULT_STRENGTH = 0.5
+JERK_PERIOD_S = 3.0  # s, the period of the stop-and-go clock
 
 
 def _warp(states: torch.Tensor, valid: torch.Tensor, now: int, clock: torch.Tensor, dt: float) -> torch.Tensor:
@@ -105,7 +106,7 @@ def perturb_future(scenario: ScenarioTensor, kind: str,
             clock = k * (1 - strength / 2)
         else:
             amplitude = strength / dt  # steps
-            clock = k + amplitude * torch.sin(2 * math.pi * k * dt / 2.0)
+            clock = k + amplitude * torch.sin(2 * math.pi * k * dt / JERK_PERIOD_S)
         new = _warp(states, valid, now, clock, dt)
     elif kind == "off_lane":
         ramp = (k * dt / 1.5).clamp(max=1.0) * 4 * strength  # metres to the left
@@ -143,6 +144,20 @@ def log_windows(scenes: ScenarioTensor, history_steps: int = 10, future_steps: i
         raise TrafficRLHFError(f"the scenes ({scenes.num_steps} steps) hold no window of {history_steps} + "
                                f"{future_steps} steps at starts {list(starts)}.")
     return ScenarioTensor.concat(parts)
+
+
+def recorded_windows(source: str = "nuscenes_pred", split: str = "val", num_scenes: int = 50,
+                     root: str | None = None, from_end: bool = False, future_steps: int = 40) -> ScenarioTensor:
+    """:func:`log_windows` of the first (``from_end``: last) ``num_scenes`` long-enough scenes of ``split``: held-out
+    logs for probes (``val``) or contrast pairs (the end of ``train``, away from the scenes campaigns start with)."""
+    from trafficrlhf_sdk import get_scenario_source
+
+    reader = get_scenario_source(source, **({"root": root} if root else {}))
+    ids = reader.scene_ids(split)
+    ids = ids[-num_scenes:] if from_end else ids[:num_scenes]
+    if not ids:
+        raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough.")
+    return log_windows(reader.load_batch(split, scene_ids=ids), future_steps=future_steps)
 
 
 def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATIONS,

@@ -1,0 +1,126 @@
+"""Automatic contrast pairs and reward-model probes (trafficrlhf_sdk.reward.contrast)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.reward.contrast import (
+    CONTRAST_ANNOTATOR,
+    PERTURBATIONS,
+    contrast_dataset,
+    perturb_future,
+    probe_reward_model,
+)
+from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.testing.feedback import tiny_context
+
+
+def _scenes(n: int = 3) -> ScenarioTensor:
+    return ScenarioTensor.concat([tiny_context(["faithful"], i)[0] for i in range(n)])
+
+
+def _future_speed(scenario: ScenarioTensor) -> torch.Tensor:
+    now = scenario.current_index
+    xy = scenario.xy[:, :, now:]
+    return (torch.diff(xy, dim=2).norm(dim=-1) / scenario.dt).mean(-1)  # (B, A) from positions
+
+
+@pytest.mark.parametrize("kind", PERTURBATIONS)
+def test_perturbations_change_only_the_future_of_moving_controlled_agents(kind: str) -> None:
+    scenes = _scenes()
+    scenes = scenes.replace_unchecked(controlled=torch.tensor([[True, True, False]] * 3))
+    moved, changed = perturb_future(scenes, kind, 0.5)
+    now = scenes.current_index
+    assert torch.equal(moved.states[:, :, : now + 1], scenes.states[:, :, : now + 1])
+    assert torch.equal(moved.states[:, 2], scenes.states[:, 2])  # not controlled: the log
+    assert not changed[:, 2].any()
+    if kind != "tailgate":  # the tiny road's cars drive in separate lanes: nobody has a lead
+        assert changed[:, :2].all()
+        assert not torch.allclose(moved.states[:, :2, now + 1:], scenes.states[:, :2, now + 1:])
+    else:
+        assert not changed.any() and torch.equal(moved.states, scenes.states)
+
+
+def test_retimed_futures_follow_the_logged_path_at_another_pace() -> None:
+    scenes = _scenes()
+    base = _future_speed(scenes)
+    faster = _future_speed(perturb_future(scenes, "faster", 0.5)[0])
+    slower = _future_speed(perturb_future(scenes, "slower", 0.5)[0])
+    assert torch.allclose(faster / base, torch.full_like(base, 1.5), rtol=0.02)
+    assert torch.allclose(slower / base, torch.full_like(base, 0.75), rtol=0.02)
+    moved = perturb_future(scenes, "off_lane", 0.5)[0]
+    shift = (moved.xy - scenes.xy).norm(dim=-1)
+    assert float(shift.max()) == pytest.approx(2.0, abs=1e-3)
+
+
+def test_tailgating_closes_the_gap_to_the_lead() -> None:
+    from trafficrlhf_sdk.metrics.geometry import following_gaps
+
+    scenes = _scenes(1)
+    states = scenes.states.clone()
+    states[0, 0, :, 1] = states[0, 2, :, 1]  # car 0 drives in car 2's lane, 10 m behind it
+    states[0, 0, :, 0] = states[0, 2, :, 0] - 15.0
+    states[0, 0, :, 2] = states[0, 2, :, 2]
+    scenes = scenes.replace_unchecked(states=states)
+    moved, changed = perturb_future(scenes, "tailgate", 0.5)
+    assert changed[0, 0] and not changed[0, 2]
+    gap = lambda s: following_gaps(s.xy, s.yaw, s.states[..., 2], s.extent, s.valid)[0, 0]  # noqa: E731
+    end = scenes.current_index + 20
+    assert float(gap(moved)[end]) < 2.0 < float(gap(scenes)[end])
+
+
+def test_bad_perturbations_get_clear_errors() -> None:
+    with pytest.raises(TrafficRLHFError, match="unknown perturbation 'sideways'"):
+        perturb_future(_scenes(1), "sideways")
+    with pytest.raises(TrafficRLHFError, match="strength"):
+        perturb_future(_scenes(1), "faster", 0.0)
+
+
+class _PaysForSpeed:
+    """A broken reward: the faster the agents drive, the better."""
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        return _future_speed(scenario).mean(-1)
+
+
+class _LikesTheLog:
+    """A reward that knows the log: minus the distance to it."""
+
+    def __init__(self, log: ScenarioTensor) -> None:
+        self.log = log
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        return -(scenario.xy - self.log.xy).norm(dim=-1).mean((1, 2))
+
+
+def test_probes_catch_a_reward_that_pays_for_speed_and_pass_one_that_knows_the_log() -> None:
+    scenes = _scenes()
+    broken = probe_reward_model(_PaysForSpeed(), scenes, ("faster", "slower", "off_lane"))
+    assert broken["faster"]["pass_rate"] == 0.0 and broken["slower"]["pass_rate"] == 1.0
+    assert broken["faster"]["scenes"] == 3 and broken["faster"]["mean_gap"] < 0
+    good = probe_reward_model(_LikesTheLog(scenes), scenes, ("faster", "slower", "jerky", "off_lane"))
+    assert all(entry["pass_rate"] == 1.0 for entry in good.values())
+    assert probe_reward_model(_LikesTheLog(scenes), scenes, ("tailgate",))["tailgate"]["scenes"] == 0
+
+
+def test_contrast_dataset_prefers_the_log_and_trains_a_reward_model() -> None:
+    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer
+    from trafficrlhf_sdk.feedback import PreferenceDataset
+
+    scenes = _scenes(4)
+    data = contrast_dataset(scenes, ("faster", "off_lane"))
+    assert data.annotators == (CONTRAST_ANNOTATOR,) and len(data) == 8
+    assert (data.pairs[:, 1] == 2).all()  # the log (last slot) always wins
+    assert torch.equal(data.futures[:, 2], scenes.states[:, :, scenes.current_index + 1:])
+    human = PreferenceDataset(contexts=data.contexts, futures=data.futures, future_valid=data.future_valid,
+                              pairs=data.pairs[::2], pair_annotator=torch.zeros(4, dtype=torch.long),
+                              pair_label=torch.arange(4), context_split=("train", "train", "train", "val"),
+                              context_keys=data.context_keys, annotators=("person",))
+    config = RewardConfig(max_epochs=2, batch_size=2, progress=False,
+                          architecture_config={"hidden_sizes": [16, 8], "crop_size": 8})
+    trainer = RewardTrainer(config, train_dataset=human, contrast_dataset=data)
+    assert trainer.dataset_info["contrast_pairs"] == 8 and trainer.dataset_info["train_pairs"] == 3
+    result = trainer.train()
+    assert result.model is not None and "val_accuracy" in result.metrics
