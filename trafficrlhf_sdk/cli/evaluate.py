@@ -40,6 +40,16 @@ ROWS = (
     ("stopped_share", "stopped at the end (share)"),
     ("stopped_share_logged", "  stopped in the log"),
     ("reward_cost", "reward cost"),
+    ("realism_meta", "realism meta-metric (higher is better)"),
+    ("realism_meta_linear_speed", "  linear speed"),
+    ("realism_meta_linear_acceleration", "  linear acceleration"),
+    ("realism_meta_angular_speed", "  angular speed"),
+    ("realism_meta_angular_acceleration", "  angular acceleration"),
+    ("realism_meta_distance_to_nearest_object", "  distance to nearest object"),
+    ("realism_meta_collision_indication", "  collision"),
+    ("realism_meta_time_to_collision", "  time to collision"),
+    ("realism_meta_distance_to_road_edge", "  distance to road edge"),
+    ("realism_meta_offroad_indication", "  off-road"),
 )
 
 
@@ -99,12 +109,25 @@ def _fmt(value: float | None) -> str:
 @click.option("--after-log-end", type=click.Choice(["end", "continue"]), default="end", show_default=True,
               help="A driven agent whose logged track ends before the rollout does: removed from the scene from "
                    "then on (end) or driven to the end of the rollout (continue, upstream).")
+@click.option("--rollouts", type=click.IntRange(min=1), default=1, show_default=True,
+              help="K rollouts per scene. K >= 2 adds the realism meta-metric (WOSAC style; 8 is the usual K: compare "
+                   "models only at equal K) and pools the other metrics over the K rollouts.")
+@click.option("--duration", type=click.FloatRange(min=0.5), default=10.0, show_default=True,
+              help="Seconds simulated after the 3 s of history; scenes shorter than 3 s + DURATION are skipped (and "
+                   "counted). The paper's protocol is 10 s; a shorter one makes short scenes usable (e.g. ScenarioNet "
+                   "exports), but its numbers compare only with runs of the same duration.")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Run the (rollout, batch) simulations on N Ray workers started for the run (pip install "
+                   "'trafficrlhf-sdk[ray]'); 0 runs in-process. Same seeds give the same numbers either way.")
+@click.option("--ray-address", default=None,
+              help="Run on an existing Ray cluster at this address (e.g. auto or HOST:6379) instead of a local one.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str | None, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,
                      checkpoint: str | None, seed: int, seed_list: str | None, batch_size: int, out_dir: str | None,
                      reward_model_dir: str | None, worst_scenes: int, render_worst: int, model_options: tuple[str, ...],
-                     late_agents: str, after_log_end: str, as_json: bool) -> None:
+                     late_agents: str, after_log_end: str, rollouts: int, duration: float, workers: int,
+                     ray_address: str | None, as_json: bool) -> None:
     """Simulate 10 s from logged scenes (replanning at 2 Hz) and report failure rate and realism deviation.
 
     The same metrics are computed on the logged data of the same scenes, for reference.
@@ -113,6 +136,7 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
 
     from trafficrlhf_sdk import get_scenario_source
     from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy, seeds_summary
+    from trafficrlhf_sdk.parallel import ExecutionConfig
     from trafficrlhf_sdk.plugins import build_policy
     from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
@@ -133,17 +157,24 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
     extra = parse_key_values(model_options, "--model-option")
     policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
     model = model or str(getattr(policy, "name", None) or type(policy).__name__)
-    options = {"root": root} if root else {}
+    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
+    options: dict = {"root": root} if root else {}
+    if duration != 10.0:
+        options["min_future_s"] = duration
     scenario_source = get_scenario_source(source, **options)
-    scene_ids = _chosen_scenes(scenario_source.scene_ids(split), scene_id, split) if scene_id else \
-        scenario_source.scene_ids(split)[:num_scenes]
+    long_enough = scenario_source.scene_ids(split)
+    scene_ids = _chosen_scenes(long_enough, scene_id, split) if scene_id else long_enough[:num_scenes]
     if not scene_ids:
-        raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a 10 s rollout.")
+        raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a {duration:g} s "
+                               "rollout; try a shorter --duration.")
+    _report_short_scenes(scenario_source, split, len(long_enough), duration, as_json)
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
     metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
                 "reward_model": reward_model_dir, "model_options": extra, "late_agents": late_agents,
                 "after_log_end": after_log_end, "scene_ids": list(scene_ids)}
-    simulation = SimulationConfig(late_agents=late_agents, after_log_end=after_log_end)  # type: ignore[arg-type]
+    simulation = SimulationConfig(late_agents=late_agents, after_log_end=after_log_end,  # type: ignore[arg-type]
+                                  duration_s=duration)
+    metadata.update(rollouts=rollouts, duration_s=duration)
     if seeds:
         import os
 
@@ -154,8 +185,8 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
                 policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint,
                                               "seed": run_seed})
             run = evaluate_policy(policy, scenario, EvaluationConfig(simulation=simulation, batch_size=batch_size,
-                                                                   seed=run_seed),
-                                  extra_metrics=extra_metrics, progress=True, metadata=metadata)
+                                                                   seed=run_seed, rollouts=rollouts),
+                                  extra_metrics=extra_metrics, progress=True, metadata=metadata, execution=execution)
             results.append(run.to_json())
             if out_dir:
                 folders.append(os.path.join(str(out_dir), f"seed_{run_seed}"))
@@ -167,8 +198,9 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
         else:
             _print_seeds(folders, worst_scenes)
         return
-    config = EvaluationConfig(simulation=simulation, batch_size=batch_size, seed=seed)
-    report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata)
+    config = EvaluationConfig(simulation=simulation, batch_size=batch_size, seed=seed, rollouts=rollouts)
+    report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata,
+                             execution=execution)
     paths = report.save(out_dir) if out_dir else []
     if render_worst and out_dir:
         paths += _render_worst(report, render_worst, out_dir)
@@ -179,7 +211,8 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
     from rich.table import Table
 
     table = Table(title=f"{model} on {source}/{split}: {report.num_scenes} scenes, "
-                        f"{report.num_controlled_agents} controlled agents, 10 s closed loop")
+                        f"{report.num_controlled_agents} controlled agents, {duration:g} s closed loop"
+                        + (f", {rollouts} rollouts per scene" if rollouts > 1 else ""))
     table.add_column("metric")
     table.add_column(model, justify="right")
     table.add_column("logged data", justify="right")
@@ -193,6 +226,17 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
                   f"{torch.get_num_threads()} threads")
     for path in paths:
         console.print(f"wrote {path}")
+
+
+def _report_short_scenes(source: object, split: str, usable: int, duration: float, as_json: bool) -> None:
+    """Say how many scenes of ``split`` are too short for ``duration`` (never drop them silently)."""
+    listed = getattr(source, "all_scene_ids", None)
+    if listed is None or as_json:
+        return
+    total = len(listed(split))
+    if total > usable:
+        click.echo(f"{total - usable} of {total} scenes of {split!r} are shorter than 3 s + {duration:g} s and are "
+                   "skipped; a shorter --duration keeps more of them.", err=True)
 
 
 def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:

@@ -18,12 +18,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.metrics.base import Metric
 from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS, RealismMetric
+from trafficrlhf_sdk.metrics.realism_meta import RealismMetaConfig, RealismMetaMetric
+from trafficrlhf_sdk.parallel import ExecutionConfig, derive_seed, run_tasks
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import ClosedLoopPolicy
 from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_rollout, simulate
 
 __all__ = ["SCENE_HISTOGRAMS", "EvaluationConfig", "EvaluationReport", "evaluate_policy", "load_scene_histograms",
-           "plot_histograms", "run_batched", "save_scene_histograms"]
+           "plot_histograms", "policy_seed", "run_batched", "save_scene_histograms", "seed_policy"]
 
 SCENE_HISTOGRAMS = "scene_histograms.npz"
 DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives", "speed")
@@ -37,7 +39,12 @@ class EvaluationConfig(BaseModel):
     simulation: SimulationConfig = Field(default_factory=SimulationConfig, description="Closed-loop protocol.")
     metrics: tuple[str, ...] = Field(DEFAULT_METRICS, description="Registered metric names to compute.")
     batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch (memory bound).")
-    seed: int = Field(0, description="Seed of torch's global generator before the rollout.")
+    seed: int = Field(0, description="Seed of the run: each (rollout, batch) task seeds torch's global generator "
+                      "and the policy's sampler from it (derive_seed), in-process and on Ray alike.")
+    rollouts: int = Field(1, ge=1, description="K rollouts per scene. K >= 2 adds the realism meta-metric "
+                          "(RealismMetaMetric); the other metrics are pooled over the K rollouts.")
+    meta: RealismMetaConfig | None = Field(None, description="Meta-metric options; None uses the defaults with "
+                                           "K = `rollouts`.")
 
 
 @dataclass
@@ -91,28 +98,68 @@ class EvaluationReport:
         return paths
 
 
-def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: EvaluationConfig,
-                progress: bool = False) -> tuple[Rollout, Rollout]:
-    """Simulate ``scenario`` in batches of ``config.batch_size`` scenes.
+def seed_policy(policy: ClosedLoopPolicy, seed: int) -> None:
+    """Set the sampling seed of ``policy`` where it has one (adapters' ``options.seed``, ``NoisyLogPolicy.seed``);
+    deterministic policies have none. ``reset`` re-seeds the sampler from it at every rollout."""
+    options = getattr(policy, "options", None)
+    if options is not None and hasattr(options, "seed"):
+        policy.options = options.model_copy(update={"seed": seed})  # type: ignore[attr-defined]
+    elif isinstance(getattr(policy, "seed", None), int):
+        policy.seed = seed  # type: ignore[attr-defined]
 
-    Returns ``(rollout, reference)``: the policy's rollout over all scenes and the log-replay rollout of the
-    same scenes. Batches are joined along B without copying the map rasters.
+
+def policy_seed(policy: ClosedLoopPolicy, default: int) -> int:
+    """The sampling seed ``policy`` was built with (``default`` for a policy without one)."""
+    options = getattr(policy, "options", None)
+    value = getattr(options, "seed", None) if options is not None else getattr(policy, "seed", None)
+    return value if isinstance(value, int) else default
+
+
+def _simulate_task(shared: dict[str, Any], task: tuple[int, int]) -> tuple[torch.Tensor, ...]:
+    """One (rollout, batch) task: seeds from the task, simulates the batch, returns its states, valid, controlled
+    and timings. Runs in-process or on a Ray worker (:func:`~trafficrlhf_sdk.parallel.run_tasks`)."""
+    rollout, start = task
+    config: EvaluationConfig = shared["config"]
+    policy = shared["policy"]
+    chunk = start // config.batch_size
+    seed_policy(policy, derive_seed(shared["policy_seed"], rollout))
+    torch.manual_seed(derive_seed(config.seed, rollout, chunk))
+    part = simulate(policy, shared["scenario"][start : start + config.batch_size], config.simulation)
+    timing = torch.tensor([part.wall_time_s, part.policy_time_s], dtype=torch.float64)
+    return part.simulated.states, part.simulated.valid, part.controlled, timing
+
+
+def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: EvaluationConfig,
+                progress: bool = False, execution: ExecutionConfig | None = None) -> tuple[Rollout, Rollout]:
+    """Simulate ``scenario`` ``config.rollouts`` times in batches of ``config.batch_size`` scenes.
+
+    Returns ``(rollout, reference)``: the policy's rollouts over all scenes, stacked rollout-major along B (scene
+    ``k * B + b`` is rollout k of scene b), and the log-replay rollout of the scenes. Each (rollout, batch) task
+    seeds itself (:func:`~trafficrlhf_sdk.parallel.derive_seed`: rollout 0 keeps the policy's seed, batch 0 of
+    rollout 0 keeps ``config.seed``), so ``execution`` (in-process or Ray workers) does not change the numbers.
+    Batches are joined along B without copying the map rasters.
     """
     reference = log_rollout(scenario, config.simulation)
-    torch.manual_seed(config.seed)
-    starts = range(0, scenario.num_scenes, config.batch_size)
-    if progress:
+    tasks = [(k, i) for k in range(config.rollouts) for i in range(0, scenario.num_scenes, config.batch_size)]
+    shared = {"policy": policy, "scenario": scenario, "config": config,
+              "policy_seed": policy_seed(policy, config.seed)}
+    if progress and (execution is None or not execution.uses_ray):
         from tqdm.auto import tqdm
 
-        starts = tqdm(starts, desc="simulating", unit="batch")
-    parts = [simulate(policy, scenario[i : i + config.batch_size], config.simulation) for i in starts]
-    simulated = reference.logged.replace_unchecked(
-        states=torch.cat([p.simulated.states for p in parts]),
-        valid=torch.cat([p.simulated.valid for p in parts]),
-        controlled=torch.cat([p.controlled for p in parts]),
+        parts = [_simulate_task(shared, task) for task in tqdm(tasks, desc="simulating", unit="batch")]
+    else:
+        parts = run_tasks(_simulate_task, shared, tasks, execution)
+    seed_policy(policy, shared["policy_seed"])
+    logged = reference.logged if config.rollouts == 1 else \
+        reference.logged[torch.arange(scenario.num_scenes).repeat(config.rollouts)]
+    simulated = logged.replace_unchecked(
+        states=torch.cat([p[0] for p in parts]),
+        valid=torch.cat([p[1] for p in parts]),
+        controlled=torch.cat([p[2] for p in parts]),
     )
-    rollout = Rollout(simulated, reference.logged, simulated.controlled, reference.start_index, reference.end_index,
-                      sum(p.wall_time_s for p in parts), sum(p.policy_time_s for p in parts))
+    timing = torch.stack([p[3] for p in parts]).sum(0)
+    rollout = Rollout(simulated, logged, simulated.controlled, reference.start_index, reference.end_index,
+                      float(timing[0]), float(timing[1]))
     return rollout, reference
 
 
@@ -153,6 +200,7 @@ def evaluate_policy(
     extra_metrics: Sequence[Metric] = (),
     progress: bool = False,
     metadata: dict[str, Any] | None = None,
+    execution: ExecutionConfig | None = None,
 ) -> EvaluationReport:
     """Run ``policy`` in closed loop on ``scenario`` and compute the metrics for it and for the log.
 
@@ -163,24 +211,57 @@ def evaluate_policy(
         extra_metrics: metric instances beyond the registered names (e.g. a ``RewardCostMetric``).
         progress: show progress bars.
         metadata: stored in the report (model name, source, split...).
+        execution: where the (rollout, batch) tasks run: in-process (None, the default) or on Ray workers; the
+            numbers are the same.
+
+    With ``config.rollouts`` K >= 2 every scene is simulated K times: the failure, realism and other metrics are
+    pooled over the K rollouts (per-scene values are the means over the rollouts) and the realism meta-metric
+    (:class:`~trafficrlhf_sdk.metrics.realism_meta.RealismMetaMetric`) is added, for the policy and, as the
+    ceiling at this K, for the log scored against K copies of itself.
     """
     from trafficrlhf_sdk import get_metric
 
     config = config or EvaluationConfig()
     metrics = [get_metric(name) for name in config.metrics] + list(extra_metrics)
     began = time.perf_counter()
-    rollout, reference = run_batched(policy, scenario, config, progress)
-    per_scene: dict[str, list[float | None]] = {"controlled_agents": rollout.controlled.sum(-1).tolist()}
+    rollout, reference = run_batched(policy, scenario, config, progress, execution)
+    b, k = scenario.num_scenes, config.rollouts
+    per_scene: dict[str, list[float | None]] = {"controlled_agents": rollout.controlled[:b].sum(-1).tolist()}
     scene_histograms: dict[str, Any] = {}
     values, histograms = compute_metrics(rollout, metrics, per_scene, scene_histograms)
+    if k > 1:  # per-scene values: the mean over the K rollouts; per-scene histogram counts: their sum
+        for key, column in per_scene.items():
+            if key != "controlled_agents" and len(column) == k * b:
+                stacked = np.array([np.nan if v is None else v for v in column], dtype=np.float64).reshape(k, b)
+                per_scene[key] = [None if v != v else float(v) for v in stacked.mean(0)]
+        for by_quantity in scene_histograms.values():
+            for sides in by_quantity.values():
+                for side, counts in sides.items():
+                    sides[side] = counts.reshape(k, b, -1).sum(0)
     logged_values, _ = compute_metrics(reference, metrics)
-    info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed}
+    if k > 1 and config.metrics:
+        meta = RealismMetaMetric(config.meta or RealismMetaConfig(rollouts=k))
+        if meta.config.rollouts != k:
+            raise ValueError(f"config.meta.rollouts={meta.config.rollouts} differs from config.rollouts={k}; set "
+                             "them equal (or leave `meta` None).")
+        result = meta.compute(rollout)
+        values.update(result.values)
+        per_scene.update({key: [None if x != x else float(x) for x in v.tolist()]
+                          for key, v in result.per_scene.items()})
+        repeated = reference.logged[torch.arange(b).repeat(k)]
+        logged_values.update(meta.compute(Rollout(repeated, repeated, reference.controlled.repeat(k, 1),
+                                                  reference.start_index, reference.end_index)).values)
+    info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed,
+            "rollouts": k}
+    if execution is not None and execution.uses_ray:
+        info["ray_workers"] = execution.workers
+        info["ray_address"] = execution.ray_address
     info.update(metadata or {})
     return EvaluationReport(
         values=values,
         logged_values=logged_values,
         num_scenes=scenario.num_scenes,
-        num_controlled_agents=int(rollout.controlled.sum()),
+        num_controlled_agents=int(rollout.controlled[:b].sum()),
         wall_time_s=time.perf_counter() - began,
         simulation_time_s=rollout.wall_time_s,
         metadata=info,

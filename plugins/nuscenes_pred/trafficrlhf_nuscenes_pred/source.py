@@ -196,7 +196,7 @@ class NuScenesPredSource(ScenarioSource):
             scene_ids=(scene_id,),
             agent_ids=(tuple(str(t) for t in tracks),),
             source=self.name,
-            extras={"split": split},
+            extras={"split": split, "native_dt": KEYFRAME_DT},
         )
 
     def _load_map(self, scene_id: str) -> tuple[MapRaster, tuple[float, float]]:

@@ -1,0 +1,116 @@
+"""Run independent tasks in this process (the default) or on Ray workers (``pip install trafficrlhf-sdk[ray]``).
+
+One function and one shared payload (a model, a batch of scenes) serve every task. On Ray the payload is put in
+the object store once and each worker (an actor) receives it once, at start; tasks then carry only their own
+small arguments (a rollout and a chunk index, a scene id). Results come back in task order, and every task seeds
+its own randomness from its arguments, so the same seeds give the same numbers in-process and on Ray.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+
+__all__ = ["ExecutionConfig", "derive_seed", "ray_session", "run_tasks"]
+
+T = TypeVar("T")
+
+
+class ExecutionConfig(BaseModel):
+    """Where tasks run: in this process (``workers=0``, no ``ray_address``) or on Ray."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    workers: int = Field(0, ge=0, description="Ray workers (actors); 0 runs in-process. With `ray_address` and 0: "
+                         "one worker per CPU of the cluster.")
+    ray_address: str | None = Field(None, description="Address of an existing Ray cluster (e.g. 'auto' or "
+                                    "'10.0.0.5:6379'); None starts a local Ray for the run when workers > 0.")
+    threads_per_worker: int = Field(1, ge=1, description="torch threads inside each Ray worker.")
+
+    @property
+    def uses_ray(self) -> bool:
+        """Whether tasks go to Ray."""
+        return self.workers > 0 or self.ray_address is not None
+
+
+def derive_seed(seed: int, *keys: int) -> int:
+    """A 31-bit seed from ``seed`` and integer ``keys`` (e.g. rollout, chunk); ``seed`` itself when every key is 0,
+    so a single rollout of a single chunk keeps the run's own seed."""
+    if not any(keys):
+        return seed
+    return int(np.random.SeedSequence([seed & 0xFFFFFFFF, *keys]).generate_state(1)[0]) % (2**31 - 1)
+
+
+def _import_ray() -> Any:
+    try:
+        import ray
+    except ImportError as exc:
+        raise TrafficRLHFError("--workers/--ray-address run on Ray, which is not installed; install it with "
+                               "`pip install 'trafficrlhf-sdk[ray]'` (or drop --workers to run in-process).") from exc
+    return ray
+
+
+@contextlib.contextmanager
+def ray_session(execution: ExecutionConfig) -> Iterator[Any]:
+    """Connect to ``execution.ray_address`` or start a local Ray with ``execution.workers`` CPUs; yields the
+    ``ray`` module (None in-process). A Ray started here is shut down on exit; one already running is reused."""
+    if not execution.uses_ray:
+        yield None
+        return
+    ray = _import_ray()
+    started = False
+    if not ray.is_initialized():
+        options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
+                                   "runtime_env": {"env_vars": {"OMP_NUM_THREADS": str(execution.threads_per_worker)}}}
+        if execution.ray_address is not None:
+            ray.init(address=execution.ray_address, **options)
+        else:
+            ray.init(num_cpus=execution.workers, **options)
+        started = True
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
+class _Worker:
+    """A Ray actor holding the shared payload; runs ``fn(shared, task)`` per task."""
+
+    def __init__(self, fn: Callable[[Any, Any], Any], shared: Any, threads: int) -> None:
+        import torch
+
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+        self.fn, self.shared = fn, shared
+
+    def run(self, task: Any) -> Any:
+        return self.fn(self.shared, task)
+
+
+def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
+              execution: ExecutionConfig | None = None) -> list[T]:
+    """``[fn(shared, task) for task in tasks]``, in-process or on Ray workers, in task order.
+
+    ``fn`` must be a module-level function (Ray ships it by reference) and must seed any randomness from its
+    task, never rely on state left by an earlier task: tasks run on different workers in any order.
+    """
+    execution = execution or ExecutionConfig()
+    if not execution.uses_ray or not tasks:
+        return [fn(shared, task) for task in tasks]
+    with ray_session(execution) as ray:
+        from ray.util import ActorPool
+
+        workers = execution.workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        workers = min(workers, len(tasks))
+        actor = ray.remote(num_cpus=1)(_Worker)
+        shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
+        pool = ActorPool([actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)])
+        return list(pool.map(lambda a, task: a.run.remote(task), list(tasks)))
