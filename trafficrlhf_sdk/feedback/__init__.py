@@ -35,6 +35,8 @@ _EXPORTS = {
     "extend_campaign": "campaign",
     "fleiss_kappa": "agreement",
     "judge_realism": "synthetic",
+    "judge_scenarios": "synthetic",
+    "PROFILES": "synthetic",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

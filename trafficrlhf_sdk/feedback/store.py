@@ -427,8 +427,8 @@ class FeedbackStore:
         released (it will not come back) and the next one is served.
         """
         settings = campaign.settings
-        now = time.time()
         with self.transaction() as tx:
+            now = time.time()  # after the write lock is ours: a wait for it must not shorten the lease
             while True:
                 open_row = tx.execute(
                     "SELECT a.* FROM assignments a WHERE a.annotator_id = ? AND a.campaign_id = ? AND a.released = 0 "
@@ -524,8 +524,8 @@ class FeedbackStore:
         before it is passed.
         """
         _check_id(context_id, "item")
-        now = time.time()
         with self.transaction() as tx:
+            now = time.time()
             row = tx.execute("SELECT * FROM assignments WHERE annotator_id = ? AND context_id = ?",
                              (annotator.id, context_id)).fetchone()
             if row is not None:

@@ -51,7 +51,8 @@ from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_
 from trafficrlhf_sdk.metrics.geometry import path_gaps
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["PROFILES", "RealismJudgment", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "judge_realism"]
+__all__ = ["PROFILES", "RealismJudgment", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "judge_realism",
+           "judge_scenarios"]
 
 STAT_DT = 1.0  # s between the samples used for kinematics
 
@@ -153,7 +154,16 @@ def judge_realism(record: ContextRecord, config: SyntheticAnnotatorConfig | None
         futures.append(record.candidate_scenario(None))
     start = record.scenario.current_index
     batch = ScenarioTensor.concat(futures).time_slice(start)  # (K, A, 1 + H): the start step, then the future
-    controlled = record.controlled[None].expand(batch.num_scenes, -1)
+    log = ScenarioTensor.concat([record.candidate_scenario(None)]).time_slice(start)
+    return judge_scenarios(batch, log, record.controlled[None].expand(batch.num_scenes, -1), cfg)
+
+
+def judge_scenarios(batch: ScenarioTensor, log: ScenarioTensor, controlled: torch.Tensor,
+                    config: SyntheticAnnotatorConfig | None = None) -> RealismJudgment:
+    """The hidden judgment of K futures ``batch (K, A, 1 + H)`` (the start step, then the future) against the
+    logged ``log`` (one window for all, or one per future), over the ``controlled (K, A)`` agents."""
+    cfg = config or SyntheticAnnotatorConfig()
+    controlled = controlled.to(torch.bool)
     n_agents = controlled.sum(-1).clamp_min(1).double()
     future_valid = batch.valid.clone()
     future_valid[:, :, 0] = False
@@ -170,8 +180,7 @@ def judge_realism(record: ContextRecord, config: SyntheticAnnotatorConfig | None
     acc_excess = _masked_mean(excess(kin["lon"], cfg.max_lon_accel) + excess(kin["lat"], cfg.max_lat_accel),
                               kin["acc_ok"])
     jerk_excess = _masked_mean(excess(kin["jerk"], cfg.max_jerk), kin["jerk_ok"])
-    # stalling: nearly stopped while the logged agent drives (the log is the same scene in every row)
-    log = ScenarioTensor.concat([record.candidate_scenario(None)]).time_slice(start)
+    # stalling: nearly stopped while the logged agent drives
     log_kin = _sampled_kinematics(log.states, log.valid, log.dt)
     driving = (log_kin["speed"] > cfg.stall_log_speed) & log_kin["speed_ok"]
     stalled = (kin["speed"] < cfg.stall_ratio * log_kin["speed"]) & driving & kin["speed_ok"]
@@ -234,7 +243,8 @@ def _lane_error(batch: ScenarioTensor, log: ScenarioTensor, future_valid: torch.
     for layer in ("lane_divider", "road_divider"):
         if layer in batch.map.layers:
             on = batch.map.lookup(batch.xy, layer) & future_valid
-            on_log = log.map.lookup(log.xy, layer) & future_valid[:1] if log.map is not None else on[:1] & False
+            log_valid = future_valid if log.num_scenes == batch.num_scenes else future_valid[:1]
+            on_log = log.map.lookup(log.xy, layer) & log_valid if log.map is not None else on & False
             error += ((on.sum(-1) - on_log.sum(-1)).clamp_min(0) / steps).double()
     if "drivable" in batch.map.layers:
         error += ((offroad_corner_share(batch) * future_valid).sum(-1) / steps).double()

@@ -202,6 +202,7 @@ def test_cap_holds_under_load_and_kill9(tmp_path) -> None:  # type: ignore[no-un
     report["final"] = {
         "acknowledged": len(acks), "duplicated_acks": len(acks) - len(set(acks)), "lost": len(set(acks) - rows),
         "labels": sum(counts.values()), "items_labeled": len(counts),
+        "stored_but_unacknowledged": len(rows - set(acks)),  # committed, the reply lost in the kill
         "items_over_cap": sum(n > 1 for n in counts.values()),
         "refused_409_after_lease_race": sum(c.refused for c in clients),
         "ghost_late_label_statuses": sorted(late.values()), "seconds_after_restart": round(second_phase_s, 1),
