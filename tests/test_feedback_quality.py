@@ -3,6 +3,7 @@ qualification, ties in the export, several models per set, priorities, deactivat
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import threading
 import time
@@ -300,3 +301,49 @@ def test_version_1_files_are_migrated(tmp_path) -> None:  # type: ignore[no-unty
     store.submit_label(alice, campaign, nxt.context_id, TIE_SLOT)  # the relaxed CHECK accepts ties
     assert store._conn().execute("PRAGMA foreign_key_check").fetchall() == []
     store.close()
+
+
+def _cli(args: list[str], capsys) -> str:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    captured = capsys.readouterr()
+    assert exit_info.value.code == 0, captured.err
+    return captured.out
+
+
+def test_cli_for_the_campaign_owner(store: FeedbackStore, tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    campaign = make_tiny_campaign(store, num_contexts=4)
+    db = ["--db", store.path]
+    guide = tmp_path / "guide.md"
+    guide.write_text("# Judge\n\n- realism first\n", encoding="utf-8")
+    out = _cli(["feedback", "settings", *db, "--campaign", "tiny", "--guidelines", str(guide), "--gold-rate", "0.1",
+                "--playback-optional", "--no-tie"], capsys)
+    shown = json.loads(out)
+    assert shown["gold_rate"] == 0.1 and shown["playback_required"] is False and shown["allow_tie"] is False
+    assert store.campaign("tiny").settings.guidelines == guide.read_text(encoding="utf-8")
+    assert "added 2 gold items" in _cli(["feedback", "gold", *db, "--campaign", "tiny", "--count", "2"], capsys)
+    admin = _cli(["feedback", "admin", *db, "owner"], capsys).strip()
+    assert store.authenticate_admin(admin) == "owner"
+    token = _cli(["feedback", "annotator", "add", *db, "alice"], capsys).strip()
+    _cli(["feedback", "annotator", "deactivate", *db, "alice"], capsys)
+    with pytest.raises(AuthenticationError):
+        store.authenticate(token)
+    ids = [k["id"] for k in store.context_keys(campaign) if k["gold_answer"] is None]
+    ranking = tmp_path / "ranking.txt"
+    ranking.write_text(f"# most wanted first\n{ids[2]}\n{ids[1]}\n", encoding="utf-8")
+    assert "2 items" in _cli(["feedback", "prioritize", *db, "--campaign", "tiny", "--ranking", str(ranking)], capsys)
+    store.update_settings("tiny", allow_tie=True)
+    bob = store.add_annotator("bob")[0]
+    campaign = store.campaign("tiny")
+    first = store.next_item(bob, campaign)
+    assert first is not None and first.context_id == ids[2]
+    store.submit_label(bob, campaign, first.context_id, TIE_SLOT)
+    second = store.next_item(bob, campaign)
+    store.submit_label(bob, campaign, second.context_id, 1)
+    out = _cli(["feedback", "export", *db, "--campaign", "tiny", "--out", str(tmp_path / "prefs"), "--ties", "soft",
+                "--val-fraction", "0"], capsys)
+    assert out.startswith("14 pairs from 2 choices")
+    status = _cli(["feedback", "status", *db], capsys)
+    assert "4 items (+2 gold)" in status and "(0 none, 1 ties)" in status and "0 items over the cap" in status

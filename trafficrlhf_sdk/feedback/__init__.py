@@ -5,6 +5,11 @@ hidden logged future (:mod:`~trafficrlhf_sdk.feedback.campaign`). People label t
 ``trafficrlhf-annotation-web`` plugin) and a :class:`SyntheticAnnotator` can stand in for them; both go through
 :class:`FeedbackStore` (one SQLite file). :func:`export_preferences` turns the labels into a
 :class:`PreferenceDataset` for reward-model training.
+
+Campaign quality (:mod:`~trafficrlhf_sdk.feedback.settings`): guidelines, gold items with a known answer
+(:mod:`~trafficrlhf_sdk.feedback.gold`) and qualification, the play-once rule, leases that keep
+``labels_per_item`` under concurrency, ties, several models per candidate set, and serving items by priority
+(:mod:`~trafficrlhf_sdk.feedback.selection`, e.g. by reward-model disagreement).
 """
 
 from trafficrlhf_sdk._lazy import lazy_exports
