@@ -42,6 +42,12 @@ _EXPORTS = {
     "judge_realism": "synthetic",
     "judge_scenarios": "synthetic",
     "PROFILES": "synthetic",
+    "TIE_SLOT": "records",
+    "AnnotationSettings": "settings",
+    "add_gold_items": "gold",
+    "annotator_agreement": "agreement",
+    "priorities_from_ranking": "selection",
+    "rank_by_disagreement": "selection",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
