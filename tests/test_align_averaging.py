@@ -8,6 +8,7 @@ import os
 
 import pytest
 import torch
+from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import load_file, save_file
 
 from trafficrlhf_sdk.alignment import average_checkpoints, extrapolate_checkpoint
@@ -15,6 +16,12 @@ from trafficrlhf_sdk.cli import main
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
 gru = pytest.importorskip("trafficrlhf_example_gru")
+
+
+def _save(tensors: dict, path: str) -> None:
+    """Write edited weights and record their SHA-256, so the check under test is the one that fails."""
+    save_file(tensors, path)
+    record_weights_digest(os.path.dirname(path))
 
 
 def _saved(tmp_path, name: str, seed: int) -> str:  # type: ignore[no-untyped-def]
@@ -78,18 +85,19 @@ def test_mismatched_or_broken_inputs_get_one_clear_error(three: list[str], tmp_p
     field = next(iter(config["config"]))
     config["config"][field] = [config["config"][field], "changed"]
     (other / "config.json").write_text(json.dumps(config))
-    save_file(_weights(three[1]), str(other / "model.safetensors"))
+    _save(_weights(three[1]), str(other / "model.safetensors"))
     with pytest.raises(DataFormatError, match=f"different architecture configs \\({field}: "):
         average_checkpoints([three[0], str(other)], str(tmp_path / "x"))
     config["config"][field] = json.loads(open(os.path.join(three[1], "config.json")).read())["config"][field]
     config["adapter"] = "ctg"
     (other / "config.json").write_text(json.dumps(config))
+    record_weights_digest(str(other))
     with pytest.raises(DataFormatError, match="adapter 'ctg'"):
         average_checkpoints([three[0], str(other)], str(tmp_path / "x"))
     broken = {k: v.clone() for k, v in _weights(three[1]).items()}
     first = next(k for k, v in broken.items() if v.is_floating_point())
     broken[first].view(-1)[0] = float("nan")
-    save_file(broken, os.path.join(three[2], "model.safetensors"))
+    _save(broken, os.path.join(three[2], "model.safetensors"))
     with pytest.raises(DataFormatError, match="non-finite"):
         average_checkpoints(three, str(tmp_path / "x"))
     assert not (tmp_path / "x").exists(), "nothing is written when the inputs are bad"
@@ -130,7 +138,7 @@ def test_extrapolation_is_base_plus_factor_times_the_step(three: list[str], tmp_
     base, aligned = _weights(base_dir), _weights(aligned_dir)
     frozen = next(k for k, v in base.items() if v.is_floating_point())
     aligned[frozen] = base[frozen].clone()  # a parameter group alignment did not train
-    save_file(aligned, os.path.join(aligned_dir, "model.safetensors"))
+    _save(aligned, os.path.join(aligned_dir, "model.safetensors"))
     for factor in (0.0, 0.5, 1.0, 2.0, 3.5):
         out = _weights(extrapolate_checkpoint(base_dir, aligned_dir, str(tmp_path / f"x{factor}"), factor))
         assert out.keys() == base.keys()
@@ -162,7 +170,7 @@ def test_extrapolation_rejects_bad_requests(three: list[str], tmp_path) -> None:
     state = _weights(three[1])
     name = next(k for k, v in state.items() if v.is_floating_point() and v.dim() > 0)
     state[name] = state[name][:1].clone()
-    save_file(state, str(shrunk / "model.safetensors"))
+    _save(state, str(shrunk / "model.safetensors"))
     with pytest.raises(DataFormatError, match=name):
         extrapolate_checkpoint(three[0], str(shrunk), str(tmp_path / "x"), 2.0)
     assert not (tmp_path / "x").exists(), "nothing is written when the inputs are bad"

@@ -28,6 +28,8 @@ import torch
 from safetensors.torch import save_file
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.models.checkpoint import read_checkpoint_config, sha256_file
+from trafficrlhf_sdk.models.checkpoint import weights_path as checkpoint_weights_path
 from trafficrlhf_sdk.scenario.io import safe_load_file
 
 __all__ = ["AVERAGE_FILE", "EXTRAPOLATE_FILE", "average_checkpoints", "extrapolate_checkpoint"]
@@ -48,7 +50,13 @@ def _read(directory: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
             config = json.load(handle)
         except json.JSONDecodeError as exc:
             raise DataFormatError(f"{config_path}: invalid JSON ({exc}).") from exc
-    return config, safe_load_file(weights_path)[0]
+    adapter = config.get("adapter") if isinstance(config, dict) else None
+    info = read_checkpoint_config(directory, str(adapter)).weights  # the SHA-256 is required and checked
+    path = checkpoint_weights_path(directory, info)
+    if sha256_file(path) != info.sha256:
+        raise DataFormatError(f"{path!r} does not match the SHA-256 recorded in {config_path}: the weights were "
+                              "modified or truncated after saving; restore them before combining.")
+    return config, safe_load_file(path)[0]
 
 
 def average_checkpoints(directories: Sequence[str], output_dir: str,
@@ -193,9 +201,11 @@ def _write(output_dir: str, config: dict[str, Any], ref: dict[str, torch.Tensor]
                               "inf; leave it out.")
     tensors = {k: (v.to(ref[k].dtype) if ref[k].is_floating_point() else v).contiguous() for k, v in combined.items()}
     os.makedirs(output_dir, exist_ok=True)
+    weights = os.path.join(output_dir, "model.safetensors")
+    save_file(tensors, weights, metadata={"format": "pt", "adapter": str(config.get("adapter"))})
+    config = {**config, "weights": {"file": "model.safetensors", "sha256": sha256_file(weights),
+                                    "bytes": os.path.getsize(weights)}}
     with open(os.path.join(output_dir, "config.json"), "w", encoding="utf-8") as handle:
         json.dump(config, handle, indent=2)
-    save_file(tensors, os.path.join(output_dir, "model.safetensors"),
-              metadata={"format": "pt", "adapter": str(config.get("adapter"))})
     with open(os.path.join(output_dir, record_name), "w", encoding="utf-8") as handle:
         json.dump(record, handle, indent=2)

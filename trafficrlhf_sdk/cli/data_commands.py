@@ -309,3 +309,19 @@ def render_command(source_name: str, scene_id: str, output: str | None, split: s
         ) from exc
     path = save_scene_png(scenario, output or f"{scene_id}.png", step=step, dpi=dpi)
     click.echo(path)
+
+
+@cli.command("checkpoint-digest")
+@click.argument("folders", nargs=-1, required=True)
+def checkpoint_digest_command(folders: tuple[str, ...]) -> None:
+    """Record the SHA-256 of each traffic-model checkpoint FOLDER's weights in its config.json.
+
+    Loading refuses a checkpoint without one; use this only on folders you trust (the weights are not changed).
+    """
+    from trafficrlhf_sdk.models.checkpoint import record_weights_digest
+
+    for folder in folders:
+        if not os.path.isdir(folder):
+            raise TrafficRLHFError(f"checkpoint folder not found: {folder!r}; pass a folder holding config.json and "
+                                   "model.safetensors.")
+        click.echo(f"{folder}: sha256 {record_weights_digest(folder)}")

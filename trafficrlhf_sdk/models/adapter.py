@@ -6,6 +6,7 @@ from __future__ import annotations
 import abc
 import json
 import os
+import tempfile
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
@@ -13,9 +14,16 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import save_file
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.models.checkpoint import (
+    CONFIG_FILE,
+    WEIGHTS_FILE,
+    build_checked,
+    load_checked_weights,
+    parse_architecture_config,
+    read_checkpoint_config,
+    sha256_file,
+)
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, select_samples
-from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
 
@@ -72,27 +80,11 @@ class SampleOutput(NamedTuple):
 def read_adapter_config(directory: str, adapter_name: str, train_hint: str = "") -> dict[str, Any]:
     """The architecture config that :meth:`TrafficModelAdapter.save_pretrained` wrote to ``directory``.
 
-    Raises ``DataNotFoundError`` (with ``train_hint``, e.g. the training command) when there is none and
-    ``DataFormatError`` for invalid JSON or weights of another adapter.
+    ``config.json`` is validated first (:func:`~trafficrlhf_sdk.models.checkpoint.read_checkpoint_config`): it
+    raises ``DataNotFoundError`` (with ``train_hint``, e.g. the training command) when there is none and
+    ``DataFormatError`` for invalid JSON, unknown keys, a missing weights SHA-256 or weights of another adapter.
     """
-    path = os.path.join(directory, "config.json")
-    if not os.path.isfile(path):
-        hint = f" Train one with `{train_hint}` or" if train_hint else ""
-        raise DataNotFoundError(
-            f"no {adapter_name} checkpoint at {directory!r} (missing config.json).{hint} pass checkpoint=DIR with a "
-            "directory written by save_pretrained."
-        )
-    with open(path, encoding="utf-8") as handle:
-        try:
-            saved = json.load(handle)
-        except json.JSONDecodeError as exc:
-            raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
-    if saved.get("adapter") != adapter_name:
-        raise DataFormatError(
-            f"{directory!r} holds weights for adapter {saved.get('adapter')!r}, not {adapter_name!r}; load it with "
-            "that adapter."
-        )
-    return saved.get("config") or {}
+    return read_checkpoint_config(directory, adapter_name, train_hint).config
 
 
 def extend_constant_velocity(futures: torch.Tensor, horizon: int, dt: float) -> torch.Tensor:
@@ -195,12 +187,27 @@ class TrafficModelAdapter(abc.ABC):
 
     # ------------------------------------------------------------ weights
     def save_pretrained(self, directory: str) -> None:
-        """Write ``config.json`` (adapter name, architecture config) and ``model.safetensors``."""
+        """Write ``config.json`` (adapter name, architecture config, the weights' SHA-256) and ``model.safetensors``.
+
+        Each file is written to a temporary name and moved into place, so an interrupted save leaves the previous
+        files (or none), never a half-written one."""
         os.makedirs(directory, exist_ok=True)
-        with open(os.path.join(directory, "config.json"), "w", encoding="utf-8") as handle:
-            json.dump({"adapter": self.name, "config": self.get_config()}, handle, indent=2)
         state = {k: v.detach().cpu().contiguous() for k, v in self.module.state_dict().items()}
-        save_file(state, os.path.join(directory, "model.safetensors"), metadata={"format": "pt", "adapter": self.name})
+        weights = os.path.join(directory, WEIGHTS_FILE)
+        handle, tmp = tempfile.mkstemp(prefix=".model-", suffix=".tmp", dir=directory)
+        os.close(handle)
+        try:
+            save_file(state, tmp, metadata={"format": "pt", "adapter": self.name})
+            saved = {"adapter": self.name, "config": self.get_config(),
+                     "weights": {"file": WEIGHTS_FILE, "sha256": sha256_file(tmp), "bytes": os.path.getsize(tmp)}}
+            os.replace(tmp, weights)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        config_tmp = os.path.join(directory, f".{CONFIG_FILE}.tmp")
+        with open(config_tmp, "w", encoding="utf-8") as out:
+            json.dump(saved, out, indent=2)
+        os.replace(config_tmp, os.path.join(directory, CONFIG_FILE))
 
     @classmethod
     def from_pretrained(cls, directory: str, **options: Any) -> TrafficModelAdapter:
@@ -228,23 +235,17 @@ class TrafficModelAdapter(abc.ABC):
                           config_type: Any, module_type: Any) -> tuple[Any, torch.nn.Module]:
         """For :meth:`build`: ``(cfg, module)`` with ``cfg = config_type.from_dict(...)`` and
         ``module = module_type(cfg)``, the config and weights chosen as in :meth:`resolve_checkpoint` (weights
-        loaded when a checkpoint applies)."""
+        loaded when a checkpoint applies).
+
+        The config is checked against ``config_type``'s fields and the module's size and tensors against the
+        weights file before anything is allocated (:mod:`trafficrlhf_sdk.models.checkpoint`)."""
         raw, directory = self.resolve_checkpoint(config, default_directory, train_hint)
-        cfg = config_type.from_dict(raw)
-        module = module_type(cfg)
-        if directory is not None:
-            self._load_state(module, directory)
+        label = f"checkpoint {directory!r}" if directory is not None else f"{self.name} config"
+        cfg = parse_architecture_config(config_type, raw, label)
+        module = build_checked(module_type, cfg, directory, self.name, label, self.options.device)
         return cfg, module
 
     def load_weights(self, directory: str) -> None:
-        """Load ``model.safetensors`` from ``directory`` into :attr:`module` (shapes must match)."""
-        self._load_state(self.module, directory)
-
-    def _load_state(self, module: torch.nn.Module, directory: str) -> None:
-        tensors, _ = safe_load_file(os.path.join(directory, "model.safetensors"), device=self.options.device)
-        try:
-            module.load_state_dict(tensors, strict=True)
-        except RuntimeError as exc:
-            raise DataFormatError(
-                f"weights in {directory!r} do not match the {self.name!r} config: {str(exc).splitlines()[0]}"
-            ) from exc
+        """Load ``model.safetensors`` from ``directory`` into :attr:`module` after checking ``config.json``, the
+        weights' SHA-256, every tensor's name, shape and kind, and that all values are finite."""
+        load_checked_weights(self.module, directory, self.name, self.options.device)

@@ -34,6 +34,8 @@ def _steered_checkpoint(folder: Path, gated: bool) -> str:
 
     from safetensors.torch import load_file, save_file
 
+    from trafficrlhf_sdk.models.checkpoint import record_weights_digest
+
     folder.mkdir(parents=True)
     saved = json.loads((ALIGNED / "config.json").read_text())
     drop = [k for k in saved["config"] if k.startswith(("follow", "rear"))]
@@ -43,6 +45,7 @@ def _steered_checkpoint(folder: Path, gated: bool) -> str:
     (folder / "config.json").write_text(json.dumps(saved))
     tensors = load_file(str(ALIGNED / "model.safetensors"))
     save_file({k: v for k, v in tensors.items() if not k.startswith("follow.")}, str(folder / "model.safetensors"))
+    record_weights_digest(str(folder))
     return str(folder)
 
 

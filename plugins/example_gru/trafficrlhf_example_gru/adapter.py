@@ -10,7 +10,6 @@ planning, guidance filtering and save/load come from the base class.
 
 from __future__ import annotations
 
-import json
 import os
 import warnings
 from typing import Any
@@ -18,9 +17,10 @@ from typing import Any
 import torch
 
 from trafficrlhf_sdk.simulation.dynamics import action_bounds, wrap_angle
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models import PolicyTrace, SampleOutput, TrafficModelAdapter
+from trafficrlhf_sdk.models.adapter import read_adapter_config
 from trafficrlhf_sdk.models.features import history_features, map_crops, neighbour_features
 from trafficrlhf_sdk.scenario import AgentType, ScenarioTensor
 
@@ -54,13 +54,7 @@ class ExampleGRUAdapter(TrafficModelAdapter):
             directory = self.options.checkpoint or BUNDLED_CHECKPOINT
             config_path = os.path.join(directory, "config.json")
             if os.path.isfile(config_path):
-                with open(config_path, encoding="utf-8") as handle:
-                    saved = json.load(handle)
-                if saved.get("adapter") != self.name:
-                    raise DataFormatError(
-                        f"{directory!r} holds weights for {saved.get('adapter')!r}, not {self.name!r}."
-                    )
-                config, weights_dir = saved.get("config"), directory
+                config, weights_dir = read_adapter_config(directory, self.name), directory
             elif self.options.checkpoint:
                 raise DataNotFoundError(f"no config.json in checkpoint {directory!r}; pass a save_pretrained folder.")
             else:

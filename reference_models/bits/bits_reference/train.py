@@ -25,6 +25,7 @@ import sys
 import time
 
 import torch
+from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import save_file
 
 from bits_reference.data import scene_windows
@@ -211,6 +212,7 @@ def main(argv: list[str] | None = None) -> dict:
         json.dump({"adapter": "bits", "config": model.cfg.to_dict()}, handle, indent=2)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     save_file(state, os.path.join(args.out, "model.safetensors"), metadata={"format": "pt", "adapter": "bits"})
+    record_weights_digest(args.out)  # config.json records the weights' SHA-256, which loading requires
     plot_curve(curve, os.path.join(args.out, "training_curve.png"))
     log = {
         "command": "python -m bits_reference.train " + " ".join(argv if argv is not None else sys.argv[1:]),

@@ -23,6 +23,7 @@ import sys
 import time
 
 import torch
+from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import save_file
 from tqdm.auto import tqdm
 
@@ -350,6 +351,7 @@ def main(argv: list[str] | None = None) -> None:
         json.dump({"adapter": "ctg", "config": ema.cfg.to_dict()}, handle, indent=2)
     state = {k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}
     save_file(state, os.path.join(args.out, "model.safetensors"), metadata={"format": "pt", "adapter": "ctg"})
+    record_weights_digest(args.out)  # config.json records the weights' SHA-256, which loading requires
     plot_curve(curve, os.path.join(args.out, "training_curve.png"))
     log = {
         "command": "python -m ctg_reference.train " + " ".join(argv if argv is not None else sys.argv[1:]),

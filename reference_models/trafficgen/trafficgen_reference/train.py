@@ -29,6 +29,7 @@ import sys
 import time
 
 import torch
+from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
@@ -308,6 +309,7 @@ def main(argv: list[str] | None = None) -> None:
         json.dump({"adapter": "trafficgen", "config": cfg.to_dict()}, handle, indent=2)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     save_file(state, os.path.join(args.out, "model.safetensors"), metadata={"format": "pt", "adapter": "trafficgen"})
+    record_weights_digest(args.out)  # config.json records the weights' SHA-256, which loading requires
     plot_curve(curve, os.path.join(args.out, "training_curve.png"))
     log = {
         "command": "python -m trafficgen_reference.train " + " ".join(argv if argv is not None else sys.argv[1:]),
