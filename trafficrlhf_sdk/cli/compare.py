@@ -25,9 +25,18 @@ def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool
     for name, value in (("--target", target), ("--level", level)):
         if value is not None and not interval:
             raise click.BadParameter(f"{name} {value:g} only acts with --interval; add --interval.", param_hint=name)
-    from trafficrlhf_sdk.evaluation.compare import change_interval_table, comparison_table, scene_change_table
+    from trafficrlhf_sdk.evaluation.compare import (
+        change_interval_table,
+        comparison_table,
+        meta_metric_table,
+        scene_change_table,
+    )
 
     click.echo(comparison_table(list(folders)))
+    meta = meta_metric_table(list(folders), level=0.95 if level is None else level)
+    if meta is not None:  # runs with --rollouts K >= 2: the meta-metric against the first run, per scene
+        click.echo("")
+        click.echo(meta)
     if scene_changes:
         click.echo("")
         click.echo(scene_change_table(list(folders), scene_changes))

@@ -18,7 +18,8 @@ import numpy as np
 
 from trafficrlhf_sdk.errors import DataFormatError
 
-__all__ = ["ChangeInterval", "SceneChange", "SceneShare", "paired_change_interval", "paired_realism_interval",
+__all__ = ["ChangeInterval", "DifferenceInterval", "SceneChange", "SceneShare", "paired_change_interval",
+           "paired_difference_interval", "paired_realism_interval",
            "pooled_per_scene", "realism_deviation_draws", "scene_changes", "scenes_carrying", "worst_scenes"]
 
 
@@ -236,3 +237,42 @@ def paired_realism_interval(before: Sequence[SceneCounts], after: Sequence[Scene
     low, high = np.quantile(changes, [tail, 1.0 - tail])
     return ChangeInterval(before=x0, after=y0, change=y0 / x0 - 1.0, low=float(low), high=float(high), level=level,
                           scenes=n, resamples=int(ok.sum()))
+
+
+@dataclass(frozen=True)
+class DifferenceInterval:
+    """The absolute difference of a scene-averaged score between two evaluations of the same scenes, with a
+    paired bootstrap interval over scenes, and the head-to-head share of scenes where the second is higher."""
+
+    before: float
+    after: float
+    difference: float
+    low: float
+    high: float
+    level: float
+    scenes: int
+    resamples: int
+    win_share: float
+    """Share of the shared scenes where ``after`` is higher (ties count half)."""
+
+
+def paired_difference_interval(before: dict[str, tuple[int, float]], after: dict[str, tuple[int, float]],
+                               level: float = 0.95, resamples: int = 10_000, seed: int = 0) -> DifferenceInterval:
+    """``mean(after) - mean(before)`` over the scenes present in both, with a percentile interval from
+    ``resamples`` paired bootstrap draws of the scenes, and the head-to-head share (for higher-is-better scores
+    such as the realism meta-metric). ``before``/``after``: as returned by :func:`pooled_per_scene`."""
+    _check_bootstrap(level, resamples)
+    scenes = sorted(s for s in before if s in after)
+    if len(scenes) < 2:
+        raise DataFormatError(f"the two evaluations share {len(scenes)} scene(s) with a value; a paired interval "
+                              "needs at least 2. Compare runs of the same --split/--scenes.")
+    x = np.array([before[s][1] for s in scenes], dtype=np.float64)
+    y = np.array([after[s][1] for s in scenes], dtype=np.float64)
+    draws = np.random.default_rng(seed).integers(0, len(scenes), size=(resamples, len(scenes)))
+    differences = (y[draws] - x[draws]).mean(1)
+    tail = (1.0 - level) / 2.0
+    low, high = np.quantile(differences, [tail, 1.0 - tail])
+    wins = float(((y > x) + 0.5 * (y == x)).mean())
+    return DifferenceInterval(before=float(x.mean()), after=float(y.mean()), difference=float((y - x).mean()),
+                              low=float(low), high=float(high), level=level, scenes=len(scenes),
+                              resamples=resamples, win_share=wins)

@@ -7,7 +7,7 @@ import os
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["change_interval_table", "comparison_table", "read_results", "scene_change_table"]
+__all__ = ["change_interval_table", "comparison_table", "meta_metric_table", "read_results", "scene_change_table"]
 
 ROWS = (
     ("failure_rate", "failure rate"),
@@ -26,6 +26,16 @@ ROWS = (
     ("stopped_share", "stopped at the end (share)"),
     ("stopped_share_logged", "  stopped in the log"),
     ("reward_cost", "reward cost"),
+    ("realism_meta", "realism meta-metric (higher is better)"),
+    ("realism_meta_linear_speed", "  linear speed"),
+    ("realism_meta_linear_acceleration", "  linear acceleration"),
+    ("realism_meta_angular_speed", "  angular speed"),
+    ("realism_meta_angular_acceleration", "  angular acceleration"),
+    ("realism_meta_distance_to_nearest_object", "  distance to nearest object"),
+    ("realism_meta_collision_indication", "  collision"),
+    ("realism_meta_time_to_collision", "  time to collision"),
+    ("realism_meta_distance_to_road_edge", "  distance to road edge"),
+    ("realism_meta_offroad_indication", "  off-road"),
 )
 
 
@@ -197,4 +207,30 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
     if scenes is not None:
         lines += ["", f"{scenes} scenes, {draws} draws. The interval covers drawing another {scenes} scenes like "
                       "these (and the seeds' noise inside each scene's mean), not a change of data set."]
+    return "\n".join(lines)
+
+
+def meta_metric_table(folders: list[str], level: float = 0.95, resamples: int = 10_000) -> str | None:
+    """Markdown table of the realism meta-metric of every run against the first (each pooled over its seeds):
+    the difference with a paired bootstrap interval over scenes, and the head-to-head share (scenes where the run
+    beats the first; ties count half). None unless every run holds per-scene meta-metric values at the same K."""
+    from trafficrlhf_sdk.evaluation.breakdown import paired_difference_interval, pooled_per_scene
+
+    groups = _pool_seeds([(_label(result := read_results(folder), folder), result) for folder in folders])
+    runs = [members for _, members in groups]
+    if len(groups) < 2 or not all("realism_meta" in (r.get("per_scene") or {}) for rs in runs for r in rs):
+        return None
+    ks = {r.get("metadata", {}).get("rollouts") for rs in runs for r in rs}
+    if len(ks) != 1:
+        raise DataFormatError(f"the runs used different rollouts per scene ({sorted(map(str, ks))}); the "
+                              "meta-metric depends on K, so compare runs of equal --rollouts.")
+    base_label, base = groups[0][0], pooled_per_scene(groups[0][1], "realism_meta")
+    lines = [f"realism meta-metric (K = {ks.pop()}) against {base_label}; {100 * level:.0f} % paired bootstrap "
+             "interval of the difference over scenes", "",
+             f"| run | meta-metric | {base_label} | difference | interval | scenes won |", "|---|---|---|---|---|---|"]
+    for label, members in groups[1:]:
+        other = pooled_per_scene(members, "realism_meta")
+        ci = paired_difference_interval(base, other, level=level, resamples=resamples)
+        lines.append(f"| {label} | {ci.after:.4f} | {ci.before:.4f} | {ci.difference:+.4f} | {ci.low:+.4f} to "
+                     f"{ci.high:+.4f} | {100 * ci.win_share:.0f} % of {ci.scenes} |")
     return "\n".join(lines)
