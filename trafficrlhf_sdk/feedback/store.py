@@ -103,6 +103,7 @@ class FeedbackStore:
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
+        self._write_lock = threading.Lock()
         conn = self._conn()
         conn.execute("PRAGMA journal_mode=WAL")
         upgrading = conn.execute("PRAGMA user_version").fetchone()[0] == 1
@@ -143,16 +144,19 @@ class FeedbackStore:
         """A write transaction (``BEGIN IMMEDIATE``): committed on exit, rolled back on any exception (including a
         failed commit, e.g. on a full disk), so a failed write leaves nothing behind."""
         conn = self._conn()
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            yield _Tx(conn)
-            conn.execute("COMMIT")
-        except BaseException:
-            # SQLite may already have rolled back (e.g. "database or disk is full"): keep the original error
-            if conn.in_transaction:
-                with contextlib.suppress(sqlite3.Error):
-                    conn.execute("ROLLBACK")
-            raise
+        # writers of this process queue here in turn, rather than in SQLite's busy handler, whose growing sleeps
+        # let some threads wait for seconds while others write; other processes still meet SQLite's lock
+        with self._write_lock:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield _Tx(conn)
+                conn.execute("COMMIT")
+            except BaseException:
+                # SQLite may already have rolled back (e.g. "database or disk is full"): keep the original error
+                if conn.in_transaction:
+                    with contextlib.suppress(sqlite3.Error):
+                        conn.execute("ROLLBACK")
+                raise
 
     @contextlib.contextmanager
     def snapshot(self) -> Iterator[sqlite3.Connection]:
