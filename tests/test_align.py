@@ -173,7 +173,8 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     assert summary["alpha"] == 0.3 and summary["epochs"] == 2 and summary["reward_model"] == "builtin:collision"
     history = json.load(open(os.path.join(out, "align_history.json"), encoding="utf-8"))
     assert history["config"]["credit"] == "agent" and history["config"]["failure_fraction"] == 0.5
-    assert history["config"]["epochs"] == 2 and history["reward_model"] == "FailureReward"
+    assert history["config"]["epochs"] == 2 and history["reward_model"] == "builtin:collision"
+    assert "heldout_realism" in history["history"][0] and os.path.isfile(os.path.join(out, "overoptimization.png"))
     result = runner.invoke(get_cli(), ["evaluate", "--checkpoint", out, "--scenes", "2", "--json"],
                            catch_exceptions=False)
     assert result.exit_code == 0, result.output
@@ -249,3 +250,17 @@ def _log_start(window: ScenarioTensor, scenes: dict[str, ScenarioTensor]) -> int
             return t
     return None
 
+
+
+def test_the_monitor_keeps_the_best_held_out_epoch_and_stops_after_its_patience() -> None:
+    from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor
+
+    weight = torch.nn.Parameter(torch.zeros(2))
+    monitor = HeldOutMonitor(patience=2, smoothing=0.0)
+    stops = []
+    for epoch, (realism, value) in enumerate([(0.5, 1.0), (0.7, 2.0), (0.6, 3.0), (0.65, 4.0)], start=1):
+        with torch.no_grad():
+            weight.fill_(value)
+        stops.append(monitor.update(epoch, realism, [weight]))
+    assert stops == [False, False, False, True]
+    assert monitor.restore_best([weight]) == 2 and torch.equal(weight.detach(), torch.full((2,), 2.0))

@@ -67,8 +67,7 @@ def test_learned_reward_agent_scores_average_to_the_scene_score(train_scene_list
 
 def test_failure_contexts_start_shortly_before_a_failure_of_the_driving_model(
         train_scene_list: list[ScenarioTensor]) -> None:
-    config = AlignConfig(failure_fraction=1.0, failure_scenes=8, 
-                         contexts_per_epoch=6)
+    config = AlignConfig(failure_fraction=1.0, failure_scenes=8, contexts_per_epoch=6)
     sampler = ContextSampler(ConstantVelocityPolicy(), config, lambda: train_scene_list, None, future_steps=20)
     contexts, logged = sampler.failure_contexts(6, torch.Generator().manual_seed(0))
     assert sampler.last_failure_events > 0  # constant velocity leaves the road within 6 s in these scenes
@@ -79,12 +78,14 @@ def test_failure_contexts_start_shortly_before_a_failure_of_the_driving_model(
     now = contexts.current_index
     moved = (contexts.states[:, :, : now + 1] - logged.states[:, :, : now + 1]).abs().amax((-1, -2))
     assert (moved[contexts.controlled] > 0).any()
-    # driving on from "now" with the same policy, every context fails within the 8-step lead (collision or
-    # off-road of a controlled agent): the context was cut 3..8 steps before that failure
+    # driving on from "now" with the same policy, every context fails within the longest lead (collision or
+    # off-road of a controlled agent): the context was cut FAILURE_LEAD_STEPS before that failure
+    from trafficrlhf_sdk.alignment.config import FAILURE_LEAD_STEPS
     from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 
-    again = simulate(ConstantVelocityPolicy(), contexts, SimulationConfig(duration_s=0.8, start_index=now))
-    window = again.simulated.time_slice(now + 1, now + 9)
+    lead = FAILURE_LEAD_STEPS[1]
+    again = simulate(ConstantVelocityPolicy(), contexts, SimulationConfig(duration_s=lead * 0.1, start_index=now))
+    window = again.simulated.time_slice(now + 1, now + lead + 1)
     failed = ((collisions_per_step(window) & window.valid) | offroad_per_step(window)).any(-1)
     assert (failed & again.controlled).any(-1).all()
 

@@ -99,6 +99,10 @@ class AlignConfig(BaseModel):
                                      "(seed, epoch), so a resumed run matches an uninterrupted one.")
     output_dir: str | None = Field(None, description="Folder for logs and checkpoints; None: nothing is written.")
     save_every: int = Field(10, ge=1, description="Write a checkpoint every N epochs (and after the last).")
+    early_stopping_patience: int | None = Field(None, ge=1, description="Stop once the held-out realism of the "
+                                                "policy's own samples (stand-in annotators' judgment, smoothed) has "
+                                                "not improved for this many epochs, and keep the best epoch's "
+                                                "weights. None: train every epoch, keep the last.")
     resume: bool = Field(False, description="Continue from the newest checkpoint in output_dir if there is one.")
     progress_bar: bool = Field(True, description="Show a progress bar over epochs and per-epoch statistics.")
 

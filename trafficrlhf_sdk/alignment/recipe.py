@@ -42,6 +42,9 @@ class AlignRecipe(BaseModel):
                                           "hand-written baseline reward.")
     reward_options: dict[str, Any] = Field(default_factory=dict, description="Keyword arguments of a built-in "
                                                                               "reward.")
+    monitor_reward_model: str | None = Field(None, description="A second reward-model folder the policy never "
+                                             "trains on (e.g. trained on other annotators), recorded per epoch as "
+                                             "`heldout_reward`.")
     model_options: dict[str, Any] = Field(default_factory=dict, description="Adapter options while training.")
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
     align: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields; `alpha` defaults to the "
@@ -96,7 +99,8 @@ def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[s
     config = recipe.config(name, output_dir=output_dir, **overrides)
     torch.manual_seed(config.seed)
     start = time.perf_counter()
-    trainer = AlignTrainer(adapter, reward, config)
+    monitor = load_reward(recipe.monitor_reward_model) if recipe.monitor_reward_model else None
+    trainer = AlignTrainer(adapter, reward, config, monitor_reward=monitor)
     history = trainer.train()
     wall = time.perf_counter() - start
     summary = {"model": name, "checkpoint": recipe.checkpoint, "reward_model": recipe.reward_model,
@@ -104,7 +108,9 @@ def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[s
                "alpha": config.alpha, "epochs": len(history), "groups": list(trainer.group_names),
                "wall_time_s": wall, "threads": torch.get_num_threads(),
                "reward_first": history[0]["reward_mean"] if history else None,
-               "reward_last": history[-1]["reward_mean"] if history else None}
+               "reward_last": history[-1]["reward_mean"] if history else None,
+               "heldout_realism_first": history[0].get("heldout_realism") if history else None,
+               "heldout_realism_last": history[-1].get("heldout_realism") if history else None}
     os.makedirs(output_dir, exist_ok=True)
     with open(os.path.join(output_dir, "align_summary.json"), "w", encoding="utf-8") as handle:
         json.dump(summary, handle, indent=2)

@@ -42,6 +42,7 @@ import torch
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, training_scene_ids
+from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, Rollout, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
@@ -91,11 +92,14 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         reference: the frozen model the KL terms (``kl_coef``, ``passing_anchor_coef``) hold the policy to;
             None: a copy of ``model`` as it starts. It must be the same adapter class with the same parameter
             names and shapes.
+        monitor_reward: a second reward model the policy never trains on (e.g. one trained on other annotators),
+            recorded per epoch as ``heldout_reward`` beside the stand-in annotators' ``heldout_realism``
+            (:mod:`trafficrlhf_sdk.alignment.monitor`).
     """
 
     def __init__(self, model: TrafficModelAdapter, reward_model: Any, config: AlignConfig | None = None,
                  scenes: ScenarioTensor | Sequence[ScenarioTensor] | None = None,
-                 reference: TrafficModelAdapter | None = None) -> None:
+                 reference: TrafficModelAdapter | None = None, monitor_reward: Any = None) -> None:
         self.model = model
         self.reward_model = reward_model
         self.config = config or AlignConfig()
@@ -142,6 +146,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
+        self.monitor = HeldOutMonitor(monitor_reward, self.config.early_stopping_patience)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -210,6 +215,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
+        now = contexts.current_index
+        logged_windows = logged.repeat_scenes(self.config.samples_per_context).time_slice(
+            max(0, now - REWARD_HISTORY_STEPS), now + 1 + self.reward_steps)
+        sampled_agents = trace.agents.repeat_interleave(self.config.samples_per_context, 0)
+        self.last_heldout = self.monitor.scores(scenario, logged_windows, sampled_agents)
         return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
     @staticmethod
@@ -272,8 +282,10 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 if rollout.passing is not None:  # share of the sampled agents that no sample of fails
                     sampled = rollout.trace.agents.sum().clamp_min(1)
                     stats["passing_share"] = float(rollout.passing.sum() / sampled)
+                stats.update(self.last_heldout)
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
+                stop_early = self.monitor.update(epoch + 1, stats["heldout_realism"], self.trainable)
                 self.history.append(stats)
                 self._log(stats)
                 if bar is not None:
@@ -286,6 +298,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                     if cfg.output_dir is not None and done % cfg.save_every != 0:
                         self.save_checkpoint(done)
                     break
+                if stop_early:
+                    break
         finally:
             if bar is not None:
                 bar.close()
@@ -293,16 +307,24 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 p.requires_grad_(flags[id(p)])
             if self.logger is not None:
                 self.logger.close()
-        if cfg.output_dir is not None and len(self.history) == cfg.epochs:
+        finished = len(self.history) == cfg.epochs or (
+            cfg.early_stopping_patience is not None and self.monitor.best is not None
+            and len(self.history) - self.monitor.best[1] >= cfg.early_stopping_patience)
+        best_epoch = self.monitor.restore_best(self.trainable) if cfg.early_stopping_patience else None
+        if cfg.output_dir is not None and self.history:
+            plot_overoptimization(self.history, os.path.join(cfg.output_dir, "overoptimization.png"))
+        if cfg.output_dir is not None and finished:
             self.model.save_pretrained(cfg.output_dir)
             with open(os.path.join(cfg.output_dir, "align_history.json"), "w", encoding="utf-8") as handle:
                 json.dump({"config": cfg.model_dump(mode="json"), "groups": list(self.group_names),
                            "reward_model": getattr(self.reward_model, "name_or_path", None)
-                           or type(self.reward_model).__name__, "history": self.history}, handle, indent=1)
+                           or type(self.reward_model).__name__, "best_epoch": best_epoch,
+                           "history": self.history}, handle, indent=1)
         return self.history
 
     def _log(self, stats: dict[str, float]) -> None:
-        rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share")
+        rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share", "heldout_realism",
+                        "heldout_reward")
         for key, value in stats.items():
             if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
                 continue

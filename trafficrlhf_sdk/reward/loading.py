@@ -26,13 +26,17 @@ def load_reward(spec: str, options: dict[str, Any] | None = None) -> Any:
             raise TrafficRLHFError(f"unknown built-in reward {spec!r}; use one of "
                                    f"{', '.join(BUILTIN_PREFIX + n for n in rewards.names())}.")
         try:
-            return rewards.get(name)(**options)
+            reward = rewards.get(name)(**options)
         except TypeError as error:
             raise TrafficRLHFError(f"reward options {sorted(options)} do not fit {spec!r} ({error}); use keyword "
                                    "arguments of its class in trafficrlhf_sdk.reward.builtin.") from None
+        reward.name_or_path = spec  # recorded by the fine-tuner's history
+        return reward
     if options:
         raise TrafficRLHFError(f"reward options {sorted(options)} apply to built-in rewards only; {spec!r} is a "
                                "saved reward model.")
     from trafficrlhf_sdk.reward.model import RewardModel
 
-    return RewardModel.from_pretrained(spec).eval()
+    model = RewardModel.from_pretrained(spec).eval()
+    model.name_or_path = spec
+    return model
