@@ -64,19 +64,26 @@ def feedback() -> None:
 @click.option("--labels-per-item", type=click.IntRange(min=1), default=None,
               help="Annotators per item (default: every annotator labels every item).")
 @click.option("--extend", is_flag=True, help="Add contexts to an existing campaign (its stored settings are kept).")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Generate candidates on N Ray workers started for the run (pip install 'trafficrlhf-sdk[ray]'); "
+                   "0 generates in-process. The candidates are the same either way.")
+@click.option("--ray-address", default=None, help="Generate on an existing Ray cluster at this address instead.")
 def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: str | None,
                    model_options: tuple[str, ...],
                    source: str, split: str, root: str | None, num_contexts: int | None, scene_ids: tuple[str, ...],
                    num_candidates: int, candidate_seconds: float, seed: int, labels_per_item: int | None,
-                   extend: bool) -> None:
+                   extend: bool, workers: int, ray_address: str | None) -> None:
     """Generate N candidates for each of K contexts with a traffic model and store them (with the log)."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign, extend_campaign
+    from trafficrlhf_sdk.parallel import ExecutionConfig
+
+    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
 
     store = _store(db_path, must_exist=extend)
     report_line = lambda scene: click.echo(f"  + {scene}")  # noqa: E731
     if extend:
         report = extend_campaign(store, name, scene_ids=list(scene_ids) or None, num_contexts=num_contexts,
-                                 root=root, on_context=report_line)
+                                 root=root, on_context=report_line, execution=execution)
     else:
         if not models:
             raise click.UsageError("--model is required for a new campaign (or pass --extend).")
@@ -90,7 +97,7 @@ def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: s
         shown = ", ".join(slots) if slots else config.model
         click.echo(f"campaign {name!r}: {shown} ({config.guidance or 'no guidance'}), N = {num_candidates}, "
                    f"{candidate_seconds:g} s candidates")
-        report = create_campaign(store, config, on_context=report_line)
+        report = create_campaign(store, config, on_context=report_line, execution=execution)
     items = store.counts(report.campaign)["items"]
     skipped = f", {len(report.skipped)} already present" if report.skipped else ""
     click.echo(f"added {len(report.added)} contexts{skipped}; campaign {name!r} now has {items} items in {db_path}")
@@ -222,29 +229,39 @@ def prioritize_command(db_path: str, campaign: str, ranking_path: str) -> None:
 @feedback.command("label")
 @db_option
 @campaign_option
-@click.option("--synthetic", is_flag=True, help="Label with the synthetic annotator (people use `feedback serve`).")
+@click.option("--synthetic", is_flag=True, help="Label with a stand-in annotator (people use `feedback serve`).")
 @click.option("--annotator", "name", default="synthetic", show_default=True, help="Annotator name.")
-@click.option("--beta", type=float, default=20.0, show_default=True,
-              help="Rationality (inverse temperature on realism 0..1); 0 means perfectly rational.")
-@click.option("--epsilon", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="Mistake rate.")
-@click.option("--none-threshold", type=click.FloatRange(0, 1), default=0.35, show_default=True,
-              help="'None realistic' when the best realism is at or below this.")
+@click.option("--profile", type=click.Choice(["attentive", "safety", "flow", "hurried"]), default=None,
+              help="A stand-in annotator profile (what it weighs, how often it errs); the options below override it.")
+@click.option("--beta", type=float, default=None,
+              help="Rationality (inverse temperature on realism 0..1); 0 means perfectly rational [default: 20].")
+@click.option("--epsilon", type=click.FloatRange(0, 1), default=None, help="Mistake rate [default: 0].")
+@click.option("--none-threshold", type=click.FloatRange(0, 1), default=None,
+              help="'None realistic' when the best realism is at or below this [default: 0.35].")
 @click.option("--skip-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="Random skips.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the annotator's draws.")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Label at most this many items.")
-def label_command(db_path: str, campaign: str, synthetic: bool, name: str, beta: float, epsilon: float,
-                  none_threshold: float, skip_rate: float, seed: int, limit: int | None) -> None:
+def label_command(db_path: str, campaign: str, synthetic: bool, name: str, profile: str | None, beta: float | None,
+                  epsilon: float | None, none_threshold: float | None, skip_rate: float, seed: int,
+                  limit: int | None) -> None:
     """Label a campaign's items through the same store API as people."""
-    from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotator, SyntheticAnnotatorConfig
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotator, SyntheticAnnotatorConfig
 
     if not synthetic:
         raise click.UsageError("only --synthetic labeling runs here; people label in the browser "
                                "(`trafficrlhf feedback serve`).")
-    config = SyntheticAnnotatorConfig(beta=beta if beta > 0 else None, epsilon=epsilon, none_threshold=none_threshold,
-                                      skip_rate=skip_rate, seed=seed)
+    base = PROFILES[profile] if profile else SyntheticAnnotatorConfig()
+    changes: dict[str, object] = {"skip_rate": skip_rate, "seed": seed}
+    if beta is not None:
+        changes["beta"] = beta if beta > 0 else None
+    if epsilon is not None:
+        changes["epsilon"] = epsilon
+    if none_threshold is not None:
+        changes["none_threshold"] = none_threshold
+    config = SyntheticAnnotatorConfig(**{**base.model_dump(), **changes})
     counts = SyntheticAnnotator(_store(db_path), name, config).label(campaign, limit=limit)
-    click.echo(f"{name}: labeled {counts['labeled']} items ({counts['none_realistic']} 'none realistic'), "
-               f"skipped {counts['skipped']}")
+    click.echo(f"{name}: labeled {counts['labeled']} items ({counts['none_realistic']} 'none realistic', "
+               f"{counts['ties']} ties), skipped {counts['skipped']}")
 
 
 @feedback.command("export")

@@ -153,8 +153,9 @@ def _provenance(model: str) -> dict[str, Any]:
 
 
 def create_campaign(store: FeedbackStore, config: CampaignConfig,
-                    on_context: Callable[[str], None] | None = None) -> CampaignReport:
-    """Create campaign ``config.name`` in ``store`` and generate its contexts (one transaction per context)."""
+                    on_context: Callable[[str], None] | None = None, execution: Any = None) -> CampaignReport:
+    """Create campaign ``config.name`` in ``store`` and generate its contexts (one transaction per context).
+    ``execution``: a :class:`~trafficrlhf_sdk.parallel.ExecutionConfig` to generate candidates on Ray workers."""
     from trafficrlhf_sdk import __version__
 
     source = _open_source(config)
@@ -167,13 +168,14 @@ def create_campaign(store: FeedbackStore, config: CampaignConfig,
         stored["provenance"]["candidate_models"] = {m: _provenance(m) for m in dict.fromkeys(config.candidate_models)}
     campaign = store.create_campaign(config.name, config.model, config.guidance, config.seed, config.num_candidates,
                                      stored, __version__)
-    return _fill(store, campaign, source, _scene_list(source, config), on_context)
+    return _fill(store, campaign, source, _scene_list(source, config), on_context, execution)
 
 
 def extend_campaign(store: FeedbackStore, name: str, scene_ids: Sequence[str] | None = None,
                     num_contexts: int | None = None, root: str | None = None,
-                    on_context: Callable[[str], None] | None = None) -> CampaignReport:
-    """Add contexts to campaign ``name`` with its stored model, guidance, seed and sizes.
+                    on_context: Callable[[str], None] | None = None, execution: Any = None) -> CampaignReport:
+    """Add contexts to campaign ``name`` with its stored model, guidance, seed and sizes (``execution``: as for
+    :func:`create_campaign`).
 
     ``scene_ids`` adds those scenes; ``num_contexts`` grows the campaign to cover the first ``num_contexts``
     scenes of its split. Scenes already present are skipped, never regenerated.
@@ -185,7 +187,7 @@ def extend_campaign(store: FeedbackStore, name: str, scene_ids: Sequence[str] | 
     config = CampaignConfig(**{**stored, "scene_ids": list(scene_ids) if scene_ids else None,
                                "num_contexts": num_contexts or stored.get("num_contexts", 10)})
     source = _open_source(config)
-    return _fill(store, campaign, source, _scene_list(source, config), on_context)
+    return _fill(store, campaign, source, _scene_list(source, config), on_context, execution)
 
 
 def _scene_list(source: Any, config: CampaignConfig) -> list[str]:
@@ -202,27 +204,36 @@ def _scene_list(source: Any, config: CampaignConfig) -> list[str]:
 
 
 def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list[str],
-          on_context: Callable[[str], None] | None) -> CampaignReport:
+          on_context: Callable[[str], None] | None, execution: Any = None) -> CampaignReport:
     from trafficrlhf_sdk import __version__
 
     cfg = campaign.config
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
     added, skipped = [], []
+    made: dict[str, Any] = {}
+    if execution is not None and execution.uses_ray:  # scale-out hook: generate on Ray workers, store here
+        from trafficrlhf_sdk.parallel import campaign_candidates
+
+        todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
+        made = campaign_candidates(campaign, source, todo, execution)
     for scene_id in scene_ids:
         if (cfg["source"], cfg["split"], scene_id) in present:
             skipped.append(scene_id)
             continue
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
-        scene = source.load_scene(cfg["split"], scene_id)
         slots = cfg.get("candidate_models")
-        if not slots:
+        if scene_id in made:
+            context, cands, cand_valid, logged, logged_valid = made.pop(scene_id)
+        elif not slots:
+            scene = source.load_scene(cfg["split"], scene_id)
             policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
             with torch.no_grad():
                 context, cands, cand_valid, logged, logged_valid = generate_candidates(
                     policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
         else:
             context, cands, cand_valid, logged, logged_valid = _mixed_candidates(
-                campaign, scene, slots, cfg, (cfg["source"], cfg["split"], scene_id))
+                campaign, source.load_scene(cfg["split"], scene_id), slots, cfg, (cfg["source"], cfg["split"],
+                                                                                  scene_id))
         added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
                                        cand_valid, logged, logged_valid, __version__, candidate_models=slots))
         if on_context is not None:
