@@ -184,3 +184,39 @@ def test_missing_root_names_path_and_option(tmp_path):
 def test_default_root_follows_env(monkeypatch, tmp_path):
     monkeypatch.setenv("TRAFFICRLHF_DATA", str(tmp_path))
     assert NuScenesPredSource().root == os.path.join(str(tmp_path), "nuscenes_pred")
+
+
+def test_states_up_to_now_read_only_the_past(data_root, tmp_path):
+    """Moving every keyframe after 'now' changes no state up to 'now' (the speed at a keyframe is the backward
+    difference, never the average with the next keyframe), and the speed at 'now' is that backward difference."""
+    split, scene = "val", sorted(os.listdir(label_dir(data_root, "val")))[0][:-4]
+    copies = {}
+    for shift in (0.0, 3.0):
+        root = tmp_path / f"shift{shift}"
+        (root / "label" / split).mkdir(parents=True)
+        shutil.copytree(os.path.join(data_root, "nuscenes_pred", "maps"), root / "maps",
+                        ignore=lambda _, names: [n for n in names if scene not in n])
+        rows = []
+        for line in open(os.path.join(label_dir(data_root, split), f"{scene}.txt"), encoding="utf-8"):
+            parts = line.split()
+            if parts and float(parts[0]) > 6:  # keyframe 6 is 'now' after the default 3 s of history
+                parts[13] = f"{float(parts[13]) + shift:.4f}"
+            rows.append(" ".join(parts))
+        (root / "label" / split / f"{scene}.txt").write_text("\n".join(rows) + "\n")
+        copies[shift] = NuScenesPredSource(root=str(root)).load_scene(split, scene)
+    now = copies[0.0].current_index
+    assert torch.equal(copies[0.0].states[:, :, : now + 1], copies[3.0].states[:, :, : now + 1])
+    assert not torch.equal(copies[0.0].states[:, :, now + 1 :], copies[3.0].states[:, :, now + 1 :])
+    scene_tensor = copies[0.0]
+    both = scene_tensor.valid[0, :, now] & scene_tensor.valid[0, :, now - FACTOR]
+    step = scene_tensor.xy[0, both, now] - scene_tensor.xy[0, both, now - FACTOR]
+    heading = torch.stack([torch.cos(scene_tensor.yaw[0, both, now]), torch.sin(scene_tensor.yaw[0, both, now])], -1)
+    assert both.any()
+    torch.testing.assert_close(scene_tensor.speed[0, both, now], (step * heading).sum(-1) / KEYFRAME_DT,
+                               atol=1e-3, rtol=1e-4)
+
+
+def test_history_ending_between_keyframes_is_refused(nuscenes_source):
+    source = NuScenesPredSource(root=nuscenes_source.root, history_s=2.8)
+    with pytest.raises(DataFormatError, match=r"history_s=2.8 puts 'now' between two 0.5 s keyframes"):
+        source.load_scene("val", source.scene_ids("val")[0])

@@ -12,6 +12,7 @@ import torch
 
 from trafficrlhf_sdk.errors import ScenarioValidationError
 from trafficrlhf_sdk.metrics import FailureMetric, RealismMetric
+from trafficrlhf_sdk.metrics.failure import collisions_per_step
 from trafficrlhf_sdk.scenario import AgentType, MapRaster, ScenarioTensor, default_data_root
 from trafficrlhf_sdk.simulation import (
     ConstantVelocityPolicy,
@@ -87,7 +88,13 @@ def test_log_replay_reproduces_the_log_exactly(real_scenes, replay) -> None:  # 
     end = replay.end_index
     assert (replay.start_index, end) == (30, 130)
     assert torch.equal(replay.simulated.states, real_scenes.states[:, :, : end + 1])
-    assert torch.equal(replay.simulated.valid, real_scenes.valid[:, :, : end + 1])
+    # by default (late_agents="drop", upstream) the tracks that appear after the start are left out
+    expected = real_scenes.valid[:, :, : end + 1].clone()
+    expected[:, :, 31:] &= real_scenes.valid[:, :, 30, None]
+    assert torch.equal(replay.simulated.valid, expected)
+    assert not torch.equal(expected, real_scenes.valid[:, :, : end + 1]), "the val scenes have late tracks"
+    kept = log_rollout(real_scenes, SimulationConfig(late_agents="replay"))
+    assert torch.equal(kept.simulated.valid, real_scenes.valid[:, :, : end + 1])
     assert torch.equal(replay.simulated.states, replay.logged.states)
     assert torch.equal(replay.simulated.valid, replay.logged.valid)
     assert replay.controlled.any()
@@ -126,7 +133,7 @@ def test_uncontrolled_agents_replay_the_log(real_scenes) -> None:  # type: ignor
     controlled = real_scenes.controlled.clone()
     controlled[released[:, 0], released[:, 1]] = False
     scenario = dataclasses.replace(real_scenes, controlled=controlled)
-    rollout = simulate(ConstantVelocityPolicy(), scenario)
+    rollout = simulate(ConstantVelocityPolicy(), scenario, SimulationConfig(late_agents="replay"))
     end = rollout.end_index
     free = ~rollout.controlled
     assert free[released[:, 0], released[:, 1]].all()
@@ -163,10 +170,29 @@ def test_replanning_with_longer_plans_and_other_rates() -> None:
 def test_rollout_past_the_end_of_the_log_is_padded() -> None:
     """A log shorter than start + 10 s: the window is padded, uncontrolled steps past the log are invalid."""
     scenario = synthetic(num_steps=100)
-    rollout = simulate(ConstantVelocityPolicy(), scenario)
+    rollout = simulate(ConstantVelocityPolicy(), scenario, SimulationConfig(after_log_end="continue"))
     assert rollout.simulated.num_steps == 131
-    assert rollout.simulated.valid[:, :, 100:].all()  # controlled agents keep driving
+    assert rollout.simulated.valid[:, :, 100:].all()  # controlled agents keep driving (upstream)
     assert not rollout.logged.valid[:, :, 100:].any()
+    ended = simulate(ConstantVelocityPolicy(), scenario)  # default: a driven agent ends with its logged track
+    assert ended.simulated.valid[:, :, 31:100].all() and not ended.simulated.valid[:, :, 100:].any()
+    assert torch.equal(ended.simulated.states[:, :, :100], rollout.simulated.states[:, :, :100])
+
+
+def test_failures_after_a_logged_track_ends_are_not_counted_by_default() -> None:
+    """An agent driven at constant velocity off the end of its logged track into another agent: a collision with
+    after_log_end="continue", none by default, where the agent leaves the scene when its log ends."""
+    scenario = synthetic(y=[0.0, 0.0, 50.0])
+    valid = scenario.valid.clone()
+    valid[0, 0, 60:] = False  # agent 0's log ends 3 s into the rollout, 2 m/s behind the parked agent 1
+    states = scenario.states.clone()
+    states[0, 1, :, 0] = 50.0  # agent 1 stands on agent 0's path, reached after its log has ended
+    states[0, 1, :, 2] = 0.0
+    scenario = dataclasses.replace(scenario, valid=valid, states=states * valid[..., None])
+    kept = simulate(ConstantVelocityPolicy(), scenario, SimulationConfig(after_log_end="continue"))
+    ended = simulate(ConstantVelocityPolicy(), scenario)
+    assert collisions_per_step(kept.simulated)[0, 0, 31:].any()
+    assert not collisions_per_step(ended.simulated)[0, 0, 31:].any()
 
 
 # ------------------------------------------------------------------------------ controlled agents
@@ -204,9 +230,12 @@ def test_agents_invalid_at_the_start_are_not_controlled() -> None:
     valid = scenario.valid.clone()
     valid[0, 1, :31] = False  # appears after the start
     scenario = dataclasses.replace(scenario, valid=valid, states=scenario.states * valid[..., None])
-    rollout = simulate(ConstantVelocityPolicy(), scenario)
+    rollout = simulate(ConstantVelocityPolicy(), scenario, SimulationConfig(late_agents="replay"))
     assert rollout.controlled.tolist() == [[True, False, True]]
-    assert torch.equal(rollout.simulated.valid[0, 1], valid[0, 1, :131])
+    assert torch.equal(rollout.simulated.valid[0, 1], valid[0, 1, :131])  # replayed from the step it appears
+    dropped = simulate(ConstantVelocityPolicy(), scenario)  # default, upstream: left out of the rollout
+    assert dropped.controlled.tolist() == [[True, False, True]]
+    assert not dropped.simulated.valid[0, 1].any() and not dropped.logged.valid[0, 1].any()
 
 
 # ------------------------------------------------------------------------------------- bad policies

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -107,7 +108,15 @@ def _prepare(scenario: ScenarioTensor, config: SimulationConfig) -> tuple[Scenar
         logged = logged.replace_unchecked(valid=valid)
     controlled = logged.controlled & logged.valid[:, :, start]
     if config.remove_offroad_at_start and logged.map is not None and "drivable" in logged.map.layers:
+        candidates = controlled
         controlled = controlled & logged.map.lookup(logged.xy[:, :, start].double())  # as the off-road metric
+        lost = (candidates.any(-1) & ~controlled.any(-1)).nonzero().flatten().tolist()
+        if lost:
+            names = [str(logged.scene_ids[i]) if i < len(logged.scene_ids) else str(i) for i in lost]
+            warnings.warn(f"{len(lost)} scene(s) lose every controlled agent because none starts on the drivable "
+                          f"layer of its map: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''} (source "
+                          f"{logged.source!r}); their metrics are empty. Check the map files' origin and scale.",
+                          stacklevel=3)
     return logged, controlled, start, end
 
 

@@ -20,6 +20,15 @@ NUM_COLUMNS = 18
 # The PNGs were written by OpenCV from a (drivable, road divider, lane divider) array, i.e. stored as B, G, R;
 # read back as RGB the drivable layer is channel 2.
 PNG_CHANNEL_OF_LAYER = {"drivable": 2, "road_divider": 1, "lane_divider": 0}
+# Bounds that keep a bad file from looking valid or from taking the machine's memory (the bundled data stays far
+# inside each: at most 41 keyframes, 42 tracks, 27 m/s between keyframes, 380 m from the map corner, 1.6 M pixels).
+MAX_FRAME = 10_000  # keyframe index (83 min at 2 Hz)
+MAX_GRID = 500_000  # tracks x keyframes of one scene
+MAX_COORDINATE_M = 100_000.0  # |x|, |y| in the map frame
+MAX_SPEED_MPS = 70.0  # between consecutive keyframes of a track (252 km/h)
+MAX_BOX_M = 30.0  # box length and width
+MAX_MAP_PIXELS = 25_000_000  # map PNG width x height
+MAP_MARGIN_M = 1_000.0  # how far outside its map raster an agent may be
 
 
 @dataclass(frozen=True)
@@ -34,11 +43,41 @@ class LabelTable:
     x: np.ndarray
     y: np.ndarray
     yaw: np.ndarray
+    line: np.ndarray | None = None  # 1-based line number of each row, for error messages
+
+
+def _check_rows(path: str, table: LabelTable) -> None:
+    """Refuse duplicate (frame, track) rows, impossible speeds and scenes too large to hold, naming the lines."""
+    line = table.line if table.line is not None else np.arange(1, len(table.frame) + 1)
+    order = np.lexsort((table.frame, table.track))
+    track, frame = table.track[order], table.frame[order]
+    same = (track[1:] == track[:-1]) & (frame[1:] == frame[:-1])
+    if same.any():
+        k = int(np.argmax(same))
+        raise DataFormatError(f"{path}:{line[order[k + 1]]}: track {track[k]} has a second row for frame {frame[k]} "
+                              f"(the first is line {line[order[k]]}); keep one row per (frame, track).")
+    num_tracks, num_frames = len(np.unique(table.track)), int(table.frame.max()) + 1
+    if num_tracks * num_frames > MAX_GRID:
+        raise DataFormatError(f"{path}: {num_tracks} tracks over {num_frames} keyframes ({num_tracks * num_frames:,} "
+                              f"cells, more than {MAX_GRID:,}); the frame numbers or track ids are wrong.")
+    step = (track[1:] == track[:-1]) & (frame[1:] == frame[:-1] + 1)
+    x, y = table.x[order], table.y[order]
+    speed = np.where(step, np.hypot(x[1:] - x[:-1], y[1:] - y[:-1]) / KEYFRAME_DT, 0.0)
+    if (speed > MAX_SPEED_MPS).any():
+        k = int(np.argmax(speed))
+        raise DataFormatError(f"{path}:{line[order[k + 1]]}: track {track[k]} moves {speed[k]:.1f} m/s since line "
+                              f"{line[order[k]]} (more than {MAX_SPEED_MPS:.0f} m/s); fix the coordinates.")
 
 
 def parse_label_file(path: str) -> LabelTable:
-    """Parse an 18-column label file; a malformed row raises ``DataFormatError`` naming file and line."""
-    frames, tracks, cats, lengths, widths, xs, ys, yaws = [], [], [], [], [], [], [], []
+    """Parse an 18-column label file; a malformed row raises ``DataFormatError`` naming file and line.
+
+    Besides the format, a row is refused for a frame that is not an integer in ``0 .. MAX_FRAME``, a fractional
+    track id, a box size of 0 or less (or above ``MAX_BOX_M``), an unknown agent class, a position beyond
+    ``MAX_COORDINATE_M``, a second row of the same (frame, track), or a speed above ``MAX_SPEED_MPS`` between
+    consecutive keyframes; a file whose tracks x keyframes exceed ``MAX_GRID`` is refused too.
+    """
+    frames, tracks, cats, lengths, widths, xs, ys, yaws, lines = [], [], [], [], [], [], [], [], []
     with open(path, encoding="utf-8") as handle:
         for lineno, line in enumerate(handle, start=1):
             parts = line.split()
@@ -56,8 +95,21 @@ def parse_label_file(path: str) -> LabelTable:
             if not all(math.isfinite(v) for v in values):
                 raise DataFormatError(f"{path}:{lineno}: NaN or inf in {line.strip()!r}")
             frame, track, width, length, x, y, yaw = values
-            if frame < 0 or frame != int(frame):
-                raise DataFormatError(f"{path}:{lineno}: frame must be a non-negative integer, got {parts[0]!r}")
+            if frame < 0 or frame != int(frame) or frame > MAX_FRAME:
+                raise DataFormatError(f"{path}:{lineno}: frame must be an integer from 0 to {MAX_FRAME:,}, got "
+                                      f"{parts[0]!r}")
+            if track != int(track) or abs(track) > 2**53:
+                raise DataFormatError(f"{path}:{lineno}: track id must be an integer, got {parts[1]!r}")
+            if not (0 < width <= MAX_BOX_M and 0 < length <= MAX_BOX_M):
+                raise DataFormatError(f"{path}:{lineno}: box width {parts[10]} and length {parts[12]} must be above 0 "
+                                      f"and at most {MAX_BOX_M:.0f} m")
+            if abs(x) > MAX_COORDINATE_M or abs(y) > MAX_COORDINATE_M:
+                raise DataFormatError(f"{path}:{lineno}: position ({parts[13]}, {parts[15]}) is more than "
+                                      f"{MAX_COORDINATE_M:,.0f} m from the map origin; fix the coordinates")
+            if AgentType.from_name(parts[2]) == AgentType.OTHER:
+                raise DataFormatError(f"{path}:{lineno}: unknown agent class {parts[2]!r}; use a nuScenes class such "
+                                      "as Car, Truck, Bus, Pedestrian or Bicycle")
+            lines.append(lineno)
             frames.append(int(frame))
             tracks.append(int(track))
             cats.append(parts[2])
@@ -68,8 +120,10 @@ def parse_label_file(path: str) -> LabelTable:
             yaws.append(yaw)
     if not frames:
         raise DataFormatError(f"{path}: the label file has no rows.")
-    return LabelTable(np.array(frames), np.array(tracks), cats, np.array(lengths), np.array(widths),
-                      np.array(xs), np.array(ys), np.array(yaws))
+    table = LabelTable(np.array(frames), np.array(tracks), cats, np.array(lengths), np.array(widths),
+                       np.array(xs), np.array(ys), np.array(yaws), np.array(lines))
+    _check_rows(path, table)
+    return table
 
 
 def _keyframe_speed(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, present: np.ndarray) -> np.ndarray:
@@ -149,6 +203,7 @@ class NuScenesPredSource(ScenarioSource):
         table = parse_label_file(label_path)
         scene_map, origin = self._load_map(scene_id)
 
+        _check_on_map(label_path, table, scene_map, origin)
         tracks = np.unique(table.track)
         num_frames = int(table.frame.max()) + 1
         a_idx = np.searchsorted(tracks, table.track)
@@ -206,15 +261,28 @@ class NuScenesPredSource(ScenarioSource):
             if not os.path.isfile(path):
                 raise DataNotFoundError(f"map file missing for {scene_id!r}: {path!r}.")
         try:
-            x_min, y_min, scale = (float(v) for v in open(meta, encoding="utf-8").read().split())
-        except ValueError as exc:
+            with open(meta, encoding="utf-8") as handle:
+                x_min, y_min, scale = (float(v) for v in handle.read(1024).split())
+        except (ValueError, UnicodeDecodeError) as exc:
             raise DataFormatError(f"{meta}: expected three numbers 'x_min y_min scale' ({exc}).") from exc
+        if not all(math.isfinite(v) for v in (x_min, y_min, scale)) or not 0 < scale <= 100:
+            raise DataFormatError(f"{meta}: 'x_min y_min scale' = {x_min} {y_min} {scale}; the origin must be finite "
+                                  "and the scale (pixels per metre) above 0 and at most 100.")
         try:
-            image = np.asarray(Image.open(png).convert("RGB"))
-        except OSError as exc:
+            with Image.open(png) as handle:
+                width, height = handle.size
+                if width * height > MAX_MAP_PIXELS:
+                    raise DataFormatError(f"{png}: the map image declares {width} x {height} pixels, more than "
+                                          f"{MAX_MAP_PIXELS:,}; it is not a map of one scene.")
+                image = np.asarray(handle.convert("RGB"))
+        except (OSError, Image.DecompressionBombError, ValueError) as exc:
             raise DataFormatError(f"{png}: cannot read the map image ({exc}).") from exc
         layers = ("drivable", "road_divider", "lane_divider")
         raster = np.stack([image[..., PNG_CHANNEL_OF_LAYER[name]] > 0 for name in layers])
+        if not raster[0].any():
+            raise DataFormatError(f"{png}: the drivable layer is empty (no pixel set in channel "
+                                  f"{PNG_CHANNEL_OF_LAYER['drivable']}); every agent would count as off-road and "
+                                  "none would be driven. Restore the map image.")
         # scene frame origin = raster corner, so pixel (i, j) = (x * scale, y * scale); x runs along rows.
         world_to_pixel = torch.tensor([[scale, 0.0, 0.0], [0.0, scale, 0.0], [0.0, 0.0, 1.0]])
         return (
@@ -222,6 +290,27 @@ class NuScenesPredSource(ScenarioSource):
                       layers=layers),
             (x_min, y_min),
         )
+
+
+def _check_on_map(label_path: str, table: LabelTable, scene_map: MapRaster, origin: tuple[float, float]) -> None:
+    """Refuse a scene whose agents lie far outside its map raster, or whose vehicles are never on its drivable
+    layer: the map's origin or scale (``maps/meta_<scene>.txt``) does not belong to the labels."""
+    line = table.line if table.line is not None else np.arange(1, len(table.frame) + 1)
+    extent = max(scene_map.raster.shape[-2:]) / float(scene_map.world_to_pixel[0, 0, 0])
+    x, y = table.x - origin[0], table.y - origin[1]
+    outside = (np.minimum(x, y) < -MAP_MARGIN_M) | (np.maximum(x, y) > extent + MAP_MARGIN_M)
+    if outside.any():
+        k = int(np.argmax(outside))
+        raise DataFormatError(f"{label_path}:{line[k]}: position ({table.x[k]}, {table.y[k]}) lies more than "
+                              f"{MAP_MARGIN_M:.0f} m outside the map raster (origin {origin}, {extent:.0f} m across); "
+                              "the coordinates or the map's meta file are wrong.")
+    vehicle = np.array([AgentType.from_name(c) == AgentType.VEHICLE for c in table.category])
+    if vehicle.any():
+        xy = torch.from_numpy(np.stack([x[vehicle], y[vehicle]], -1))[None].double()
+        if not bool(scene_map.lookup(xy).any()):
+            raise DataFormatError(f"{label_path}: none of the scene's {int(vehicle.sum())} vehicle rows lies on the "
+                                  "drivable layer of its map, so no agent would be driven; the map's origin or scale "
+                                  "(maps/meta_<scene>.txt) does not belong to these labels.")
 
 
 def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
