@@ -101,9 +101,11 @@ def test_broken_model_folder_is_a_one_line_error(trained: Path, tmp_path: Path,
     weights.write_bytes(weights.read_bytes()[:1000])
     config["architecture"] = "ctg_mlp"
     (broken / "config.json").write_text(json.dumps(config))
-    with pytest.raises(SystemExit):
-        main(["rm", "info", str(broken)])  # info still describes it, flagging the weights
-    assert "MODIFIED OR MISSING" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        main(["rm", "info", str(broken)])  # info still describes it, flagging the weights, and exits 2
+    captured = capsys.readouterr()
+    assert exit_info.value.code == 2 and "DO NOT LOAD" in captured.out
+    assert "does not load" in captured.err and "SHA-256" in captured.err
 
 
 def test_rm_train_needs_one_data_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

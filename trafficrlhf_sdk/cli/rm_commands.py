@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import shlex
 import sys
@@ -11,6 +12,7 @@ from typing import Any
 import click
 
 from trafficrlhf_sdk.cli import cli, parse_key_values
+from trafficrlhf_sdk.errors import TrafficRLHFError
 
 __all__ = ["rm"]
 
@@ -180,6 +182,11 @@ def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data
         from trafficrlhf_sdk.reward.contrast import probe_reward_model, recorded_windows
 
         result["probes"] = probe_reward_model(model, recorded_windows("nuscenes_pred", "val", probe_scenes))
+    not_finite = _not_finite(result)
+    if not_finite:
+        raise TrafficRLHFError(f"`rm eval` of {model_dir!r} gave no number for {', '.join(not_finite[:5])} (NaN): "
+                               "the test pairs are empty after --subset/--annotator, or the model scores NaN; "
+                               "check the selection (`feedback stats`) and the model (`rm info`).")
     if as_json:
         click.echo(json.dumps(result if "probes" in result else result["pairs"], indent=2))
         return
@@ -191,13 +198,23 @@ def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data
                    + (f" (members {members})" if members else "") + f", mean gap {entry['mean_gap']:+.4f}")
 
 
+def _not_finite(result: Any, prefix: str = "") -> list[str]:
+    """Keys (dotted) of every float in ``result`` (nested dicts and lists) that is NaN or infinite."""
+    if isinstance(result, dict):
+        return [k for key, value in result.items() for k in _not_finite(value, f"{prefix}{key}.")]
+    if isinstance(result, (list, tuple)):
+        return [k for i, value in enumerate(result) for k in _not_finite(value, f"{prefix}{i}.")]
+    return [prefix.rstrip(".")] if isinstance(result, float) and not math.isfinite(result) else []
+
+
 @rm.command("info")
 @click.argument("model_dir", required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def info_command(model_dir: str | None, as_json: bool) -> None:
     """Describe a saved reward model (architecture, size, data, metrics); without MODEL_DIR, list architectures."""
     from trafficrlhf_sdk.reward.model import reward_model_architectures
-    from trafficrlhf_sdk.reward.serialization import read_config, sha256_file
+    from trafficrlhf_sdk.reward.serialization import load_reward_model, read_config, sha256_file
+    from trafficrlhf_sdk.scenario.io import safe_load_file
 
     registry = reward_model_architectures()
     if model_dir is None:
@@ -208,21 +225,37 @@ def info_command(model_dir: str | None, as_json: bool) -> None:
             click.echo(f"{row['architecture']}\t(plugin {row['plugin']})")
         return
     config = read_config(model_dir)
-    weights = os.path.join(model_dir, config.get("weights", {}).get("file", "model.safetensors"))
-    ok = os.path.isfile(weights) and sha256_file(weights) == config.get("weights", {}).get("sha256")
+    problem = None
+    try:  # "ok" means it loads: SHA-256, tensor names, shapes and dtypes, finite values
+        if config["architecture"] in registry:
+            load_reward_model(model_dir)
+        else:  # the plugin that builds it is missing: only the file can be checked
+            weights = os.path.join(model_dir, str(config.get("weights", {}).get("file", "model.safetensors")))
+            safe_load_file(weights)
+            if sha256_file(weights) != config.get("weights", {}).get("sha256"):
+                problem = f"{weights!r} does not match the SHA-256 recorded in config.json"
+    except TrafficRLHFError as exc:
+        problem = " ".join(str(exc).split())
+    ok = problem is None
     summary = {"path": model_dir, "architecture": config["architecture"],
                "registered": config["architecture"] in registry, "num_parameters": config.get("num_parameters"),
                "weights_sha256_ok": ok, "sdk_version": config.get("sdk_version"), "config": config["config"],
                "data": {k: v for k, v in config.get("data", {}).items() if k != "metadata"},
                "metrics": config.get("metrics", {})}
+    if problem is not None:
+        summary["weights_problem"] = problem
     if as_json:
         click.echo(json.dumps(summary, indent=2))
+        if problem is not None:
+            raise TrafficRLHFError(f"reward model {model_dir!r} does not load: {problem}")
         return
     members = config["config"].get("num_members") if config["architecture"] == "ensemble" else None
     kind = (f"{summary['architecture']} of {members} x {config['config'].get('member_architecture')}" if members
             else summary["architecture"])
     click.echo(f"{model_dir}: {kind} ({'registered' if summary['registered'] else 'NOT registered'}"
-               f"), {summary['num_parameters']:,} parameters, weights {'ok' if ok else 'MODIFIED OR MISSING'}, "
+               f"), {summary['num_parameters']:,} parameters, weights {'ok' if ok else 'DO NOT LOAD'}, "
                f"SDK {summary['sdk_version']}")
     _echo_metrics("data", summary["data"])
     _echo_metrics("metrics", summary["metrics"])
+    if problem is not None:
+        raise TrafficRLHFError(f"reward model {model_dir!r} does not load: {problem}")

@@ -126,10 +126,23 @@ def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
     except (ValidationError, TypeError, ValueError) as exc:
         raise DataFormatError(f"{directory!r}: config.json's `config` does not fit architecture {name!r}: "
                               f"{' '.join(str(exc).split())}") from exc
-    weights = os.path.join(directory, config.get("weights", {}).get("file", WEIGHTS_FILE))
+    weights_info = config.get("weights", {})
+    if not isinstance(weights_info, dict):
+        raise DataFormatError(f"{directory!r}: config.json's `weights` must be an object, got {weights_info!r:.60}.")
+    weights_name = weights_info.get("file", WEIGHTS_FILE)
+    weights = os.path.join(directory, str(weights_name))
+    inside = os.path.realpath(directory)
+    if os.path.isabs(str(weights_name)) or os.path.commonpath([inside, os.path.realpath(weights)]) != inside:
+        raise DataFormatError(f"{directory!r}: config.json's `weights.file` is {weights_name!r}, which lies outside "
+                              "the "
+                              "model folder; name a file inside it (model.safetensors).")
     if not os.path.isfile(weights):
         raise DataNotFoundError(f"{directory!r} has no {os.path.basename(weights)}; the weights are missing.")
     expected = config.get("weights", {}).get("sha256")
+    if verify and not expected:
+        raise DataFormatError(f"{os.path.join(directory, CONFIG_FILE)!r} records no SHA-256 of the weights "
+                              "(`weights.sha256`), so they cannot be verified; re-save the model, or pass "
+                              "verify=False only for a file you trust.")
     if verify and expected:
         actual = sha256_file(weights)
         if actual != expected:
@@ -156,6 +169,11 @@ def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
     not_float = [k for k, t in tensors.items() if state[k].is_floating_point() and not t.is_floating_point()]
     if not_float:
         raise DataFormatError(f"{weights!r}: tensor {not_float[0]!r} is not floating point.")
+    for key, tensor in tensors.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise DataFormatError(f"reward model {directory!r}: tensor {key!r} holds "
+                                  f"{int((~torch.isfinite(tensor)).sum())} NaN or infinite value(s); the weights are "
+                                  "unusable: restore them or re-train.")
     model.load_state_dict({k: t.to(state[k].dtype) for k, t in tensors.items()})
     model.card_info = {k: config[k] for k in ("data", "training", "metrics") if k in config}
     model.card_info.update(config.get("card") or {})
