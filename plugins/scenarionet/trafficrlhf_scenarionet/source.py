@@ -6,7 +6,7 @@ import functools
 import math
 import os
 from dataclasses import dataclass
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,12 @@ class ScenarioNetConfig(SourceConfig):
     polyline_points: int = Field(20, ge=2, description="Points per vector-map polyline (L), by arc length.")
     polyline_max_length_m: float = Field(30.0, gt=0, description="Longer map polylines are split into pieces (m).")
     max_polylines: int = Field(1024, ge=1, description="Vector-map pieces kept (P), nearest the SDC first.")
+    listing_read_limit: int = Field(
+        2000, ge=0, description="Splits with more scenario files than this are listed by file name only, without "
+        "reading any file (a folder of 100,000 scenarios is not loaded to list it); scenes too short for a window "
+        "are then skipped, and counted, when they are streamed (iter_batches).")
+    rasterize_map: bool = Field(True, description="Rasterize the map of each scene; False reads tracks only "
+                                "(map=None), for statistics over many scenes.")
 
 
 def read_scenario(path: str) -> dict[str, Any]:
@@ -147,6 +153,38 @@ class ScenarioNetSource(ScenarioSource):
                 found.append(name)
         return found
 
+    @functools.lru_cache(maxsize=8)  # noqa: B019 - one source object lists each split once
+    def all_scene_ids(self, split: str) -> list[str]:
+        """File stems of every scenario of ``split``, sorted, long enough or not; reads no file."""
+        self.check_split(split)
+        return [name[:-4] for name in self._pickles(self._split_dir(split))]
+
+    def is_lazy(self, split: str) -> bool:
+        """Whether ``split`` has more files than ``listing_read_limit`` (listed by name, checked when read)."""
+        return len(self.all_scene_ids(split)) > self.config.listing_read_limit
+
+    def iter_batches(self, split: str, batch_size: int = 64, scene_ids: Sequence[str] | None = None,
+                     skipped: list[str] | None = None) -> Iterator[ScenarioTensor]:
+        """Stream ``scene_ids`` (default: every file of ``split``) as batches of up to ``batch_size`` scenes, one
+        shard in memory at a time. Scenes too short for ``history_s + min_future_s`` are skipped and appended to
+        ``skipped`` (when given), never dropped silently."""
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size!r}.")
+        needed = self.config.history_s + self.config.min_future_s
+        shard: list[ScenarioTensor] = []
+        for scene_id in scene_ids if scene_ids is not None else self.all_scene_ids(split):
+            scene = self.load_scene(split, scene_id)
+            if (scene.num_steps - 1) * scene.dt < needed - 1e-6:
+                if skipped is not None:
+                    skipped.append(scene_id)
+                continue
+            shard.append(scene)
+            if len(shard) == batch_size:
+                yield ScenarioTensor.concat(shard)
+                shard = []
+        if shard:
+            yield ScenarioTensor.concat(shard)
+
     @functools.lru_cache(maxsize=8)  # noqa: B019 - one source object reads each split once
     def _durations(self, split: str) -> dict[str, float]:
         """Scene id -> logged duration (s) at ``config.dt`` for every pickle of ``split``."""
@@ -161,7 +199,11 @@ class ScenarioNetSource(ScenarioSource):
         return out
 
     def scene_ids(self, split: str) -> list[str]:
-        """File stems of the scenes of ``split`` lasting at least ``history_s + min_future_s``, sorted."""
+        """File stems of the scenes of ``split`` lasting at least ``history_s + min_future_s``, sorted. A split
+        with more files than ``listing_read_limit`` is listed by name without reading (see :meth:`iter_batches`
+        for streaming it, which skips and counts the short scenes)."""
+        if self.is_lazy(split):
+            return self.all_scene_ids(split)
         needed = self.config.history_s + self.config.min_future_s
         return [s for s, d in self._durations(split).items() if d >= needed - 1e-6]
 
@@ -195,6 +237,8 @@ class ScenarioNetSource(ScenarioSource):
 
         points = tracks.xy[tracks.valid]
         ppm = cfg.pixels_per_meter
+        if not cfg.rasterize_map:
+            return self._tensor(tracks, points.min(0) - cfg.margin_m, None, scene_id, split, data)
         origin = points.min(0) - cfg.margin_m  # world position of pixel corner (0, 0) = scene frame origin
         shape = tuple(int(v) for v in np.maximum(np.ceil((points.max(0) + cfg.margin_m - origin) * ppm), 1))
         features = parse_map_features(data["map_features"], path)
@@ -212,6 +256,12 @@ class ScenarioNetSource(ScenarioSource):
             polyline_type=torch.from_numpy(poly_types)[None],
         )
 
+        return self._tensor(tracks, origin, scene_map, scene_id, split, data)
+
+    def _tensor(self, tracks: Tracks, origin: np.ndarray, scene_map: MapRaster | None, scene_id: str, split: str,
+                data: Mapping[str, Any]) -> ScenarioTensor:
+        cfg = self.config
+        current = cfg.history_steps
         states = np.zeros(tracks.xy.shape[:2] + (4,), np.float32)
         states[..., :2] = tracks.xy - origin
         states[..., 2] = tracks.speed
