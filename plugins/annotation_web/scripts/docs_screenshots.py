@@ -28,7 +28,7 @@ LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgro
 def shrink(path: str) -> None:
     """Rewrite a PNG with a 256-colour palette (screenshots are flat UI colours; this keeps them small)."""
     image = Image.open(path).convert("RGB")
-    image.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
+    image.quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(path, optimize=True)
 
 
 def main() -> None:
