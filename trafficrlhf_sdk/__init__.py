@@ -6,7 +6,9 @@ The loop, stage by stage (each a subpackage):
    exported as preference pairs;
 2. ``reward``: reward models r_HF trained with the Bradley-Terry loss, saved as safetensors with a model card;
 3. ``alignment``: :func:`align`, PPO fine-tuning of any registered traffic model on r + alpha * r_HF;
-4. ``evaluation``: the closed-loop protocol (10 s, replanning at 2 Hz) and its metrics.
+4. ``evaluation``: the closed-loop protocol (10 s, replanning at 2 Hz) and its metrics;
+
+and :func:`rlhf` (``loop``), which runs stages 1-3 round after round on the policy it produces.
 
 Underneath: ``scenario`` (:class:`ScenarioTensor`, sources), ``simulation`` (dynamics, guidance, simulator),
 ``metrics``, ``models`` (the adapter contract) and the plugin registries. Names are imported on first use, so
@@ -31,6 +33,8 @@ _EXPORTS = {
     "ScenarioTensor": "scenario",
     "SourceConfig": "scenario",
     "align": "alignment",
+    "rlhf": "loop",
+    "RLHFConfig": "loop",
     "AlignConfig": "alignment",
     "TrafficModelAdapter": "models",
     "RewardModel": "reward",
@@ -41,6 +45,7 @@ __all__ = [
     "AgentType",
     "AlignConfig",
     "MapRaster",
+    "RLHFConfig",
     "RewardModel",
     "ScenarioSource",
     "ScenarioTensor",
@@ -56,6 +61,7 @@ __all__ = [
     "get_traffic_model",
     "hookimpl",
     "list_plugins",
+    "rlhf",
 ]
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -143,3 +143,4 @@ from trafficrlhf_sdk.cli import rm_commands  # noqa: E402, F401
 from trafficrlhf_sdk.cli import evaluate  # noqa: E402, F401
 from trafficrlhf_sdk.cli import compare  # noqa: E402, F401
 from trafficrlhf_sdk.cli import align_commands  # noqa: E402, F401
+from trafficrlhf_sdk.cli import rlhf_commands  # noqa: E402, F401

@@ -1,0 +1,46 @@
+"""``trafficrlhf rlhf``: iterative RLHF (generate -> label -> reward model -> align, round after round)."""
+
+from __future__ import annotations
+
+import click
+
+from trafficrlhf_sdk.cli import cli
+
+
+@cli.command("rlhf")
+@click.option("--config", "config_path", default=None, type=click.Path(dir_okay=False, path_type=str),
+              help="TOML file of RLHFConfig fields (model, checkpoint, rounds, annotators, reward, align, ...).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
+              help="Folder of the run: feedback.sqlite, state.json and round_<r>/{reward_model,aligned}; rerun with "
+                   "the same --out to resume.")
+@click.option("--rounds", type=click.IntRange(min=1), default=None, help="Rounds [default: the config's, 2].")
+def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None) -> None:
+    """Rounds of: candidates from the current policy, labels (stand-in annotators or people), a reward model
+    retrained on every round's labels, and alignment of the base model against it."""
+    import tomllib
+
+    from pydantic import ValidationError
+
+    from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+    from trafficrlhf_sdk.loop import RLHFConfig, rlhf
+
+    fields: dict[str, object] = {}
+    if config_path is not None:
+        try:
+            with open(config_path, "rb") as handle:
+                fields = tomllib.load(handle)
+        except FileNotFoundError:
+            raise DataNotFoundError(f"--config {config_path!r}: no such file.") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise DataFormatError(f"--config {config_path!r}: not valid TOML ({exc}).") from None
+    if rounds is not None:
+        fields["rounds"] = rounds
+    try:
+        config = RLHFConfig(**fields)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise DataFormatError(f"--config {config_path!r}: {problems}") from None
+    state = rlhf(config, out_dir, log=lambda line: click.echo(line))
+    last = config.rounds - 1
+    click.echo(f"done: round {last}'s reward model {state.get(f'reward_model_{last}')}, aligned model "
+               f"{state.get(f'aligned_{last}')}")
