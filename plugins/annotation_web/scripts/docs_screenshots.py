@@ -75,6 +75,7 @@ def main() -> None:
             page.keyboard.press("Enter")
             page.wait_for_selector("#admin-main:not(.hidden)")
             page.wait_for_function("document.querySelectorAll('#annotators tr').length > 0")
+            time.sleep(0.6)  # let the progress bar finish its transition
             page.screenshot(path=out["admin"], full_page=True)
             browser.close()
     finally:
