@@ -4,9 +4,10 @@
 the policy it produces (iterated RLHF: a reward model is accurate near the data it saw, so each round collects
 preferences where the newest policy drives):
 
-1. **generate**: campaigns ``round<r>`` (and ``round<r>_unguided``) of ``contexts_per_round x candidate_pool`` training contexts, each with
-   N candidates from the current policy (the base in round 0, the previous round's aligned model after), with
-   and without guidance (``unguided_share``), and the logged future hidden behind "none realistic";
+1. **generate**: campaigns ``round<r>`` (and ``round<r>_unguided``) of ``contexts_per_round x candidate_pool``
+   training contexts, each with N candidates from the current policy (the base in round 0, the previous round's
+   aligned model after), with and without guidance (``unguided_share``), and the logged future hidden behind
+   "none realistic";
 2. **select** (rounds after the first): the items where the previous reward-model ensemble disagrees most are
    served first (:func:`~trafficrlhf_sdk.feedback.selection.rank_by_disagreement`), and ``contexts_per_round``
    of them are labelled;
@@ -263,7 +264,7 @@ def _align(config: RLHFConfig, folder: str, r: int, state: dict[str, Any], out_d
     step = f"round_{r}/align"
     if _done(state, step):
         return
-    fields = {"guidance": config.guidance, "seed": config.seed + r, "progress_bar": False, **config.align}
+    fields = {"guidance": config.guidance, "seed": config.seed + r, **config.align}
     recipe = AlignRecipe(model=config.model, checkpoint=config.checkpoint, model_options=config.model_options,
                          reward_model=os.path.join(folder, "reward_model"), align=fields)
     summary = run_recipe(recipe, os.path.join(folder, "aligned"))

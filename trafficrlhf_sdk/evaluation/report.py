@@ -36,8 +36,13 @@ def _plot_curve(history: list[dict[str, float]], path: str) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     axes[0].plot(epochs, [row["reward_mean"] for row in history], marker="o")
     axes[0].set(xlabel="epoch", ylabel="mean reward (reward model)", title="proxy reward of the policy's samples")
-    axes[1].plot(epochs, [row.get("approx_kl", float("nan")) for row in history], marker="o", color="tab:red")
-    axes[1].set(xlabel="epoch", ylabel="approx. KL to the sampling policy", title="PPO step size")
+    if any("heldout_realism" in row for row in history):
+        axes[1].plot(epochs, [row.get("heldout_realism", float("nan")) for row in history], marker="o",
+                     color="tab:orange")
+        axes[1].set(xlabel="epoch", ylabel="held-out realism", title="stand-in annotators' judgment (not trained on)")
+    else:
+        axes[1].plot(epochs, [row.get("approx_kl", float("nan")) for row in history], marker="o", color="tab:red")
+        axes[1].set(xlabel="epoch", ylabel="approx. KL to the sampling policy", title="PPO step size")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -90,6 +95,11 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
             if acc is not None:
                 lines.append(f"| {split} | {acc:.3f} | {loss:.3f} |")
         lines.append("")
+        probes = {k[len("probe_"):]: v for k, v in metrics.items() if k.startswith("probe_")}
+        if probes:
+            lines += ["Probes on held-out logs (share where the log scores above its perturbed copy):", "",
+                      "| " + " | ".join(probes) + " |", "|---" * len(probes) + "|",
+                      "| " + " | ".join(f"{v:.2f}" if v == v else "n/a" for v in probes.values()) + " |", ""]
     if align_dir is not None:
         history = _json(os.path.join(align_dir, "align_history.json"))
         summary_path = os.path.join(align_dir, "align_summary.json")
