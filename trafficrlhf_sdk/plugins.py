@@ -145,7 +145,7 @@ def checkpoint_model(folder: str) -> str | None:
 def build_policy(model: str | None, options: dict[str, Any]) -> Any:
     """Instantiate a traffic model for closed-loop use: ``model`` (registered name) and/or ``options["checkpoint"]``
     (a folder or a bundled checkpoint's name). Without ``model`` the checkpoint's ``config.json`` names it; a
-    checkpoint saved by another model is an error. ``checkpoint`` and ``seed`` go to factories that accept them;
+    checkpoint saved by another model is an error. ``seed`` goes to factories that accept it; ``checkpoint``,
     ``guidance`` and any other option must be accepted, or the error names it."""
     options = dict(options)
     checkpoint = options.get("checkpoint")
@@ -163,7 +163,8 @@ def build_policy(model: str | None, options: dict[str, Any]) -> Any:
     if model is None:
         raise TrafficRLHFError("no traffic model given: pass --model NAME (`trafficrlhf plugins` lists them) or "
                                "--checkpoint FOLDER.")
-    return build_traffic_model(model, options, optional=("checkpoint", "seed"))
+    # a --checkpoint given to a model that loads none (a built-in policy) is an error, never silently dropped
+    return build_traffic_model(model, options, optional=("seed",))
 
 
 def list_plugins() -> list[dict[str, Any]]:

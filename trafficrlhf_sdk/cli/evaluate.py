@@ -140,6 +140,8 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
     from trafficrlhf_sdk.plugins import build_policy
     from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
+    if out_dir is not None:
+        _check_out_dir(out_dir)
     if render_worst and not out_dir:
         raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
                                "--out DIR (or drop --render-worst).")
@@ -168,6 +170,9 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
         raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a {duration:g} s "
                                "rollout; try a shorter --duration.")
     _report_short_scenes(scenario_source, split, len(long_enough), duration, as_json)
+    if not scene_id and num_scenes > len(scene_ids):
+        click.echo(f"note: --scenes {num_scenes} asked for more than the {len(scene_ids)} long-enough scenes of "
+                   f"{source}/{split}; evaluating all {len(scene_ids)}.", err=True)
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
     metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
                 "reward_model": reward_model_dir, "model_options": extra, "late_agents": late_agents,
@@ -237,6 +242,20 @@ def _report_short_scenes(source: object, split: str, usable: int, duration: floa
     if total > usable:
         click.echo(f"{total - usable} of {total} scenes of {split!r} are shorter than 3 s + {duration:g} s and are "
                    "skipped; a shorter --duration keeps more of them.", err=True)
+
+
+def _check_out_dir(out_dir: str) -> None:
+    """Refuse an ``--out`` that cannot take the results, before anything is simulated."""
+    import os
+
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise TrafficRLHFError(f"--out {out_dir!r} is a file, not a folder; pass a folder (it is created if needed).")
+    parent = os.path.abspath(out_dir)
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent) or not os.access(parent, os.W_OK | os.X_OK):
+        raise TrafficRLHFError(f"--out {out_dir!r} cannot be written ({parent!r} is not a writable folder); pass a "
+                               "folder you can write to.")
 
 
 def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
