@@ -140,16 +140,20 @@ class PPOUpdate:
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
                 if ref is not None:
-                    # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
-                    # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
-                    d = (ref[idx] - new).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
-                    k3 = torch.exp(d) - 1 - d
+                    closed = self.model.transition_kl(ctx, trace, self.reference)
+                    if closed is not None:  # exact per-step KL (diffusion models): finite, 0 at the start
+                        per_entry = self._steps(closed)
+                    else:
+                        # k3 estimator of KL(new || ref); the log-ratio is clamped because a density can fall far
+                        # below the reference's on one sample (TrafficGen's mixture) and exp() would overflow
+                        d = (ref[idx] - new).clamp(-MAX_LOG_RATIO, MAX_LOG_RATIO)
+                        per_entry = torch.exp(d) - 1 - d
                     if cfg.kl_coef > 0:
-                        kl_ref = _masked_mean(k3, mask)
+                        kl_ref = _masked_mean(per_entry, mask)
                         loss = loss + cfg.kl_coef * kl_ref
                         stats["kl_ref"].append(float(kl_ref.detach()))
                     if passing is not None:
-                        passing_kl = _masked_mean(k3, _entry_mask(new, passing[idx]))
+                        passing_kl = _masked_mean(per_entry, _entry_mask(new, passing[idx]))
                         loss = loss + cfg.passing_anchor_coef * passing_kl
                         stats["passing_kl"].append(float(passing_kl.detach()))
                 self.optimizer.zero_grad(set_to_none=True)

@@ -162,6 +162,15 @@ class TrafficModelAdapter(abc.ABC):
         planner executes what :meth:`sample` draws, with no selection to credit."""
         return None
 
+    def transition_kl(self, context: ScenarioTensor, trace: PolicyTrace,
+                      reference: TrafficModelAdapter) -> torch.Tensor | None:
+        """The KL from this model to ``reference`` (the same adapter class, frozen) on the traced samples, in
+        closed form, shaped like :meth:`log_prob`'s output, with gradients into this model only. A diffusion
+        model returns it per denoising step (its Gaussian transitions share their variances, so the KL is
+        ``||mu - mu_ref||^2 / (2 sigma^2)``, finite and 0 at the start). None (the default): the fine-tuner uses
+        a sample estimate from :meth:`log_prob` instead."""
+        return None
+
     # ------------------------------------------------------------ policy
     def reset(self, scenario: ScenarioTensor) -> None:
         """Fit the guidance heuristics on the logged scene at the rollout start."""

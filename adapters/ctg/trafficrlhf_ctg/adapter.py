@@ -458,16 +458,16 @@ class CTGAdapter(TrafficModelAdapter):
         with self._hold.planning():
             return super().plan(context, horizon)
 
-    def log_prob(self, context: ScenarioTensor, trace: PolicyTrace) -> torch.Tensor:
-        """Per-denoising-step log-probabilities ``(B, S, A, K)`` of the traced chains (0 for other agents)."""
+    def _chain_inputs(self, context: ScenarioTensor, trace: PolicyTrace) -> tuple[Any, ...]:
+        """What :meth:`log_prob` and :meth:`transition_kl` hand the model for the traced chains."""
         if trace.now != context.current_index:
             raise ValueError(f"trace.now={trace.now} but context.current_index={context.current_index}; pass the "
                              "context the sample was drawn from.")
         agents = trace.agents.to(context.device)
         chain = trace.tensors["chain"].transpose(1, 2)[agents]  # (N, S, K+1, H, 2)
         delta = trace.tensors["guide_delta"].transpose(1, 2)[agents]
-        b, s, a = trace.tensors["chain"].shape[:3]
         k = chain.shape[2] - 1
+        s = chain.shape[1]
         plans = trace.tensors.get("plan_positions")
         encode, scene, steer_map = self._plan_encoder(context, agents)
         if plans is None or plans.dim() == 5:  # no plans, or one proposal for every step
@@ -475,8 +475,28 @@ class CTGAdapter(TrafficModelAdapter):
         else:  # per denoising step; the first saw no plans
             cond = torch.stack([encode(None)[:, None].expand(-1, s, -1)]
                                + [encode(plans[:, :, :, i]) for i in range(1, k)], 2)  # (N, S, K, D)
+        return agents, cond, chain, delta, scene, steer_map
+
+    def log_prob(self, context: ScenarioTensor, trace: PolicyTrace) -> torch.Tensor:
+        """Per-denoising-step log-probabilities ``(B, S, A, K)`` of the traced chains (0 for other agents)."""
+        agents, cond, chain, delta, scene, steer_map = self._chain_inputs(context, trace)
+        b, s, a = trace.tensors["chain"].shape[:3]
         log_prob = self.model.chain_log_prob(cond, chain, delta, scene, steer_map)  # (N, S, K)
-        return self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=context.device))
+        return self._scatter(log_prob, agents, torch.zeros(b, a, s, chain.shape[2] - 1, device=context.device))
+
+    def transition_kl(self, context: ScenarioTensor, trace: PolicyTrace, reference: CTGAdapter) -> torch.Tensor:
+        """Per-denoising-step KL ``(B, S, A, K)`` from this model's Gaussian transitions of the traced chains to
+        ``reference``'s, in closed form: ``||mu - mu_ref||^2 / (2 sigma^2)`` summed over the plan (the bound DPOK
+        optimizes); finite by construction, exactly 0 while the two models are equal. Gradients flow into this
+        model only."""
+        agents, cond, chain, delta, scene, steer_map = self._chain_inputs(context, trace)
+        b, s, a = trace.tensors["chain"].shape[:3]
+        mean, sigma = self.model.chain_means(cond, chain, delta, scene, steer_map)
+        with torch.no_grad():
+            ref = reference._chain_inputs(context, trace)
+            ref_mean, _ = reference.model.chain_means(*ref[1:])
+        kl = ((mean - ref_mean) ** 2).sum((-1, -2)) / (2 * sigma**2)  # (N, S, K)
+        return self._scatter(kl, agents, torch.zeros(b, a, s, chain.shape[2] - 1, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
         """The diffusion training loss on logged windows of ``batch``: every vehicle with 1 s of valid history

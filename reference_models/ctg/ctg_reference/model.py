@@ -507,6 +507,19 @@ class CTGModel(nn.Module):
         ``cond`` is ``(N, cond_dim)``, ``(N, S, cond_dim)`` or per step ``(N, S, K, cond_dim)``; ``scene`` and
         ``steer_map`` as in :meth:`sample` (the co-denoised rows' states at each step are read from ``chain``
         itself)."""
+        mean, sigma = self.chain_means(cond, chain, guide_delta, scene, steer_map)
+        n, s, steps1, h, _ = chain.shape
+        log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean.reshape(-1, h, 2),
+                                           sigma.reshape(-1, 1, 1))
+        return log_prob.reshape(n, s, steps1 - 1)
+
+    def chain_means(self, cond: torch.Tensor, chain: torch.Tensor, guide_delta: torch.Tensor | None = None,
+                    scene: SceneRows | None = None, steer_map: SteerMap | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Gaussian transitions of a stored chain under the current parameters: means ``(N, S, K, H, 2)`` of
+        each step's ``x_{k_prev}`` given the stored ``x_k``, and their standard deviations ``(N, S, K)``
+        (arguments as :meth:`chain_log_prob`). Two models' transitions of the same chain share ``sigma``, so
+        their KL per step is ``||mean_a - mean_b||^2 / (2 sigma^2)`` (the bound DPOK optimizes)."""
         n, s, steps1, h, _ = chain.shape
         k_steps = steps1 - 1
         schedule = torch.tensor(self.sample_schedule, device=chain.device)  # (K, 2)
@@ -529,5 +542,6 @@ class CTGModel(nn.Module):
             mean = mean + sigma * shift
         if guide_delta is not None:
             mean = mean + guide_delta.reshape(-1, h, 2)
-        log_prob = self._gaussian_log_prob(chain[:, :, 1:].reshape(-1, h, 2), mean, sigma)
-        return log_prob.reshape(n, s, k_steps)
+        sigma = torch.as_tensor(sigma, dtype=mean.dtype, device=mean.device).expand(mean.shape).reshape(
+            n * s * k_steps, -1)[:, 0]
+        return mean.reshape(n, s, k_steps, h, 2), sigma.reshape(n, s, k_steps)
