@@ -41,7 +41,7 @@ def test_the_kl_is_zero_at_the_start_finite_after_a_change_and_matches_a_monte_c
     assert torch.isfinite(kl).all() and float(kl[trace.agents[:, None, :, None].expand_as(kl)].min()) >= 0
     assert float(kl.sum()) > 0
     # independent check: E_{x ~ N(mu, s^2)} [log N(x; mu, s^2) - log N(x; mu_ref, s^2)] by sampling
-    agents, cond, chain, delta, scene, steer = policy._chain_inputs(context, trace)
+    _, cond, chain, delta, scene, steer = policy._chain_inputs(context, trace)
     with torch.no_grad():
         mean, sigma = policy.model.chain_means(cond, chain, delta, scene, steer)
         ref_mean, _ = reference.model.chain_means(*reference._chain_inputs(context, trace)[1:])
