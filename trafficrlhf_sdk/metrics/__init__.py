@@ -1,5 +1,5 @@
-"""Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), speed against the log,
-reward cost."""
+"""Closed-loop metrics: failure rate, realism deviation (CTG and body-frame presets), the realism meta-metric of K
+rollouts (WOSAC style), speed against the log, reward cost."""
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import FailureMetric, collisions_per_step, offroad_corner_share, offroad_per_step
@@ -19,15 +19,20 @@ from trafficrlhf_sdk.metrics.realism import (
     kinematics,
     scene_histogram,
 )
+from trafficrlhf_sdk.metrics.realism_meta import META_FEATURES, MetaFeature, RealismMetaConfig, RealismMetaMetric
 from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric, RewardFn
 from trafficrlhf_sdk.metrics.speed import SpeedMetric
 
 __all__ = [
+    "META_FEATURES",
     "FailureMetric",
     "GuidanceObjectivesMetric",
     "HistogramSpec",
+    "MetaFeature",
     "Metric",
     "MetricResult",
+    "RealismMetaConfig",
+    "RealismMetaMetric",
     "RealismMetric",
     "RewardCostMetric",
     "RewardFn",
