@@ -252,3 +252,34 @@ def test_log_ceiling_and_order(val_scenes) -> None:  # type: ignore[no-untyped-d
 def test_config_rejects_unknown_feature() -> None:
     with pytest.raises(ValueError, match="unknown feature"):
         RealismMetaConfig(features={"traffic_light_violation": META_FEATURES["offroad_indication"]})
+
+
+@pytest.mark.data
+def test_cli_rollouts_write_the_meta_metric_and_compare_pairs_it(tmp_path, data_root) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    from click.testing import CliRunner
+
+    from trafficrlhf_sdk.cli import get_cli
+
+    def run(*args: str) -> str:
+        result = CliRunner().invoke(get_cli(), list(args), catch_exceptions=False)
+        assert result.exit_code == 0, result.output
+        return result.output
+
+    for name, model, k in (("log", "log_replay", "2"), ("cv", "constant_velocity", "2"), ("cv1", "constant_velocity",
+                                                                                          "1")):
+        run("evaluate", "--model", model, "--scenes", "3", "--rollouts", k, "--out", str(tmp_path / name), "--json")
+    result = json.loads((tmp_path / "cv" / "results.json").read_text())
+    assert result["metadata"]["rollouts"] == 2 and len(result["per_scene"]["realism_meta"]) == 3
+    assert result["metrics"]["realism_meta"] < result["logged"]["realism_meta"]
+    assert "realism_meta" not in json.loads((tmp_path / "cv1" / "results.json").read_text())["metrics"]
+    table = run("compare", str(tmp_path / "log"), str(tmp_path / "cv"))
+    assert "realism meta-metric (K = 2) against log_replay" in table and "scenes won" in table
+    from trafficrlhf_sdk.errors import DataFormatError
+    from trafficrlhf_sdk.evaluation.compare import meta_metric_table
+
+    (tmp_path / "cv1" / "results.json").write_text(json.dumps({**result, "metadata": {**result["metadata"],
+                                                                                         "rollouts": 4}}))
+    with pytest.raises(DataFormatError, match="equal --rollouts"):
+        meta_metric_table([str(tmp_path / "log"), str(tmp_path / "cv1")])
