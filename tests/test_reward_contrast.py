@@ -124,3 +124,27 @@ def test_contrast_dataset_prefers_the_log_and_trains_a_reward_model() -> None:
     assert trainer.dataset_info["contrast_pairs"] == 8 and trainer.dataset_info["train_pairs"] == 3
     result = trainer.train()
     assert result.model is not None and "val_accuracy" in result.metrics
+
+
+def test_tie_pairs_reach_the_loss_as_soft_labels_and_survive_filtering() -> None:
+    from dataclasses import replace
+
+    from trafficrlhf_sdk.reward.data import build_pair_data, filter_pairs
+
+    data = contrast_dataset(_scenes(2), ("faster", "slower"))
+    soft = replace(data, pair_prob=torch.tensor([1.0, 0.5, 0.5, 1.0]))
+    pairs = build_pair_data(lambda scenario: _Inputs(scenario.num_scenes), soft)
+    assert pairs.labels.tolist() == [1.0, 0.5, 0.5, 1.0]
+    kept = filter_pairs(soft, mask=torch.tensor([True, True, False, True]))
+    assert kept.pair_prob is not None and kept.pair_prob.tolist() == [1.0, 0.5, 1.0]
+
+
+class _Inputs:
+    """Stand-in prepared inputs: one row per future."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    @staticmethod
+    def concat(parts):  # type: ignore[no-untyped-def]
+        return _Inputs(sum(p.n for p in parts))

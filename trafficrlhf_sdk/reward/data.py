@@ -125,7 +125,8 @@ def filter_pairs(dataset: PreferenceDataset, annotators: Sequence[str] | None = 
         wanted = torch.tensor([dataset.annotators.index(a) for a in annotators])
         keep &= torch.isin(dataset.pair_annotator, wanted)
     return replace(dataset, pairs=dataset.pairs[keep], pair_annotator=dataset.pair_annotator[keep],
-                   pair_label=dataset.pair_label[keep])
+                   pair_label=dataset.pair_label[keep],
+                   pair_prob=None if dataset.pair_prob is None else dataset.pair_prob[keep])
 
 
 def split_by_context(dataset: PreferenceDataset, val_fraction: float, seed: int = 0) -> tuple[str, ...]:
@@ -147,7 +148,8 @@ def build_pair_data(prepare: Callable[[ScenarioTensor], Any], dataset: Preferenc
     Args:
         prepare: scenario batch -> prepared inputs (``RewardModel.prepare``).
         dataset: a :class:`PreferenceDataset`.
-        labels: ``(P,)`` probability that each pair's winner is preferred; default 1.
+        labels: ``(P,)`` probability that each pair's winner is preferred; default the dataset's own (1, or 0.5
+            for the pairs of an "equally realistic" answer).
         split: "train"/"val" per context; default the dataset's ``context_split``.
         progress: show a progress bar.
     """
@@ -178,7 +180,7 @@ def build_pair_data(prepare: Callable[[ScenarioTensor], Any], dataset: Preferenc
     p = len(pairs)
     return PairData(
         inputs=inputs, winner=future_id[pairs[:, 0], pairs[:, 1]], loser=future_id[pairs[:, 0], pairs[:, 2]],
-        labels=torch.ones(p) if labels is None else labels.float(), pair_context=pairs[:, 0].clone(),
+        labels=dataset.labels if labels is None else labels.float(), pair_context=pairs[:, 0].clone(),
         future_context=ctx.clone(), context_keys=tuple(dataset.context_keys),
         split=tuple(split if split is not None else dataset.context_split),
     )
