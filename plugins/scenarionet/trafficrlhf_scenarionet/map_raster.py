@@ -53,6 +53,9 @@ class MapFeature:
     polygon: np.ndarray | None
 
 
+MAX_SEGMENT_M = 10_000.0  # between consecutive points of a map feature (densifying 1e9 m asks for 21 GiB)
+
+
 def classify(feature_id: str, feature_type: str) -> tuple[str, int]:
     """(role, PolylineType code) of a ScenarioNet feature; see the module docstring for the table."""
     kind = feature_type.upper()
@@ -102,6 +105,10 @@ def parse_map_features(features: Mapping[str, Any], source: str) -> list[MapFeat
             polyline = np.concatenate([polygon, polygon[:1]])  # outline of a polygon-only feature
         if polyline is None:
             continue
+        longest = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).max()) if len(polyline) > 1 else 0.0
+        if longest > MAX_SEGMENT_M:
+            raise DataFormatError(f"{source}: map feature {feature_id!r} has a segment of {longest:,.0f} m (more than "
+                                  f"{MAX_SEGMENT_M:,.0f} m between two points); a coordinate is wrong.")
         parsed.append(MapFeature(str(feature_id), role, int(code), polyline, polygon))
     return parsed
 

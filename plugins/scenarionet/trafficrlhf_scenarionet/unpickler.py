@@ -85,13 +85,50 @@ def restricted_loads(data: bytes, source: str = "<bytes>") -> Any:
     truncated or corrupt stream.
     """
     try:
-        return RestrictedUnpickler(io.BytesIO(data), source).load()
+        value = RestrictedUnpickler(io.BytesIO(data), source).load()
     except DataFormatError:
         raise
     except _CORRUPT_ERRORS as exc:
         raise DataFormatError(
             f"{source}: not a readable pickle (truncated or corrupt: {type(exc).__name__}: {exc})."
         ) from exc
+    expanded_size(value, source)
+    return value
+
+
+MAX_EXPANDED_ITEMS = 20_000_000  # values once shared references are expanded (a real scenario holds about 1 M)
+
+
+def expanded_size(value: Any, source: str, limit: int = MAX_EXPANDED_ITEMS) -> int:
+    """How many values ``value`` holds when every shared reference is counted each time it occurs (what turning
+    it into arrays allocates); over ``limit`` raises ``DataFormatError``. Each object is visited once, so a
+    small "reference bomb" (lists of lists of the same list) is measured without being expanded."""
+    sizes: dict[int, int] = {}
+    stack: list[tuple[Any, bool]] = [(value, False)]
+    while stack:
+        obj, children_done = stack.pop()
+        key = id(obj)
+        if key in sizes:
+            continue
+        if isinstance(obj, np.ndarray) and obj.dtype != object:
+            sizes[key] = max(1, obj.size)
+            continue
+        if isinstance(obj, dict):
+            children = [*obj.keys(), *obj.values()]
+        elif isinstance(obj, (list, tuple, set, frozenset, np.ndarray)):
+            children = list(obj.flat) if isinstance(obj, np.ndarray) else list(obj)
+        else:
+            sizes[key] = 1
+            continue
+        if not children_done:
+            stack.append((obj, True))
+            stack.extend((child, False) for child in children if id(child) not in sizes)
+            continue
+        sizes[key] = 1 + sum(sizes.get(id(child), 1) for child in children)
+        if sizes[key] > limit:
+            raise DataFormatError(f"{source}: the pickle expands to more than {limit:,} values through shared "
+                                  "references (a reference bomb, or not a ScenarioNet scenario); refusing it.")
+    return sizes[id(value)]
 
 
 def restricted_load(path: str) -> Any:
