@@ -90,3 +90,37 @@ def test_ppo_rollout_sampling_on_ray_equals_in_process(ray_head, make_gru_adapte
     assert torch.equal(local.futures, remote.futures) and torch.equal(local.log_prob, remote.log_prob)
     assert local.futures.shape[:2] == (4, 3)
     assert not torch.equal(local.futures[:, 0], local.futures[:, 1])  # samples differ
+
+
+class _NoCollision:
+    """Reward: minus the share of steps in collision (cheap and deterministic)."""
+
+    def step_rewards(self, scenario):  # type: ignore[no-untyped-def]
+        from trafficrlhf_sdk.metrics.geometry import pairwise_collisions
+
+        hit = pairwise_collisions(scenario.xy, scenario.yaw, scenario.extent, scenario.valid).any(1)
+        return -hit.float()
+
+
+@pytest.mark.data
+def test_ppo_training_with_distributed_rollouts_repeats_on_ray(ray_head, make_gru_adapter,  # type: ignore[no-untyped-def]
+                                                               nuscenes_source) -> None:
+    from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+    from trafficrlhf_sdk.alignment.distributed import distribute_rollouts
+
+    scenes = nuscenes_source.load_batch("train", 4)
+    config = AlignConfig(epochs=2, contexts_per_epoch=4, samples_per_context=3, minibatch_contexts=2, ppo_epochs=1,
+                         progress_bar=False)
+    histories = []
+    for execution in (None, RAY):
+        trainer = distribute_rollouts(AlignTrainer(make_gru_adapter(), _NoCollision(), config, scenes=scenes),
+                                      execution, chunk_size=2)
+        histories.append(trainer.train())
+    import math
+
+    def comparable(history: list[dict]) -> list[dict]:  # wall time differs; NaN (no reference KL) != NaN
+        return [{k: ("nan" if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()
+                 if not k.startswith("time")} for row in history]
+
+    assert comparable(histories[0]) == comparable(histories[1]) and len(histories[0]) == 2
+    assert histories[0][0]["loss"] != histories[0][1]["loss"]  # the model did train
