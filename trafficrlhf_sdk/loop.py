@@ -47,8 +47,9 @@ class RLHFConfig(BaseModel):
     model: str = Field("ctg", description="Registered traffic model.")
     checkpoint: str | None = Field(None, description="Base weights (a folder or a bundled checkpoint's name); "
                                                      "every round is aligned from them.")
-    model_options: dict[str, Any] = Field(default_factory=dict, description="Adapter options of the base (e.g. a "
-                                          "zero-effect head to train).")
+    model_options: dict[str, Any] = Field(default_factory=dict, description="Adapter options of the model that is "
+                                          "aligned (e.g. a zero-effect head to train); round 0's candidates come "
+                                          "from the base without them.")
     guidance: str | None = Field("no_collision", description="Guidance of the candidates and of alignment.")
     rounds: int = Field(2, ge=1, description="Rounds of generate -> label -> reward model -> align.")
     contexts_per_round: int = Field(40, ge=2, description="Contexts labelled per round.")
@@ -158,7 +159,9 @@ def _generate(config: RLHFConfig, store: Any, r: int, policy: str | None, scenes
         if name in {c.name for c in store.campaigns()}:  # a generation interrupted midway: start it again
             raise TrafficRLHFError(f"campaign {name!r} exists but round {r}'s generation was not finished; delete "
                                    f"{os.path.join(out_dir, 'feedback.sqlite')} or use a new --out folder.")
-        options = dict(config.model_options) if r == 0 else {}
+        # round 0 samples the base as it is (a head added by `model_options` starts with zero effect); later
+        # rounds load the previous round's aligned model, whose config.json carries its options
+        options: dict[str, Any] = {}
         if policy is not None:
             options["checkpoint"] = policy
         log(f"round {r}: {len(part)} contexts of {name} ({config.model}, "
