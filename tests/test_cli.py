@@ -182,7 +182,7 @@ def test_keyboard_interrupt_exits_130(capsys: pytest.CaptureFixture[str], tempor
 
 
 def test_plugin_commands_are_attached_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    import trafficrlhf_sdk.cli as cli_module
+    import trafficrlhf_sdk.cli.app as cli_module
 
     from trafficrlhf_sdk.plugins import get_plugin_manager
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import pluggy
 
-from trafficrlhf_sdk import hookspecs
+import trafficrlhf_sdk.hookspecs as hookspecs
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 

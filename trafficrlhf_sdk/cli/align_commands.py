@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.cli.app import cli
 
 __all__ = ["align_command"]
 
@@ -52,7 +52,7 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
     evaluates it.
     """
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
-    from trafficrlhf_sdk.cli import parse_key_values
+    from trafficrlhf_sdk.cli.app import parse_key_values
     from trafficrlhf_sdk.errors import TrafficRLHFError
 
     recipe = AlignRecipe.load(config_path) if config_path else None

@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from trafficrlhf_sdk.cli import cli, format_error
+from trafficrlhf_sdk.cli.app import cli, format_error
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 
 if TYPE_CHECKING:

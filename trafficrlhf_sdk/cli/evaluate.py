@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from trafficrlhf_sdk.cli import cli, parse_key_values
+from trafficrlhf_sdk.cli.app import cli, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 if TYPE_CHECKING:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from trafficrlhf_sdk.cli import cli
+from trafficrlhf_sdk.cli.app import cli
 
 
 @cli.command("rlhf")

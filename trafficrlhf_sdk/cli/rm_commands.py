@@ -11,7 +11,7 @@ from typing import Any
 
 import click
 
-from trafficrlhf_sdk.cli import cli, parse_key_values
+from trafficrlhf_sdk.cli.app import cli, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 __all__ = ["rm"]

@@ -177,7 +177,6 @@ def build_pair_data(prepare: Callable[[ScenarioTensor], Any], dataset: Preferenc
             parts.append(prepare(scenes.with_future(dataset.futures[c, js][:, : scene.num_agents],
                                                     dataset.future_valid[c, js][:, : scene.num_agents])))
     inputs = type(parts[0]).concat(parts)
-    p = len(pairs)
     return PairData(
         inputs=inputs, winner=future_id[pairs[:, 0], pairs[:, 1]], loser=future_id[pairs[:, 0], pairs[:, 2]],
         labels=dataset.labels if labels is None else labels.float(), pair_context=pairs[:, 0].clone(),
