@@ -148,3 +148,20 @@ class _Inputs:
     @staticmethod
     def concat(parts):  # type: ignore[no-untyped-def]
         return _Inputs(sum(p.n for p in parts))
+
+
+def test_conservative_ensembles_read_the_worst_member_or_a_lower_confidence_bound() -> None:
+    from trafficrlhf_sdk.reward import RewardEnsemble
+
+    torch.manual_seed(0)
+    ensemble = RewardEnsemble({"member_architecture": "ctg_mlp", "num_members": 3,
+                               "member_config": {"hidden_sizes": [8], "crop_size": 8}})
+    scenes = _scenes(2)
+    with torch.no_grad():
+        members = ensemble.member_scores(scenes)
+        assert torch.allclose(ensemble.score(scenes), members.mean(0))
+        assert torch.allclose(ensemble.conservative("worst").score(scenes), members.min(0).values)
+        lcb = ensemble.conservative("lcb", 2.0).score(scenes)
+        assert torch.allclose(lcb, members.mean(0) - 2.0 * members.std(0))
+    with pytest.raises(ValueError, match="aggregation"):
+        ensemble.conservative("median")

@@ -20,7 +20,7 @@ import json
 import os
 import time
 import tomllib
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -42,6 +42,11 @@ class AlignRecipe(BaseModel):
                                           "hand-written baseline reward.")
     reward_options: dict[str, Any] = Field(default_factory=dict, description="Keyword arguments of a built-in "
                                                                               "reward.")
+    reward_aggregation: Literal["mean", "worst", "lcb"] = Field("mean", description="How an ensemble reward "
+                                                                "model's members are combined for the fine-tuner: "
+                                                                "their mean, the worst member, or mean - "
+                                                                "reward_pessimism x std.")
+    reward_pessimism: float = Field(1.0, ge=0, description="k of the 'lcb' aggregation.")
     monitor_reward_model: str | None = Field(None, description="A second reward-model folder the policy never "
                                              "trains on (e.g. trained on other annotators), recorded per epoch as "
                                              "`heldout_reward`.")
@@ -91,6 +96,11 @@ def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[s
     if recipe.threads is not None:
         torch.set_num_threads(recipe.threads)
     reward = load_reward(recipe.reward_model, recipe.reward_options)
+    if recipe.reward_aggregation != "mean":
+        if not callable(getattr(reward, "conservative", None)):
+            raise TrafficRLHFError(f"reward_aggregation {recipe.reward_aggregation!r} needs an ensemble reward model "
+                                   f"(`rm train --ensemble N`); {recipe.reward_model!r} has one member.")
+        reward.conservative(recipe.reward_aggregation, recipe.reward_pessimism)
     seed = overrides.get("seed", recipe.align.get("seed", 0))
     adapter = build_policy(recipe.model, {**recipe.model_options, "checkpoint": recipe.checkpoint, "seed": seed})
     if not hasattr(adapter, "parameter_groups"):

@@ -200,6 +200,8 @@ class RewardEnsemble(RewardModel):
     """Members of one architecture (bootstrap ensemble); rewards are the members' mean, the spread their std.
 
     ``uncertainty(scenario)`` gives the standard deviation across members of the scenario reward ``(B,)``.
+    :meth:`conservative` switches what the rewards a fine-tuner reads aggregate to the worst member or to
+    mean - k x std (Coste et al. 2023); training always uses the mean.
     """
 
     architecture = "ensemble"
@@ -219,22 +221,40 @@ class RewardEnsemble(RewardModel):
         if len(members) != cfg.num_members:
             raise ValueError(f"`members` holds {len(members)} models but `num_members` is {cfg.num_members}.")
         self.members = nn.ModuleList(members)
+        self.aggregation, self.pessimism = "mean", 0.0
+
+    def conservative(self, aggregation: str = "lcb", pessimism: float = 1.0) -> RewardEnsemble:
+        """Aggregate the members' rewards by ``"mean"``, ``"worst"`` (their minimum) or ``"lcb"`` (mean -
+        ``pessimism`` x std) in :meth:`step_rewards`, :meth:`agent_scores` and the scenario score; returns self."""
+        if aggregation not in ("mean", "worst", "lcb"):
+            raise ValueError(f"`aggregation` is {aggregation!r}; use 'mean', 'worst' or 'lcb'.")
+        if pessimism < 0:
+            raise ValueError(f"`pessimism` is {pessimism}; give k >= 0 (mean - k x std).")
+        self.aggregation, self.pessimism = aggregation, float(pessimism)
+        return self
+
+    def _combine(self, stacked: torch.Tensor) -> torch.Tensor:
+        if self.aggregation == "worst":
+            return stacked.min(0).values
+        if self.aggregation == "lcb" and len(self.members) > 1:
+            return stacked.mean(0) - self.pessimism * stacked.std(0)
+        return stacked.mean(0)
 
     def member_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Scenario rewards of every member ``(M, B)``."""
         return torch.stack([m(scenario) for m in self.members])
 
     def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Mean over members of the per-agent rewards ``(B, A)`` (members must offer ``agent_scores``)."""
-        return torch.stack([m.agent_scores(scenario) for m in self.members]).mean(0)
+        """The members' per-agent rewards ``(B, A)``, aggregated (the mean unless :meth:`conservative`)."""
+        return self._combine(torch.stack([m.agent_scores(scenario) for m in self.members]))
 
     def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Mean over members of the per-step rewards ``(B, T)``."""
-        return torch.stack([m.step_rewards(scenario) for m in self.members]).mean(0)
+        """The members' per-step rewards ``(B, T)``, aggregated (the mean unless :meth:`conservative`)."""
+        return self._combine(torch.stack([m.step_rewards(scenario) for m in self.members]))
 
     def forward(self, scenario: ScenarioTensor) -> torch.Tensor:
-        """Mean over members of the scenario rewards ``(B,)``."""
-        return self.member_scores(scenario).mean(0)
+        """The members' scenario rewards ``(B,)``, aggregated (the mean unless :meth:`conservative`)."""
+        return self._combine(self.member_scores(scenario))
 
     def uncertainty(self, scenario: ScenarioTensor) -> torch.Tensor:
         """Standard deviation across members of the scenario rewards ``(B,)`` (0 for one member)."""
