@@ -7,7 +7,7 @@ from typing import Any, Generic, Protocol, TypeVar
 
 from trafficrlhf_sdk.errors import DuplicateRegistrationError, UnknownComponentError
 
-__all__ = ["Lazy", "Register", "Registry"]
+__all__ = ["Lazy", "Register", "Registry", "register_folders"]
 
 T = TypeVar("T")
 
@@ -97,3 +97,20 @@ class Registry(Generic[T]):
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+def register_folders(register: Register, package: str, folders: dict[str, str]) -> None:
+    """Register bundled checkpoint folders by name for a ``register_pretrained`` hook: each value of ``folders``
+    is a path relative to the folder that holds ``package`` (found without importing it); folders that do not
+    exist (e.g. an install without the optional aligned models) are skipped."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.find_spec(package)
+    if spec is None or spec.origin is None:
+        return
+    root = Path(spec.origin).resolve().parent.parent
+    for name, relative in folders.items():
+        folder = (root / relative).resolve()
+        if folder.is_dir():
+            register(name, str(folder))

@@ -4,12 +4,9 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 from trafficrlhf_sdk import hookimpl
 from trafficrlhf_sdk._lazy import lazy_exports
-from trafficrlhf_sdk.registry import Lazy
+from trafficrlhf_sdk.registry import Lazy, register_folders
 
 _EXPORTS = {
     "BITSAdapter": "adapter",
@@ -29,11 +26,7 @@ def register_traffic_models(register):  # type: ignore[no-untyped-def]
 @hookimpl
 def register_pretrained(register):  # type: ignore[no-untyped-def]
     """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
-    spec = importlib.util.find_spec("bits_reference")
-    if spec is None or spec.origin is None:
-        return
-    root = Path(spec.origin).resolve().parent.parent
-    register("bits", str(root / "checkpoints/bits_small"))
-    aligned = root.parent / "aligned" / "bits"
-    if aligned.is_dir():
-        register("bits-aligned", str(aligned))
+    register_folders(register, "bits_reference", {
+        "bits": "checkpoints/bits_small",
+        "bits-aligned": "../aligned/bits",
+    })

@@ -4,12 +4,9 @@ trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 from trafficrlhf_sdk import hookimpl
 from trafficrlhf_sdk._lazy import lazy_exports
-from trafficrlhf_sdk.registry import Lazy
+from trafficrlhf_sdk.registry import Lazy, register_folders
 
 _EXPORTS = {
     "CTGAdapter": "adapter",
@@ -29,12 +26,8 @@ def register_traffic_models(register):  # type: ignore[no-untyped-def]
 @hookimpl
 def register_pretrained(register):  # type: ignore[no-untyped-def]
     """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
-    spec = importlib.util.find_spec("ctg_reference")
-    if spec is None or spec.origin is None:
-        return
-    root = Path(spec.origin).resolve().parent.parent
-    register("ctg", str(root / "checkpoints/ctg_small"))
-    register("ctg-4s", str(root / "checkpoints/ctg_small_4s"))
-    aligned = root.parent / "aligned" / "ctg"
-    if aligned.is_dir():
-        register("ctg-aligned", str(aligned))
+    register_folders(register, "ctg_reference", {
+        "ctg": "checkpoints/ctg_small",
+        "ctg-4s": "checkpoints/ctg_small_4s",
+        "ctg-aligned": "../aligned/ctg",
+    })

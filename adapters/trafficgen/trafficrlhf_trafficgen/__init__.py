@@ -4,12 +4,9 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 from trafficrlhf_sdk import hookimpl
 from trafficrlhf_sdk._lazy import lazy_exports
-from trafficrlhf_sdk.registry import Lazy
+from trafficrlhf_sdk.registry import Lazy, register_folders
 
 _EXPORTS = {
     "TrafficGenAdapter": "adapter",
@@ -29,12 +26,8 @@ def register_traffic_models(register):  # type: ignore[no-untyped-def]
 @hookimpl
 def register_pretrained(register):  # type: ignore[no-untyped-def]
     """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
-    spec = importlib.util.find_spec("trafficgen_reference")
-    if spec is None or spec.origin is None:
-        return
-    root = Path(spec.origin).resolve().parent.parent
-    register("trafficgen", str(root / "checkpoints/trafficgen_small"))
-    register("trafficgen-4s", str(root / "checkpoints/trafficgen_small_4s"))
-    aligned = root.parent / "aligned" / "trafficgen"
-    if aligned.is_dir():
-        register("trafficgen-aligned", str(aligned))
+    register_folders(register, "trafficgen_reference", {
+        "trafficgen": "checkpoints/trafficgen_small",
+        "trafficgen-4s": "checkpoints/trafficgen_small_4s",
+        "trafficgen-aligned": "../aligned/trafficgen",
+    })
