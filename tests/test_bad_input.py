@@ -477,3 +477,40 @@ def test_more_scenes_than_the_split_has_says_how_many_ran(capsys) -> None:
     assert "--scenes 100000 asked for more than the 160 long-enough scenes of nuscenes_pred/val" in captured.err
     assert json.loads(captured.out)["num_scenes"] == 160
 
+
+
+# --------------------------------------------------------------------------------------- adapter contract
+def _no_grad_log_prob(adapter) -> None:  # type: ignore[no-untyped-def]
+    inner = adapter.log_prob
+
+    def log_prob(context, trace):  # type: ignore[no-untyped-def]
+        with torch.no_grad():
+            return inner(context, trace)
+    adapter.log_prob = log_prob
+
+
+def _squeezed_trace(adapter) -> None:  # type: ignore[no-untyped-def]
+    inner = adapter.sample
+
+    def sample(context, num_samples, guidance=None, generator=None):  # type: ignore[no-untyped-def]
+        out = inner(context, num_samples, guidance, generator)
+        out.trace.tensors = {k: v.flatten(0, 1) for k, v in out.trace.tensors.items()}
+        return out
+    adapter.sample = sample
+
+
+ADAPTER_CASES = {
+    "log_prob without gradient": (_no_grad_log_prob, r"log_prob\(\) returns a tensor without gradient"),
+    "trace of the wrong shape": (_squeezed_trace, r"trace tensor '.+' has shape .* expected leading dims"),
+}
+
+
+@pytest.mark.parametrize("case", list(ADAPTER_CASES))
+def test_check_adapter_catches_what_breaks_alignment(case: str, val_scenes, make_gru_adapter) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.testing.check_adapter import AdapterCheckError, check_adapter
+
+    adapter = make_gru_adapter()
+    edit, message = ADAPTER_CASES[case]
+    edit(adapter)
+    with pytest.raises(AdapterCheckError, match=message):
+        check_adapter(adapter, val_scenes[:2], check_save_load=False)

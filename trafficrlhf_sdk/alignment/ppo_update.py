@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
@@ -127,6 +128,11 @@ class PPOUpdate:
             for j, idx in enumerate(batches):
                 ctx, trace = rollout.contexts[idx], _select_trace(rollout.trace, idx)
                 new = self._steps(self.model.log_prob(ctx, trace))
+                if not new.requires_grad:
+                    raise TrafficRLHFError(
+                        f"{type(self.model).__name__}.log_prob() returned a tensor without gradient, so the PPO "
+                        "surrogate cannot train the policy (only the imitation loss would); compute it from the "
+                        "module's parameters, outside torch.no_grad() (check_adapter reports this).")
                 mask = _entry_mask(new, trace.agents)
                 logr = new - old[idx]
                 ratio = torch.exp(logr)

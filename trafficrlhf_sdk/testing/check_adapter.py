@@ -40,6 +40,16 @@ def _check_sample(adapter: TrafficModelAdapter, context: ScenarioTensor, out: An
     if out.trace.now != context.current_index:
         _fail(adapter, f"trace.now is {out.trace.now}, context.current_index is {context.current_index}",
               "record the step the futures start after")
+    if not isinstance(out.trace.agents, torch.Tensor) or tuple(out.trace.agents.shape) != (b, a) \
+            or out.trace.agents.dtype != torch.bool:
+        got = tuple(out.trace.agents.shape) if isinstance(out.trace.agents, torch.Tensor) else type(out.trace.agents)
+        _fail(adapter, f"trace.agents has shape {got}, expected bool ({b}, {a})",
+              "set PolicyTrace.agents to the bool (B, A) mask of the sampled agents")
+    for name, tensor in out.trace.tensors.items():
+        if not isinstance(tensor, torch.Tensor) or tuple(tensor.shape[:3]) != (b, num_samples, a):
+            got = tuple(tensor.shape) if isinstance(tensor, torch.Tensor) else type(tensor).__name__
+            _fail(adapter, f"trace tensor {name!r} has shape {got}, expected leading dims ({b}, {num_samples}, {a})",
+                  "give every trace tensor the leading dims (B, S, A) so PPO can select scenes and samples")
 
 
 def check_adapter(
@@ -118,6 +128,15 @@ def check_adapter(
     adapter.module.train()
     adapter.module.zero_grad(set_to_none=True)
     lp = adapter.log_prob(context, out.trace.detach())
+    if not lp.requires_grad:
+        _fail(adapter, "log_prob() returns a tensor without gradient, so PPO's surrogate would train nothing (only "
+                       "the imitation loss would move the model)",
+              "compute log_prob from the module's parameters, outside torch.no_grad(), without .detach()")
+    lp.sum().backward(retain_graph=True)
+    if not any(p.grad is not None and p.grad.abs().sum() > 0 for ps in groups.values() for p in ps):
+        _fail(adapter, "log_prob() has no gradient with respect to any offered parameter, so PPO's surrogate would "
+                       "train nothing", "compute log_prob with the parameters that parameter_groups() offers")
+    adapter.module.zero_grad(set_to_none=True)
     imitation = adapter.imitation_loss(context)
     if imitation.dim() != 0 or not torch.isfinite(imitation):
         _fail(adapter, f"imitation_loss() returned {imitation!r}", "return a finite scalar tensor")
