@@ -16,6 +16,7 @@ import os
 import pickle
 import re
 import shutil
+import signal
 import struct
 import subprocess
 import sys
@@ -29,7 +30,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from trafficrlhf_sdk.cli import main
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.models.checkpoint import record_weights_digest, sha256_file
 from trafficrlhf_sdk.scenario import default_data_root
 
@@ -514,3 +515,69 @@ def test_check_adapter_catches_what_breaks_alignment(case: str, val_scenes, make
     edit(adapter)
     with pytest.raises(AdapterCheckError, match=message):
         check_adapter(adapter, val_scenes[:2], check_save_load=False)
+
+
+# ------------------------------------------------------------------------------------------- interrupts
+FAST_ALIGN = dict(epochs=3, contexts_per_epoch=2, samples_per_context=2, minibatch_contexts=2, ppo_epochs=1,
+                  progress_bar=False, save_every=10)
+
+
+def _slow_down_reward():  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.testing.rewards import SlowDownReward
+
+    return SlowDownReward()
+
+
+def _interrupt(kind: str) -> Callable[[int, dict], None]:
+    def callback(epoch: int, stats: dict) -> None:
+        if epoch == 0:
+            if kind == "SIGTERM":
+                os.kill(os.getpid(), signal.SIGTERM)
+            raise KeyboardInterrupt
+    return callback
+
+
+@pytest.mark.parametrize("kind", ["Ctrl-C", "SIGTERM"])
+def test_interrupted_align_keeps_its_finished_epochs(kind: str, val_scenes, make_gru_adapter, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.alignment import align
+
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        align(make_gru_adapter(), _slow_down_reward(), alpha=1.0, scenes=val_scenes[:2], output_dir=str(out),
+              callback=_interrupt(kind), **FAST_ALIGN)
+    assert sorted(os.listdir(out / "checkpoints")) == ["checkpoint-1"]  # save_every=10 would have kept nothing
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is put back
+
+
+def test_resume_without_a_checkpoint_says_so(val_scenes, make_gru_adapter, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.alignment import align
+
+    message = r"resume: no checkpoint in '.+checkpoints' \(no checkpoint-N .*drop --resume"
+    with pytest.raises(TrafficRLHFError, match=message):
+        align(make_gru_adapter(), _slow_down_reward(), alpha=1.0, scenes=val_scenes[:2],
+              output_dir=str(tmp_path / "none"), resume=True, **FAST_ALIGN)
+    assert not (tmp_path / "none" / "checkpoints").exists()
+
+
+def test_resume_falls_back_to_an_intact_checkpoint_and_refuses_changed_settings(val_scenes, make_gru_adapter,  # type: ignore[no-untyped-def]
+                                                                               tmp_path) -> None:
+    from trafficrlhf_sdk.alignment import align
+
+    out = tmp_path / "run"
+    settings = {**FAST_ALIGN, "save_every": 1}
+    align(make_gru_adapter(), _slow_down_reward(), alpha=1.0, scenes=val_scenes[:2], output_dir=str(out),
+          callback=lambda epoch, stats: epoch < 1, **settings)  # stops after two epochs
+    assert sorted(os.listdir(out / "checkpoints")) == ["checkpoint-1", "checkpoint-2"]
+    (out / "checkpoints" / "checkpoint-2" / "model.safetensors").write_bytes(b"")  # the newest is broken
+    before = snapshot(out / "checkpoints" / "checkpoint-1")
+    with pytest.raises(TrafficRLHFError, match=r"changed hyper-parameter\(s\) .*learning_rate: 0.0001 -> 0.001"):
+        align(make_gru_adapter(), _slow_down_reward(), alpha=1.0, scenes=val_scenes[:2], output_dir=str(out),
+              resume=True, **{**settings, "learning_rate": 1e-3})
+    assert snapshot(out / "checkpoints" / "checkpoint-1") == before
+    with pytest.warns(UserWarning, match=r"checkpoint-2' is broken"):
+        result = align(make_gru_adapter(), _slow_down_reward(), alpha=1.0, scenes=val_scenes[:2],
+                       output_dir=str(out), resume=True, resume_allow_changes=True,
+                       **{**settings, "learning_rate": 1e-3})
+    assert len(result.history) == 3  # epoch 1 from the intact checkpoint, then epochs 2 and 3
+    state = json.loads((out / "checkpoints" / "checkpoint-3" / "trainer_state.json").read_text())
+    assert state["config_changes"] == [{"from_epoch": 2, "changes": {"learning_rate": [0.0001, 0.001]}}]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import warnings
 from typing import Any
 
 import torch
@@ -16,11 +17,14 @@ from safetensors.torch import save_file
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.scenario.io import safe_load_file
 
-__all__ = ["TrainerCheckpoints"]
+__all__ = ["RESUME_FREE_FIELDS", "TrainerCheckpoints"]
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
 SAVE_TOTAL_LIMIT = 2  # checkpoints kept; older ones are deleted
+# AlignConfig fields a resumed run may change without `resume_allow_changes`: bookkeeping, not training
+RESUME_FREE_FIELDS = frozenset({"resume", "resume_allow_changes", "progress_bar", "output_dir", "epochs",
+                                "save_every"})
 
 
 class TrainerCheckpoints:
@@ -33,6 +37,7 @@ class TrainerCheckpoints:
     group_names: list[str]
     history: list[dict[str, float]]
     start_epoch: int
+    config_changes: list[dict[str, Any]]
 
     def _checkpoint_root(self) -> str | None:
         return None if self.config.output_dir is None else os.path.join(self.config.output_dir, "checkpoints")
@@ -65,6 +70,7 @@ class TrainerCheckpoints:
             "optimizer_param_groups": state["param_groups"],
             "optimizer_scalars": scalars,
             "torch_rng_state": torch.get_rng_state().tolist(),
+            "config_changes": list(getattr(self, "config_changes", [])),
         }
         with open(os.path.join(tmp, STATE_FILE), "w", encoding="utf-8") as handle:
             json.dump(payload, handle, indent=1)
@@ -87,13 +93,53 @@ class TrainerCheckpoints:
                 found.append((int(name[11:]), path))
         return [p for _, p in sorted(found)]
 
+    def resume_newest(self) -> str:
+        """Load the newest intact checkpoint of ``output_dir`` (a broken one is skipped with a warning); returns its
+        folder. Raises TrafficRLHFError when there is none, rather than silently starting over."""
+        root = self._checkpoint_root()
+        found = self.list_checkpoints()
+        if not found:
+            raise TrafficRLHFError(f"resume: no checkpoint in {root!r} (no checkpoint-N folder with {STATE_FILE}); "
+                                   "drop --resume to start a new run, or pass the --out of the run to continue.")
+        problems = []
+        for directory in reversed(found):
+            try:
+                self.load_checkpoint(directory)
+                return directory
+            except (TrafficRLHFError, OSError, ValueError, KeyError, TypeError) as exc:
+                if isinstance(exc, TrafficRLHFError) and "changed hyper-parameter" in str(exc):
+                    raise
+                problems.append(f"{os.path.basename(directory)}: {' '.join(str(exc).split())[:200]}")
+                warnings.warn(f"resume: checkpoint {directory!r} is broken ({problems[-1]}); trying an older one.",
+                              stacklevel=2)
+        raise TrafficRLHFError(f"resume: no intact checkpoint in {root!r} ({'; '.join(problems)}); drop --resume "
+                               "to start a new run.")
+
+    def _config_changes(self, directory: str, saved: dict[str, Any]) -> dict[str, list[Any]]:
+        """Fields of the running config that differ from the checkpoint's, bookkeeping fields left out."""
+        now = self.config.model_dump(mode="json")
+        return {key: [saved.get(key), value] for key, value in now.items()
+                if key not in RESUME_FREE_FIELDS and key in saved and saved[key] != value}
+
     def load_checkpoint(self, directory: str) -> None:
-        """Restore weights, optimizer state, history and the epoch counter from a checkpoint folder."""
+        """Restore weights, optimizer state, history and the epoch counter from a checkpoint folder.
+
+        Refuses changed hyper-parameters unless ``config.resume_allow_changes``; accepted changes are recorded
+        in ``config_changes`` with the epoch they apply from."""
         with open(os.path.join(directory, STATE_FILE), encoding="utf-8") as handle:
             payload = json.load(handle)
         if list(payload["groups"]) != list(self.group_names):
             raise TrafficRLHFError(f"checkpoint {directory!r} trained groups {payload['groups']}, this run trains "
                                    f"{list(self.group_names)}; resume with the same `groups`.")
+        changes = self._config_changes(directory, payload.get("config") or {})
+        if changes and not getattr(self.config, "resume_allow_changes", False):
+            shown = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in sorted(changes.items())[:5])
+            raise TrafficRLHFError(f"resume: changed hyper-parameter(s) against checkpoint {directory!r} ({shown}); "
+                                   "resume with the same settings, or allow it with --allow-changes "
+                                   "(resume_allow_changes=true), which records the change.")
+        self.config_changes = list(payload.get("config_changes", []))
+        if changes:
+            self.config_changes.append({"from_epoch": int(payload["epochs_done"]) + 1, "changes": changes})
         self.model.load_weights(directory)
         tensors, _ = safe_load_file(os.path.join(directory, OPTIMIZER_FILE))
         per_param: dict[int, dict[str, Any]] = {}

@@ -103,7 +103,11 @@ class AlignConfig(BaseModel):
                                                 "policy's own samples (stand-in annotators' judgment, smoothed) has "
                                                 "not improved for this many epochs, and keep the best epoch's "
                                                 "weights. None: train every epoch, keep the last.")
-    resume: bool = Field(False, description="Continue from the newest checkpoint in output_dir if there is one.")
+    resume: bool = Field(False, description="Continue from the newest intact checkpoint in output_dir (an error "
+                         "when there is none).")
+    resume_allow_changes: bool = Field(False, description="With `resume`, accept hyper-parameters that differ from "
+                                       "the checkpoint's (recorded as `config_changes` with the epoch they apply "
+                                       "from); by default a resume with changed settings is refused.")
     progress_bar: bool = Field(True, description="Show a progress bar over epochs and per-epoch statistics.")
 
     @model_validator(mode="after")

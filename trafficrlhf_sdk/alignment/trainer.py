@@ -257,9 +257,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         False to stop (the state is checkpointed first when ``output_dir`` is set)."""
         cfg = self.config
         if cfg.resume:
-            found = self.list_checkpoints()
-            if found:
-                self.load_checkpoint(found[-1])
+            self.resume_newest()
         self.logger = self._configure_logger()
         flags = {id(p): p.requires_grad for p in self.model.module.parameters()}
         chosen = {id(p) for p in self.trainable}
@@ -270,6 +268,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             from tqdm.auto import tqdm
 
             bar = tqdm(total=cfg.epochs, initial=self.start_epoch, desc=f"align {self.model.name}", unit="epoch")
+        saved = done = self.start_epoch
+        previous_term = _checkpoint_on_sigterm()
         try:
             for epoch in range(self.start_epoch, cfg.epochs):
                 start = time.perf_counter()
@@ -294,13 +294,19 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 done = epoch + 1
                 if cfg.output_dir is not None and (done % cfg.save_every == 0 or done == cfg.epochs):
                     self.save_checkpoint(done)
+                    saved = done
                 if callback is not None and callback(epoch, stats) is False:
                     if cfg.output_dir is not None and done % cfg.save_every != 0:
                         self.save_checkpoint(done)
                     break
                 if stop_early:
                     break
+        except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (see _checkpoint_on_sigterm): keep the finished epochs
+            if cfg.output_dir is not None and done > saved:
+                self.save_checkpoint(done)
+            raise
         finally:
+            _restore_sigterm(previous_term)
             if bar is not None:
                 bar.close()
             for p in self.model.module.parameters():
@@ -331,3 +337,28 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             prefix = "rollout" if key in rollout_keys else ("time" if key == "time_s" else "train")
             self.logger.record(f"{prefix}/{key}", value)
         self.logger.dump(step=int(stats["epoch"]))
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during :meth:`AlignTrainer.train`: handled like Ctrl-C (the finished epochs are checkpointed)."""
+
+
+def _checkpoint_on_sigterm() -> Any:
+    """Turn SIGTERM into :class:`Terminated` while training (main thread only); returns the previous handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Terminated(f"signal {signum}")
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
+def _restore_sigterm(previous: Any) -> None:
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)

@@ -38,13 +38,16 @@ def _comma_list(text: str | None) -> tuple[str, ...] | None:
 @click.option("--root", default=None, help="Data directory of the source.")
 @click.option("--seed", type=int, default=None, help="Seed of every generator [default: 0].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")
-@click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
+@click.option("--resume", is_flag=True, help="Continue from the newest intact checkpoint in --out (an error when "
+              "there is none).")
+@click.option("--allow-changes", is_flag=True, help="With --resume, accept settings that differ from the "
+              "checkpoint's; the change is recorded with the epoch it applies from.")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch tables.")
 def align_command(config_path: str | None, model: str | None, checkpoint: str | None, reward_spec: str | None,
                   reward_options: tuple[str, ...], alpha: float | None, out_dir: str, epochs: int | None,
                   guidance: str | None, groups: str | None, model_options: tuple[str, ...], num_scenes: int | None,
                   source: str | None, root: str | None, seed: int | None, threads: int | None, resume: bool,
-                  quiet: bool) -> None:
+                  allow_changes: bool, quiet: bool) -> None:
     """PPO fine-tuning of a traffic model against a reward model: loss = imitation loss - alpha * PPO surrogate.
 
     Every AlignConfig field is reachable through --config (the committed models' recipes lie beside them in
@@ -74,7 +77,8 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
         base["threads"] = threads
     summary = run_recipe(AlignRecipe(**base), out_dir, alpha=alpha, epochs=epochs, guidance=guidance,
                          groups=_comma_list(groups), num_scenes=num_scenes, source=source, root=root, seed=seed,
-                         resume=resume or None, progress_bar=False if quiet else None)
+                         resume=resume or None, resume_allow_changes=allow_changes or None,
+                         progress_bar=False if quiet else None)
     click.echo(f"aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.1f} s on "
                f"{summary['threads']} threads; mean reward {summary['reward_first']:.4f} -> "
                f"{summary['reward_last']:.4f}; saved to {out_dir}")
