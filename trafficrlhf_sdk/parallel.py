@@ -108,9 +108,10 @@ def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
     with ray_session(execution) as ray:
         from ray.util import ActorPool
 
-        workers = execution.workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        cpus = int(ray.cluster_resources().get("CPU", 1)) // execution.threads_per_worker
+        workers = execution.workers or max(1, cpus)
         workers = min(workers, len(tasks))
-        actor = ray.remote(num_cpus=1)(_Worker)
+        actor = ray.remote(num_cpus=execution.threads_per_worker)(_Worker)
         shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
         pool = ActorPool([actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)])
         return list(pool.map(lambda a, task: a.run.remote(task), list(tasks)))
