@@ -174,6 +174,17 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
         click.echo(f"note: --scenes {num_scenes} asked for more than the {len(scene_ids)} long-enough scenes of "
                    f"{source}/{split}; evaluating all {len(scene_ids)}.", err=True)
     scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
+    # a source that lists without reading (a large ScenarioNet folder) can hand over scenes too short: say so
+    last = torch.where(scenario.valid.any(1), torch.arange(scenario.num_steps), -1).amax(-1)
+    short = last < scenario.current_index + round(duration / scenario.dt)
+    if short.any():
+        if bool(short.all()):
+            raise TrafficRLHFError(f"all {len(scene_ids)} scenes are shorter than 3 s + {duration:g} s; try a shorter "
+                                   "--duration.")
+        click.echo(f"{int(short.sum())} of {len(scene_ids)} loaded scenes are shorter than 3 s + {duration:g} s and "
+                   "are skipped; a shorter --duration keeps them.", err=True)
+        scenario = scenario[(~short).nonzero().flatten()]
+        scene_ids = [s for s, drop in zip(scene_ids, short.tolist()) if not drop]
     metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
                 "reward_model": reward_model_dir, "model_options": extra, "late_agents": late_agents,
                 "after_log_end": after_log_end, "scene_ids": list(scene_ids)}
