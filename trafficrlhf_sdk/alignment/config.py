@@ -21,6 +21,8 @@ FAILURE_LEAD_STEPS = (5, 15)
 """A failure-focused context starts d steps before the agent's first failure, d uniform in this range."""
 ADVANTAGE_CLIP = 5.0
 """Normalized advantages are clipped to +- this (as DDPO does)."""
+MAX_GRAD_NORM = 1.0
+"""Gradients are clipped to this norm before each optimizer step."""
 
 
 def paper_alpha(model_name: str, default: float = 0.3) -> float:
@@ -69,7 +71,6 @@ class AlignConfig(BaseModel):
     ppo_epochs: int = Field(2, ge=1, description="Passes over an epoch's samples.")
     minibatch_contexts: int = Field(8, ge=1, description="Contexts per optimizer step (with all their samples).")
     learning_rate: float = Field(1e-4, ge=0, description="AdamW learning rate.")
-    max_grad_norm: float | None = Field(1.0, gt=0, description="Gradient-norm clip; None disables it.")
     groups: tuple[str, ...] | None = Field(None, description="Parameter groups to train, from the adapter's "
                                                              "parameter_groups() (e.g. ('decoder',)); None: all "
                                                              "groups it offers.")

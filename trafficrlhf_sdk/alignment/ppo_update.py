@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.alignment.config import MAX_GRAD_NORM
 from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
@@ -169,9 +170,8 @@ class PPOUpdate:
                     skipped += 1  # one bad minibatch must not turn every weight into NaN
                     self.optimizer.zero_grad(set_to_none=True)
                     continue
-                if cfg.max_grad_norm is not None:
-                    norm = torch.nn.utils.clip_grad_norm_(self.trainable, cfg.max_grad_norm)
-                    stats["grad_norm"].append(float(norm))
+                norm = torch.nn.utils.clip_grad_norm_(self.trainable, MAX_GRAD_NORM)
+                stats["grad_norm"].append(float(norm))
                 self.optimizer.step()
                 updates += 1
                 with torch.no_grad():
