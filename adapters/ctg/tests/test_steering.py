@@ -27,7 +27,7 @@ ROAD_ONLY_KEYS = ("steer_gate", "steer_gate_traffic", "steer_lateral_only", "ste
 
 
 def _steered_checkpoint(folder: Path, gated: bool) -> str:
-    """The committed aligned CTG without its gap-keeping head (config fields of ``follow`` and ``rear`` left to
+    """The committed aligned CTG without its gap-keeping head (config fields of ``follow`` left to
     their defaults, ``follow.*`` tensors dropped): a saved steering head alone, with its gate (``gated``) or
     without (a plain road head, the gate fields left to their defaults)."""
     import json
@@ -38,7 +38,7 @@ def _steered_checkpoint(folder: Path, gated: bool) -> str:
 
     folder.mkdir(parents=True)
     saved = json.loads((ALIGNED / "config.json").read_text())
-    drop = [k for k in saved["config"] if k.startswith(("follow", "rear"))]
+    drop = [k for k in saved["config"] if k.startswith("follow")]
     if not gated:
         drop += ROAD_ONLY_KEYS
     saved["config"] = {k: v for k, v in saved["config"].items() if k not in drop}
@@ -388,18 +388,7 @@ def test_lead_gaps_match_a_per_step_loop_and_a_hand_computed_follower() -> None:
     assert torch.all(need[:, 2] == 0)
     assert lead_gaps(stopped, torch.ones(1, 1, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), braking, dt, margin,
                      s0, headway, 4.0)[0, 0, -5:, 2].min() > 0.5  # while its time to collision goes to 0 at the end
-    # behind=True: a car 15 m behind at 10 m/s closes at 5 m/s on the plan at 5 m/s; the car ahead does not count
-    follower = torch.tensor([[[-15.0, 0.0, 1.0, 0.0, 10.0, 4.5, 1.9], [20.0, 0.0, 1.0, 0.0, 0.0, 4.5, 1.9]]])
-    steady = plan.clone()
-    steady[..., 0] = 5 * t
-    steady[..., 2] = 5.0
-    rear = lead_gaps(follower, torch.ones(1, 2, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), steady, dt, margin,
-                     s0, headway, 3.0, behind=True)[0, 0]
-    rear_gap = 15 + 5 * t - 10 * t - 4.5
-    torch.testing.assert_close(rear, torch.stack([rear_gap, torch.full((3,), 5.0), 1 - (rear_gap / 5) / 3], -1))
-    follower[0, 0, 4] = 4.0  # slower than the plan: no hazard
-    assert torch.all(lead_gaps(follower, torch.ones(1, 2, dtype=torch.bool), torch.tensor([[4.5, 1.9]]), steady, dt,
-                               margin, s0, headway, 3.0, behind=True)[..., 2] == 0)
+
 
 
 @needs_data
@@ -442,15 +431,6 @@ def test_a_fresh_follow_head_samples_as_its_checkpoint_acts_only_behind_a_lead_a
     model.cfg = dataclasses.replace(model.cfg, follow_gate_steps=5)  # the gate reads the first 0.5 s only
     assert torch.all(model._follow_shift(x0, 3, far_map, 2) == 0)
     assert model._follow_shift(x0, 3, steer_map, 2)[0, :, 0].abs().min() > 0
-    # the rear head: shifts (here speeds up) only the row with someone closing in from behind
-    rear_model = CTGModel(CTGConfig(horizon=8, rear=True))
-    with torch.no_grad():
-        rear_model.rear.net[-1].bias.fill_(2.0)
-    behind = torch.tensor([[[-10.0, 0.0, 1.0, 0.0, 12.0, 4.5, 1.9]], [[-10.0, 0.0, 1.0, 0.0, 12.0, 4.5, 1.9]]])
-    rear_map = (*steer_map[:2], behind, *steer_map[3:])
-    pushed = rear_model._follow_shift(x0, 3, rear_map, 2, rear=True)
-    assert pushed[0, :, 0].min() > 0 and torch.all(pushed[1] == 0) and torch.all(pushed[..., 1] == 0)
-    assert torch.all(rear_model._follow_shift(x0, 3, steer_map, 2, rear=True) == 0)  # the lead is ahead
 
     with torch.no_grad():
         follow.model.follow.net[-1].weight.normal_(0, 0.05)
@@ -505,11 +485,3 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap(gated_hea
         CTGAdapter(checkpoint=path, seed=0, follow_gate_steps=5)
     with pytest.raises(TrafficRLHFError, match=r"follow_ttc=2\.0 and follow_decel=1\.0"):
         CTGAdapter(checkpoint=path, seed=0, follow=True, follow_ttc=2.0, follow_decel=1.0)
-    pushing = CTGAdapter(checkpoint=path, seed=0, rear=True, rear_push=3.0, rear_ttc=2.0)
-    assert torch.all(pushing.model.rear.net[-1].bias == 3.0) and torch.all(pushing.model.rear.net[-1].weight == 0)
-    assert (pushing.cfg.rear_ttc, pushing.cfg.rear_gate_steps) == (2.0, 5) and not pushing.cfg.follow
-    assert set(pushing.parameter_groups()) == {"encoder", "decoder", "steer", "rear"}
-    with pytest.raises(TrafficRLHFError, match=r"rear_push=3\.0"):
-        CTGAdapter(checkpoint=path, seed=0, rear_push=3.0)
-    with pytest.raises(TrafficRLHFError, match=r"rear_ttc=2\.0"):
-        CTGAdapter(checkpoint=path, seed=0, rear_ttc=2.0)

@@ -127,19 +127,6 @@ class CTGOptions(AdapterOptions):
                                        "acceleration mean shifted by sigma_k x gate x tanh(follow_brake) per "
                                        "denoising step (negative brakes; -3 is nearly the head's full authority). "
                                        "None: a zero head, sampling as without one.")
-    rear: bool = Field(False, description="Add a zero-initialized rear head (a second ctg_reference.FollowHead), "
-                       "offered as the parameter group 'rear': it shifts only the acceleration channel, reads the "
-                       "agent behind in each denoising step's clean plan (lead_gaps(behind=True)) and acts only "
-                       "while that agent would close the gap within rear_ttc s in the plan's first 0.5 s. Agents "
-                       "replayed from the log do not react, so a plan slower than the log is run into from behind. "
-                       "Checkpoints saved with one load it without this option.")
-    rear_push: float | None = Field(None, description="Start a new rear head (rear=true) with this output bias: "
-                                    "the acceleration mean of a plan about to be run into is shifted by sigma_k x "
-                                    "gate x tanh(rear_push) per denoising step (positive speeds up). None: a zero "
-                                    "head.")
-    rear_ttc: float | None = Field(None, gt=0, description="The rear head's gate: clamp(1 - TTC / rear_ttc, 0, 1) "
-                                   "with TTC the agent behind's time to close the gap (s). None keeps the "
-                                   "checkpoint's setting (a new head: 3 s).")
     steer_gate: bool | None = Field(None, description="Scale a reading head's shift by its plan's hazard (the "
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
@@ -183,16 +170,6 @@ class CTGAdapter(TrafficModelAdapter):
         elif opts.follow_brake is not None:
             raise TrafficRLHFError(f"follow_brake={opts.follow_brake} sets a new gap-keeping head's start; add "
                                    "follow=true to a checkpoint without one (a saved head keeps its weights).")
-        if opts.rear and not self.cfg.rear:
-            self._add_gap_head("rear", opts.rear_push)
-        elif opts.rear_push is not None:
-            raise TrafficRLHFError(f"rear_push={opts.rear_push} sets a new rear head's start; add rear=true to a "
-                                   "checkpoint without one (a saved head keeps its weights).")
-        if opts.rear_ttc is not None:
-            if not self.cfg.rear:
-                raise TrafficRLHFError(f"rear_ttc={opts.rear_ttc} sets the rear head's gate; add rear=true (or load "
-                                       "a checkpoint saved with that head).")
-            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, rear_ttc=opts.rear_ttc)
         gaps = {"follow_standstill": opts.follow_standstill, "follow_headway": opts.follow_headway,
                 "follow_ttc": opts.follow_ttc, "follow_heading_cos": opts.follow_heading_cos,
                 "follow_decel": opts.follow_decel, "follow_gate_steps": opts.follow_gate_steps}
@@ -238,9 +215,9 @@ class CTGAdapter(TrafficModelAdapter):
                        "steer.")
 
     def _add_gap_head(self, name: str, bias: float | None = None) -> None:
-        """Rebuild the model with a fresh gap-keeping head ``name`` (``follow``: the agent ahead; ``rear``: the
-        agent behind), keeping every trained weight, the other heads' too (:meth:`_add_head`); the head is zero,
-        or with ``bias`` its output bias (weights still zero)."""
+        """Rebuild the model with a fresh gap-keeping head ``name`` (``follow``: the agent ahead), keeping every
+        trained weight, the other heads' too (:meth:`_add_head`); the head is zero, or with ``bias`` its output bias
+        (weights still zero)."""
         self._add_head(dataclasses.replace(self.cfg, **{name: True}), f"{name}.")
         if bias is not None:
             last = getattr(self.model, name).net[-1]
@@ -294,7 +271,7 @@ class CTGAdapter(TrafficModelAdapter):
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
         """``encoder`` (map CNN, history and neighbour MLPs, fusion), ``decoder`` (the temporal U-Net, and the
         co-denoising mixer of scene-denoising models) and, with a steering head, ``steer``; with a gap-keeping
-        head, ``follow``; with a rear head, ``rear``."""
+        head, ``follow``."""
         decoder = list(self.model.denoiser.parameters())
         if self.model.mixer is not None:
             decoder += list(self.model.mixer.parameters())
@@ -303,8 +280,6 @@ class CTGAdapter(TrafficModelAdapter):
             groups["steer"] = list(self.model.steer.parameters())
         if self.model.follow is not None:
             groups["follow"] = list(self.model.follow.parameters())
-        if self.model.rear is not None:
-            groups["rear"] = list(self.model.rear.parameters())
         return groups
 
     # ------------------------------------------------------------ helpers
@@ -338,9 +313,9 @@ class CTGAdapter(TrafficModelAdapter):
             return self.model.encode(with_plans, own)
 
         steer_map: SteerMap | None = None
-        if self.cfg.steer_road or self.cfg.steer_neighbours or self.cfg.follow or self.cfg.rear:
+        if self.cfg.steer_road or self.cfg.steer_neighbours or self.cfg.follow:
             steer_map = (rows["map"][:, :1], rows["v0"])
-            if self.cfg.steer_neighbours or self.cfg.follow or self.cfg.rear:
+            if self.cfg.steer_neighbours or self.cfg.follow:
                 steer_map += (rows["neighbours"], rows["neighbour_valid"], rows["extent"])
         return encode, self.model.scene_rows(rows), steer_map
 

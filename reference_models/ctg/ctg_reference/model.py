@@ -29,8 +29,6 @@ and the sampler's steering head in :mod:`ctg_reference.steering`.
   largest headway hazard, 0 unless someone is ahead closer than the desired gap (with ``follow_ttc``: the largest
   time-to-collision hazard, 0 unless closing in on someone ahead; with ``follow_decel``: the braking one; with
   ``follow_gate_steps``: read over the plan's first steps only).
-* Yielding to the rear (``rear``): a second :class:`FollowHead`, reading the agent behind in the plan's path
-  (``lead_gaps(..., behind=True)``), gated by that agent's time to close the gap over the plan's first steps.
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -152,13 +150,6 @@ class CTGConfig:
     # the head still reads them all. Plans that stop in time read a short time to collision at their end, which a
     # gate over the whole plan would brake too
     follow_gate_steps: int | None = None
-    # yielding to the rear (a second FollowHead, ``rear``): acceleration channel only, reading the agent behind in
-    # each step's clean plan (lead_gaps(behind=True)) and gated by its time to collision, clamp(1 - TTC / rear_ttc,
-    # 0, 1) over the first rear_gate_steps plan steps; same-direction agents only when follow_heading_cos is set.
-    # Agents replayed from the log do not react, so a plan slower than the log is run into from behind
-    rear: bool = False
-    rear_ttc: float = 3.0  # s
-    rear_gate_steps: int | None = 5
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -227,7 +218,6 @@ class CTGModel(nn.Module):
         self.mixer = CoDenoiseMixer(self.cfg) if self.cfg.scene_denoising else None
         self.steer = SteerHead(self.cfg) if self.cfg.steer else None
         self.follow = FollowHead(self.cfg) if self.cfg.follow else None
-        self.rear = FollowHead(self.cfg) if self.cfg.rear else None
         self.register_buffer("action_mean", torch.tensor(self.cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(self.cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(self.cfg.state_std, dtype=torch.float32))
@@ -346,23 +336,21 @@ class CTGModel(nn.Module):
         return gate * shift
 
     def _follow_shift(self, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                      n: int, states: torch.Tensor | None = None, rear: bool = False) -> torch.Tensor:
+                      n: int, states: torch.Tensor | None = None) -> torch.Tensor:
         """The gap-keeping head's gated shift ``(M, H, 2)`` (yaw-rate channel 0) for ``M = n * R`` rows ordered
-        row-major by the ``n`` conditioning rows; ``states`` as in :meth:`_steer_shift`. With ``rear``, the
-        rear head's, reading the agent behind."""
-        head = self.rear if rear else self.follow
+        row-major by the ``n`` conditioning rows; ``states`` as in :meth:`_steer_shift`."""
+        head = self.follow
         assert head is not None
         cfg = self.cfg
         if steer_map is None or len(steer_map) < 5:
-            raise ValueError("this CTG model's gap-keeping head (follow or rear) reads the agents around: pass "
+            raise ValueError("this CTG model's gap-keeping head reads the agents around: pass "
                              "steer_map=(drivable crop (N, 1, G, G), v0 (N,), neighbours (N, K, 7), "
                              "neighbour_valid (N, K), extent (N, 2)).")
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
-        ttc, decel, gate_steps = ((cfg.rear_ttc, None, cfg.rear_gate_steps) if rear
-                                  else (cfg.follow_ttc, cfg.follow_decel, cfg.follow_gate_steps))
+        ttc, decel, gate_steps = cfg.follow_ttc, cfg.follow_decel, cfg.follow_gate_steps
         lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                         cfg.follow_headway, ttc, cfg.follow_heading_cos, decel, behind=rear)
+                         cfg.follow_headway, ttc, cfg.follow_heading_cos, decel)
         gate = lead[..., :gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1); lead (N, R, H, 3)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
@@ -372,14 +360,13 @@ class CTGModel(nn.Module):
                      steer_map: SteerMap | None, n: int) -> torch.Tensor | None:
         """The sum of the steering and gap-keeping heads' shifts ``(M, H, 2)``, or None for a model with neither."""
         shift, states = None, None
-        if (self.follow is not None or self.rear is not None) and steer_map is not None:  # all read one rollout
+        if self.follow is not None and steer_map is not None:  # all read one rollout
             states = self._plan_states(x0, steer_map[1], n)
         if self.steer is not None:
             shift = self._steer_shift(cond, x0, k, steer_map, n, states)
-        for rear, head in ((False, self.follow), (True, self.rear)):
-            if head is not None:
-                extra = self._follow_shift(x0, k, steer_map, n, states, rear)
-                shift = extra if shift is None else shift + extra
+        if self.follow is not None:
+            extra = self._follow_shift(x0, k, steer_map, n, states)
+            shift = extra if shift is None else shift + extra
         return shift
 
     # ------------------------------------------------------------ training

@@ -146,7 +146,7 @@ class FollowHead(nn.Module):
 def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor, states: torch.Tensor,
               dt: float, lane_margin: float, standstill: float, headway: float,
               ttc: float | None = None, min_heading_cos: float | None = None,
-              decel: float | None = None, behind: bool = False) -> torch.Tensor:
+              decel: float | None = None) -> torch.Tensor:
     """The agent ahead in each plan's path, per planned step: ``(N, S, H, 3)`` = (gap m, closing speed m/s, headway
     hazard in [0, 1]).
 
@@ -163,8 +163,6 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     plan already braking at ``a <= decel`` to stop behind the lead reads ``required = a`` all the way, no hazard. With
     ``min_heading_cos`` only neighbours heading the plan's way count (cosine of the heading difference at least that):
     oncoming and crossing agents, driven on straight at constant velocity, cut across curved plans they never meet.
-    With ``behind`` it is the agent behind instead, closing in on the plan from the rear: in the path behind the
-    planned position, and the closing speed is its speed along the planned heading less the planned speed.
 
     Args:
         neighbours: ``(N, K, 7)`` in the row's agent frame now (x, y in m, cos and sin of relative yaw, speed in
@@ -181,7 +179,7 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     yaw = states[..., 3]
     forward = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)  # (N, S, H, 2)
     offset = moved.permute(0, 2, 1, 3)[:, None] - states[..., None, :2]  # (N, S, H, K, 2)
-    along = (offset * forward[..., None, :]).sum(-1) * (-1.0 if behind else 1.0)
+    along = (offset * forward[..., None, :]).sum(-1)
     across = (offset[..., 1] * forward[..., None, 0] - offset[..., 0] * forward[..., None, 1]).abs()
     half_widths = (extent[:, 1:2] + neighbours[..., 6]) / 2  # (N, K)
     half_lengths = (extent[:, 0:1] + neighbours[..., 5]) / 2
@@ -199,7 +197,7 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
         lead_velocity = velocity[:, None, None].expand(*gap.shape, 2).gather(
             -2, lead[..., None, None].expand(*lead.shape, 1, 2)).squeeze(-2)
         lead_speed = torch.where(lead_gap < LEAD_GAP_CLIP, (lead_velocity * forward).sum(-1), states[..., 2])
-    closing = lead_speed - states[..., 2] if behind else states[..., 2] - lead_speed
+    closing = states[..., 2] - lead_speed
     if decel is not None:
         closing_in = closing.clamp_min(0)
         required = closing_in ** 2 / (2 * lead_gap.clamp_min(1e-6))
