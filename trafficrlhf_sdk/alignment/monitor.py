@@ -1,7 +1,9 @@
 """Over-optimization monitoring: the proxy reward next to judgments the policy never trains on.
 
 A policy optimized against a learned reward model can raise the proxy reward while getting worse by any other
-measure (Gao, Schulman and Hilton 2022). Every epoch the fine-tuner therefore also scores its own samples with
+measure (Gao, Schulman and Hilton 2022). Every epoch the fine-tuner therefore also samples a fixed set of logged
+contexts (drawn once from the training scenes, sampled with the same random numbers every epoch, so the curve
+moves with the policy and not with the draw) and scores those samples with
 
 - the stand-in annotators' hidden realism judgment (:func:`~trafficrlhf_sdk.feedback.synthetic.judge_scenarios`,
   profile ``attentive``), which the reward model only saw through noisy choices, and

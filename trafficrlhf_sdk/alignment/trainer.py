@@ -53,6 +53,9 @@ from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
+MONITOR_CONTEXTS = 16  # logged contexts the over-optimization monitor samples every epoch
+MONITOR_SAMPLES = 4  # futures per monitor context
+
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
 
 
@@ -147,6 +150,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
         self.monitor = HeldOutMonitor(monitor_reward, self.config.early_stopping_patience)
+        self.monitor_contexts: ScenarioTensor | None = None
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -179,9 +183,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return self.context_sampler.draw(derived_generator(self.config.seed, epoch, "contexts"))
 
     # ------------------------------------------------------------------ rollout
-    def _sample(self, contexts: ScenarioTensor, generator: torch.Generator) -> Any:
+    def _sample(self, contexts: ScenarioTensor, generator: torch.Generator, samples: int | None = None) -> Any:
         guidance = self.guidance
-        samples = self.config.samples_per_context
+        samples = samples or self.config.samples_per_context
         if guidance is not None:
             guidance.fit(contexts)
             with torch.enable_grad():
@@ -215,12 +219,23 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
-        now = contexts.current_index
-        logged_windows = logged.repeat_scenes(self.config.samples_per_context).time_slice(
-            max(0, now - REWARD_HISTORY_STEPS), now + 1 + self.reward_steps)
-        sampled_agents = trace.agents.repeat_interleave(self.config.samples_per_context, 0)
-        self.last_heldout = self.monitor.scores(scenario, logged_windows, sampled_agents)
+        self.last_heldout = self._monitor_scores()
         return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
+
+    def _monitor_scores(self) -> dict[str, float]:
+        """The held-out judgments of the current policy on a fixed set of logged contexts (drawn once), sampled
+        with the same random numbers every epoch, so that the curve moves with the policy, not with the draw."""
+        cfg = self.config
+        if self.monitor_contexts is None:
+            self.monitor_contexts = self.context_sampler.log_contexts(
+                MONITOR_CONTEXTS, derived_generator(cfg.seed, "monitor-contexts"))[0]
+        contexts = self.monitor_contexts
+        out = self._sample(contexts, derived_generator(cfg.seed, "monitor-samples"), MONITOR_SAMPLES)
+        scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
+        now = contexts.current_index
+        logged = contexts.repeat_scenes(MONITOR_SAMPLES).time_slice(max(0, now - REWARD_HISTORY_STEPS),
+                                                                     now + 1 + self.reward_steps)
+        return self.monitor.scores(scenario, logged, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
 
     @staticmethod
     def _passing_agents(scenario: ScenarioTensor, agents: torch.Tensor, samples: int) -> torch.Tensor:
