@@ -65,10 +65,10 @@ def distribute_rollouts(trainer: Any, execution: ExecutionConfig | None, chunk_s
     :func:`sample_in_chunks` on ``execution`` (None: in-process chunks). The chunk seeds come from the epoch's own
     sampling generator, so a run repeats exactly, and in-process and Ray runs agree. Returns ``trainer``."""
 
-    def sample(contexts: ScenarioTensor, generator: torch.Generator) -> SampleOutput:
+    def sample(contexts: ScenarioTensor, generator: torch.Generator, samples: int | None = None) -> SampleOutput:
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
-        return sample_in_chunks(trainer.model, trainer.guidance, contexts, trainer.config.samples_per_context, seed,
-                                execution, chunk_size)
+        count = samples or trainer.config.samples_per_context
+        return sample_in_chunks(trainer.model, trainer.guidance, contexts, count, seed, execution, chunk_size)
 
     trainer._sample = sample
     return trainer
