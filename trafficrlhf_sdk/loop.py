@@ -28,7 +28,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -70,6 +70,10 @@ class RLHFConfig(BaseModel):
     probe_scenes: int = Field(50, ge=0, description="Held-out val scenes the reward model is probed on; 0: none.")
     align: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields of the alignment stage "
                                   "(`guidance` and `seed` default to this config's).")
+    reward_aggregation: Literal["mean", "worst", "lcb"] = Field("mean", description="How the fine-tuner reads the "
+                                                                "ensemble: the members' mean, the worst member, or "
+                                                                "mean - reward_pessimism x std.")
+    reward_pessimism: float = Field(1.0, ge=0, description="k of the 'lcb' aggregation.")
     source: str = Field("nuscenes_pred", description="Scenario source (its 'train' split).")
     root: str | None = Field(None, description="Data directory of the source.")
     seed: int = Field(0, description="Seed of campaigns, annotators, reward models and alignment.")
@@ -269,7 +273,8 @@ def _align(config: RLHFConfig, folder: str, r: int, state: dict[str, Any], out_d
         return
     fields = {"guidance": config.guidance, "seed": config.seed + r, **config.align}
     recipe = AlignRecipe(model=config.model, checkpoint=config.checkpoint, model_options=config.model_options,
-                         reward_model=os.path.join(folder, "reward_model"), align=fields)
+                         reward_model=os.path.join(folder, "reward_model"), align=fields,
+                         reward_aggregation=config.reward_aggregation, reward_pessimism=config.reward_pessimism)
     summary = run_recipe(recipe, os.path.join(folder, "aligned"))
     log(f"round {r}: aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.0f} s; "
         f"proxy reward {summary['reward_first']:.3f} -> {summary['reward_last']:.3f}, held-out realism "
