@@ -84,9 +84,12 @@ def _one_line(exc: ValidationError) -> str:
     return "; ".join(f"{'.'.join(map(str, e['loc'])) or '<recipe>'}: {e['msg']}" for e in exc.errors())
 
 
-def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[str, Any]:
+def run_recipe(recipe: AlignRecipe, output_dir: str, execution: Any = None, **overrides: Any) -> dict[str, Any]:
     """Build the model and reward of ``recipe``, align, save the model and its history in ``output_dir`` and
-    return a summary (also written as ``align_summary.json``). ``overrides``: AlignConfig fields."""
+    return a summary (also written as ``align_summary.json``). ``execution``: a
+    :class:`~trafficrlhf_sdk.parallel.ExecutionConfig`: each epoch's samples are drawn in chunks with seeds
+    derived from the epoch's, on its Ray workers or in this process (the same numbers either way); None draws
+    them in one piece, in this process. ``overrides``: AlignConfig fields."""
     import torch
 
     from trafficrlhf_sdk.alignment.trainer import AlignTrainer
@@ -111,6 +114,10 @@ def run_recipe(recipe: AlignRecipe, output_dir: str, **overrides: Any) -> dict[s
     start = time.perf_counter()
     monitor = load_reward(recipe.monitor_reward_model) if recipe.monitor_reward_model else None
     trainer = AlignTrainer(adapter, reward, config, monitor_reward=monitor)
+    if execution is not None:
+        from trafficrlhf_sdk.alignment.distributed import distribute_rollouts
+
+        distribute_rollouts(trainer, execution)
     history = trainer.train()
     wall = time.perf_counter() - start
     summary = {"model": name, "checkpoint": recipe.checkpoint, "reward_model": recipe.reward_model,

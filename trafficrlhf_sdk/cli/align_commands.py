@@ -34,7 +34,10 @@ def _comma_list(text: str | None) -> tuple[str, ...] | None:
               help="Traffic-model option while training (JSON value), repeatable.")
 @click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=None,
               help="Use the first N long-enough train scenes [default: all].")
-@click.option("--source", default=None, help="Scenario source [default: nuscenes_pred].")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Draw each epoch's samples on N Ray workers started for the run (pip install "
+                   "'trafficrlhf-sdk[ray]'); 0 samples in-process. The samples are the same either way.")
+@click.option("--ray-address", default=None, help="Draw them on an existing Ray cluster at this address instead.")
 @click.option("--root", default=None, help="Data directory of the source.")
 @click.option("--seed", type=int, default=None, help="Seed of every generator [default: 0].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")
@@ -46,7 +49,8 @@ def _comma_list(text: str | None) -> tuple[str, ...] | None:
 def align_command(config_path: str | None, model: str | None, checkpoint: str | None, reward_spec: str | None,
                   reward_options: tuple[str, ...], alpha: float | None, out_dir: str, epochs: int | None,
                   guidance: str | None, groups: str | None, model_options: tuple[str, ...], num_scenes: int | None,
-                  source: str | None, root: str | None, seed: int | None, threads: int | None, resume: bool,
+                  workers: int, ray_address: str | None, root: str | None, seed: int | None, threads: int | None,
+                  resume: bool,
                   allow_changes: bool, quiet: bool) -> None:
     """PPO fine-tuning of a traffic model against a reward model: loss = imitation loss - alpha * PPO surrogate.
 
@@ -75,8 +79,13 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
     base["model_options"] = {**base.get("model_options", {}), **parse_key_values(model_options, "--model-option")}
     if threads is not None:
         base["threads"] = threads
-    summary = run_recipe(AlignRecipe(**base), out_dir, alpha=alpha, epochs=epochs, guidance=guidance,
-                         groups=_comma_list(groups), num_scenes=num_scenes, source=source, root=root, seed=seed,
+    from trafficrlhf_sdk.parallel import ExecutionConfig
+
+    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
+    execution = execution if execution.uses_ray else None
+    summary = run_recipe(AlignRecipe(**base), out_dir, execution=execution, alpha=alpha, epochs=epochs,
+                         guidance=guidance,
+                         groups=_comma_list(groups), num_scenes=num_scenes, root=root, seed=seed,
                          resume=resume or None, resume_allow_changes=allow_changes or None,
                          progress_bar=False if quiet else None)
     click.echo(f"aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.1f} s on "
