@@ -109,14 +109,14 @@ def test_policy_stays_bitwise_frozen_through_a_training_step(adapter) -> None:  
 
 
 def test_committed_aligned_checkpoint_plans_and_keeps_the_bundled_policy() -> None:
-    """``reference_models/aligned/bits`` loads, plans 2 s, and differs from the bundled checkpoint only in the goal
+    """``reference_models/baselines/bits`` loads, plans 2 s, and differs from the bundled checkpoint only in the goal
     network: alignment never trains the goal-conditioned policy."""
     from safetensors.torch import load_file
 
     from trafficrlhf_bits import BITSAdapter, default_checkpoint
 
     repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-    aligned = os.path.join(repo, "reference_models", "aligned", "bits")
+    aligned = os.path.join(repo, "reference_models", "baselines", "bits")
     model = BITSAdapter(checkpoint=aligned, seed=0)
     plan = model.plan(synthetic_scene(), 20).states
     assert plan.shape == (1, 4, 20, 4) and torch.isfinite(plan).all()

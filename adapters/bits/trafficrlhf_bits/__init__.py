@@ -1,5 +1,5 @@
 """TrafficRLHF plugin: the compact BITS (spatial goal network + frozen goal-conditioned policy) as traffic model
-``bits``, with its bundled checkpoints ``bits`` and ``bits-aligned``. The weights are trained on nuScenes
+``bits``, with its bundled checkpoints ``bits`` and ``bits-baseline``. The weights are trained on nuScenes
 (CC BY-NC-SA 4.0, non-commercial)."""
 
 from __future__ import annotations
@@ -28,5 +28,5 @@ def register_pretrained(register):  # type: ignore[no-untyped-def]
     """Register the bundled checkpoints (folders beside the reference package, found without importing it)."""
     register_folders(register, "bits_reference", {
         "bits": "checkpoints/bits_small",
-        "bits-aligned": "../aligned/bits",
+        "bits-baseline": "../baselines/bits",
     })

@@ -44,6 +44,7 @@ REPO = Path(__file__).resolve().parents[3]
 COMMITTED = {  # committed CTG checkpoints and their plan horizons (steps of 0.1 s)
     "reference_models/ctg/checkpoints/ctg_small": 20,
     "reference_models/ctg/checkpoints/ctg_small_4s": 40,
+    "reference_models/baselines/ctg": 40,
     "reference_models/aligned/ctg": 40,
 }
 
@@ -66,14 +67,14 @@ def test_committed_checkpoints_load_and_plan(path, scenes) -> None:  # type: ign
 
 
 def test_the_committed_aligned_ctg_is_its_base_plus_a_steering_head_and_a_braking_prior() -> None:
-    """``reference_models/aligned/ctg``: every tensor of the 4 s base ``ctg_small_4s`` bitwise, a trained steering
+    """``reference_models/baselines/ctg``: every tensor of the 4 s base ``ctg_small_4s`` bitwise, a trained steering
     head (its zero-initialized output layer moved), and a gap-keeping head that was never trained: zero output
     weights and a bias of -3 (the braking prior), with its recorded gate settings and three steering stages."""
     import json
 
     from safetensors.torch import load_file
 
-    folder = REPO / "reference_models/aligned/ctg"
+    folder = REPO / "reference_models/baselines/ctg"
     tuned = load_file(str(folder / "model.safetensors"))
     start = load_file(str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s/model.safetensors"))
     assert all(torch.equal(tuned[k], start[k]) for k in start)
@@ -106,7 +107,7 @@ def test_random_draws_are_made_on_the_generators_device() -> None:
 def test_sampling_on_cuda_follows_the_cpu_run(scenes) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_ctg import CTGAdapter
 
-    path = str(REPO / "reference_models/aligned/ctg")
+    path = str(REPO / "reference_models/baselines/ctg")
     cpu = CTGAdapter(checkpoint=path, seed=0).sample(scenes, 2, None, torch.Generator().manual_seed(0))
     gpu = CTGAdapter(checkpoint=path, seed=0, device="cuda").sample(scenes.to("cuda"), 2, None,
                                                                     torch.Generator().manual_seed(0))

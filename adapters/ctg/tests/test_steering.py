@@ -21,7 +21,7 @@ from trafficrlhf_sdk.scenario import default_data_root
 HAS_DATA = os.path.isdir(os.path.join(default_data_root(), "nuscenes_pred", "label"))
 needs_data = pytest.mark.skipif(not HAS_DATA, reason="nuscenes_pred data not found")
 REPO = Path(__file__).resolve().parents[3]
-ALIGNED = REPO / "reference_models/aligned/ctg"
+ALIGNED = REPO / "reference_models/baselines/ctg"
 ROAD_ONLY_KEYS = ("steer_gate", "steer_gate_traffic", "steer_lateral_only", "steer_neighbours",
                   "steer_neighbour_scale")
 

@@ -1,5 +1,6 @@
 """TrafficRLHF plugin: the compact CTG diffusion model as traffic model ``ctg``, with its bundled checkpoints
-``ctg`` (2 s plan), ``ctg-4s`` (4 s plan) and ``ctg-aligned`` (the 4 s model aligned with PPO). The weights are
+``ctg`` (2 s plan), ``ctg-4s`` (4 s plan), ``ctg-aligned`` (the 4 s model aligned against a learned reward
+model) and ``ctg-baseline`` (aligned against hand-written rewards, a baseline). The weights are
 trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
 
 from __future__ import annotations
@@ -29,5 +30,6 @@ def register_pretrained(register):  # type: ignore[no-untyped-def]
     register_folders(register, "ctg_reference", {
         "ctg": "checkpoints/ctg_small",
         "ctg-4s": "checkpoints/ctg_small_4s",
+        "ctg-baseline": "../baselines/ctg",
         "ctg-aligned": "../aligned/ctg",
     })

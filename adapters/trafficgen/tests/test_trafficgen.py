@@ -267,7 +267,7 @@ BUNDLED = "reference_models/trafficgen/checkpoints/trafficgen_small"
 COMMITTED = {  # committed TrafficGen checkpoints, their forecast horizons (steps of 0.1 s) and their starting weights
     BUNDLED: (20, None),
     "reference_models/trafficgen/checkpoints/trafficgen_small_4s": (40, BUNDLED),
-    "reference_models/aligned/trafficgen": (40, "reference_models/trafficgen/checkpoints/trafficgen_small_4s"),
+    "reference_models/baselines/trafficgen": (40, "reference_models/trafficgen/checkpoints/trafficgen_small_4s"),
 }
 
 

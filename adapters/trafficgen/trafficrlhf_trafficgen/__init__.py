@@ -1,5 +1,5 @@
 """TrafficRLHF plugin: the compact TrafficGen (initializer + multi-modal forecaster) as traffic model
-``trafficgen``, with its bundled checkpoints ``trafficgen`` (2 s), ``trafficgen-4s`` and ``trafficgen-aligned``
+``trafficgen``, with its bundled checkpoints ``trafficgen`` (2 s), ``trafficgen-4s`` and ``trafficgen-baseline``
 (the 4 s model aligned with PPO). The weights are trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
 
 from __future__ import annotations
@@ -29,5 +29,5 @@ def register_pretrained(register):  # type: ignore[no-untyped-def]
     register_folders(register, "trafficgen_reference", {
         "trafficgen": "checkpoints/trafficgen_small",
         "trafficgen-4s": "checkpoints/trafficgen_small_4s",
-        "trafficgen-aligned": "../aligned/trafficgen",
+        "trafficgen-baseline": "../baselines/trafficgen",
     })
