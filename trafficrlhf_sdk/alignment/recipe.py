@@ -60,7 +60,7 @@ class AlignRecipe(BaseModel):
         """Read and validate a TOML recipe; errors name the file."""
         if not os.path.isfile(path):
             raise DataNotFoundError(f"--config {path!r}: no such file; give a TOML recipe (see "
-                                    "reference_models/aligned/*/recipe*.toml).")
+                                    "reference_models/*/*/recipe.toml or loop.toml).")
         try:
             with open(path, "rb") as handle:
                 data = tomllib.load(handle)
