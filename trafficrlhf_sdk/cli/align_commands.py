@@ -55,8 +55,7 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
     """PPO fine-tuning of a traffic model against a reward model: loss = imitation loss - alpha * PPO surrogate.
 
     Every AlignConfig field is reachable through --config (the committed models' recipes lie beside them in
-    reference_models/baselines/; loop.toml in reference_models/aligned/). The aligned model lands in --out, so `trafficrlhf evaluate --checkpoint OUT`
-    evaluates it.
+    reference_models/). The aligned model lands in --out, so `trafficrlhf evaluate --checkpoint OUT` evaluates it.
     """
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
     from trafficrlhf_sdk.cli.app import parse_key_values
