@@ -264,3 +264,32 @@ def test_the_monitor_keeps_the_best_held_out_epoch_and_stops_after_its_patience(
         stops.append(monitor.update(epoch, realism, [weight]))
     assert stops == [False, False, False, True]
     assert monitor.restore_best([weight]) == 2 and torch.equal(weight.detach(), torch.full((2,), 2.0))
+
+
+def test_early_stopping_keeps_the_weights_the_monitor_scored(train_scenes: ScenarioTensor, tmp_path) -> None:
+    """The held-out realism of an epoch is measured before its update, so the kept weights are those after
+    ``best_epoch`` updates (0: the starting weights), and the weights after the last update are scored too."""
+    model = _model()
+    snapshots = [[p.detach().clone() for p in model.module.parameters()]]
+
+    def keep(epoch: int, stats: dict[str, float]) -> None:
+        snapshots.append([p.detach().clone() for p in model.module.parameters()])
+
+    config = {**FAST, "epochs": 4, "learning_rate": 3e-3, "early_stopping_patience": 10}
+    align(model, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "run"),
+          callback=keep, **config)
+    import json
+
+    with open(tmp_path / "run" / "align_history.json", encoding="utf-8") as handle:
+        saved = json.load(handle)
+    best = saved["best_epoch"]
+    realism = [row["heldout_realism"] for row in saved["history"]] + [saved["history"][-1]["final_heldout_realism"]]
+    assert len(snapshots) == 5 and 0 <= best <= 4
+    assert any(not torch.equal(a, b) for a, b in zip(snapshots[0], snapshots[-1], strict=True)), "nothing trained"
+    smoothed, values = None, []
+    for value in realism:  # the monitor's moving average (weight 0.7 on the past)
+        smoothed = value if smoothed is None else 0.7 * smoothed + 0.3 * value
+        values.append(smoothed)
+    assert best == max(range(5), key=lambda k: (values[k], -k))
+    for kept, expected in zip(model.module.parameters(), snapshots[best], strict=True):
+        assert torch.equal(kept.detach(), expected)

@@ -101,9 +101,11 @@ class AlignConfig(BaseModel):
     output_dir: str | None = Field(None, description="Folder for logs and checkpoints; None: nothing is written.")
     save_every: int = Field(10, ge=1, description="Write a checkpoint every N epochs (and after the last).")
     early_stopping_patience: int | None = Field(None, ge=1, description="Stop once the held-out realism of the "
-                                                "policy's own samples (stand-in annotators' judgment, smoothed) has "
-                                                "not improved for this many epochs, and keep the best epoch's "
-                                                "weights. None: train every epoch, keep the last.")
+                                                "policy's own samples (stand-in annotators' judgment, smoothed, on "
+                                                "fixed logged and failure-focused contexts of held-out scenes) has "
+                                                "not improved for this many epochs, and keep the best weights "
+                                                "(possibly the starting ones). None: train every epoch, keep the "
+                                                "last.")
     resume: bool = Field(False, description="Continue from the newest intact checkpoint in output_dir (an error "
                          "when there is none).")
     resume_allow_changes: bool = Field(False, description="With `resume`, accept hyper-parameters that differ from "

@@ -1,9 +1,11 @@
 """Over-optimization monitoring: the proxy reward next to judgments the policy never trains on.
 
 A policy optimized against a learned reward model can raise the proxy reward while getting worse by any other
-measure (Gao, Schulman and Hilton 2022). Every epoch the fine-tuner therefore also samples a fixed set of logged
-contexts (drawn once from the training scenes, sampled with the same random numbers every epoch, so the curve
-moves with the policy and not with the draw) and scores those samples with
+measure (Gao, Schulman and Hilton 2022). Every epoch the fine-tuner therefore also samples a fixed set of contexts
+from scenes it never trains on (the ``holdout_every`` scenes when set): logged windows, and windows cut shortly
+before the failures of the starting model's closed-loop driving, where alignment is meant to act. They are drawn
+once and sampled with the same random numbers every epoch, so the curve moves with the policy and not with the
+draw. The samples are scored with
 
 - the stand-in annotators' hidden realism judgment (:func:`~trafficrlhf_sdk.feedback.synthetic.judge_scenarios`,
   profile ``attentive``), which the reward model only saw through noisy choices, and
@@ -58,8 +60,9 @@ class HeldOutMonitor:
                 out["heldout_reward"] = float(self.reward.score(samples).float().mean())
         return out
 
-    def update(self, epoch: int, realism: float, params: list[torch.nn.Parameter]) -> bool:
-        """Record epoch ``epoch``'s (1-based) held-out realism; keep the best weights; True when patience ran out."""
+    def update(self, epoch: int, realism: float, params: list[torch.Tensor]) -> bool:
+        """Record the held-out realism of the weights ``params`` that were scored, after ``epoch`` epochs of
+        updates (0: the starting weights); keep the best weights; True when patience ran out."""
         self.smoothed = realism if self.smoothed is None else (self.smoothing * self.smoothed
                                                                + (1 - self.smoothing) * realism)
         if self.best is None or self.smoothed > self.best[0]:

@@ -41,7 +41,7 @@ import torch
 
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
-from trafficrlhf_sdk.alignment.contexts import ContextSampler, training_scene_ids
+from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, Rollout, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
@@ -53,7 +53,8 @@ from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.scenario.transforms import mirror_scenario
 
-MONITOR_CONTEXTS = 16  # logged contexts the over-optimization monitor samples every epoch
+MONITOR_CONTEXTS = 8  # logged contexts the over-optimization monitor samples every epoch
+MONITOR_FAILURE_CONTEXTS = 16  # and contexts cut before the starting model's failures
 MONITOR_SAMPLES = 4  # futures per monitor context
 
 __all__ = ["AlignResult", "AlignTrainer", "RewardLike", "agent_scores", "scenario_scores"]
@@ -140,6 +141,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if self.reference is not None:
             for p in self.reference.module.parameters():
                 p.requires_grad_(False)
+        self.scenes_given = scenes
         self.scenes = self._with_mirrored(self._split_scenes(scenes)) if scenes is not None else None
         self.context_sampler = ContextSampler(model, self.config, self._load_scenes, self.guidance,
                                               self.future_steps)
@@ -151,6 +153,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
         self.monitor = HeldOutMonitor(monitor_reward, self.config.early_stopping_patience)
         self.monitor_contexts: ScenarioTensor | None = None
+        self.monitor_logged: ScenarioTensor | None = None
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -223,19 +226,40 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
     def _monitor_scores(self) -> dict[str, float]:
-        """The held-out judgments of the current policy on a fixed set of logged contexts (drawn once), sampled
-        with the same random numbers every epoch, so that the curve moves with the policy, not with the draw."""
+        """The held-out judgments of the current policy on a fixed set of contexts (drawn once, see
+        :mod:`~trafficrlhf_sdk.alignment.monitor`), sampled with the same random numbers every epoch, so that the
+        curve moves with the policy, not with the draw."""
         cfg = self.config
         if self.monitor_contexts is None:
-            self.monitor_contexts = self.context_sampler.log_contexts(
-                MONITOR_CONTEXTS, derived_generator(cfg.seed, "monitor-contexts"))[0]
+            self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
         contexts = self.monitor_contexts
         out = self._sample(contexts, derived_generator(cfg.seed, "monitor-samples"), MONITOR_SAMPLES)
         scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
         now = contexts.current_index
-        logged = contexts.repeat_scenes(MONITOR_SAMPLES).time_slice(max(0, now - REWARD_HISTORY_STEPS),
-                                                                     now + 1 + self.reward_steps)
+        logged = self.monitor_logged.repeat_scenes(MONITOR_SAMPLES).time_slice(max(0, now - REWARD_HISTORY_STEPS),
+                                                                               now + 1 + self.reward_steps)
         return self.monitor.scores(scenario, logged, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
+
+    def _draw_monitor_contexts(self) -> tuple[ScenarioTensor, ScenarioTensor]:
+        """Logged windows and failure-focused windows of the starting model, from the held-out training scenes
+        (``holdout_every``; the training scenes themselves when none are held out or scenes were passed in)."""
+        cfg = self.config
+        scenes = self._load_scenes
+        if self.scenes_given is None and cfg.holdout_every is not None:
+            from trafficrlhf_sdk import get_scenario_source
+
+            source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+            ids = held_out_scene_ids(source.scene_ids("train"), cfg.holdout_every)[: 2 * cfg.failure_scenes]
+            held = [source.load_scene("train", i) for i in ids]
+            if held:
+                def scenes() -> list[ScenarioTensor]:
+                    return held
+        sampler = ContextSampler(self.model, cfg, scenes, self.guidance, self.future_steps)
+        gen = derived_generator(cfg.seed, "monitor-contexts")
+        pairs = [sampler.log_contexts(MONITOR_CONTEXTS, gen)]
+        if cfg.failure_fraction > 0:
+            pairs.append(sampler.failure_contexts(MONITOR_FAILURE_CONTEXTS, gen))
+        return (ScenarioTensor.concat([p[0] for p in pairs]), ScenarioTensor.concat([p[1] for p in pairs]))
 
     @staticmethod
     def _passing_agents(scenario: ScenarioTensor, agents: torch.Tensor, samples: int) -> torch.Tensor:
@@ -271,6 +295,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         """Run the remaining epochs; returns the history. ``callback(epoch, stats)`` after each epoch may return
         False to stop (the state is checkpointed first when ``output_dir`` is set)."""
         cfg = self.config
+        if self.monitor_contexts is None:  # from the starting weights, also when resuming
+            self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
         if cfg.resume:
             self.resume_newest()
         self.logger = self._configure_logger()
@@ -298,9 +324,12 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                     sampled = rollout.trace.agents.sum().clamp_min(1)
                     stats["passing_share"] = float(rollout.passing.sum() / sampled)
                 stats.update(self.last_heldout)
+                scored = [p.detach().clone() for p in self.trainable] if cfg.early_stopping_patience else []
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
-                stop_early = self.monitor.update(epoch + 1, stats["heldout_realism"], self.trainable)
+                # the held-out realism was measured before this epoch's update: it belongs to the weights after
+                # `epoch` updates (0: the starting weights), and those are the ones kept if it is the best
+                stop_early = self.monitor.update(epoch, stats["heldout_realism"], scored)
                 self.history.append(stats)
                 self._log(stats)
                 if bar is not None:
@@ -330,7 +359,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 self.logger.close()
         finished = len(self.history) == cfg.epochs or (
             cfg.early_stopping_patience is not None and self.monitor.best is not None
-            and len(self.history) - self.monitor.best[1] >= cfg.early_stopping_patience)
+            and len(self.history) - 1 - self.monitor.best[1] >= cfg.early_stopping_patience)
+        if finished and cfg.early_stopping_patience and len(self.history) == cfg.epochs:
+            final = self._monitor_scores()  # the weights after the last update were never scored
+            self.history[-1].update({f"final_{k}": v for k, v in final.items()})
+            self.monitor.update(cfg.epochs, final["heldout_realism"], [p.detach().clone() for p in self.trainable])
         best_epoch = self.monitor.restore_best(self.trainable) if cfg.early_stopping_patience else None
         if cfg.output_dir is not None and self.history:
             plot_overoptimization(self.history, os.path.join(cfg.output_dir, "overoptimization.png"))
