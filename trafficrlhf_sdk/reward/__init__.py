@@ -2,7 +2,8 @@
 
 - :class:`RewardModel`: the base class; :class:`CTGMLPRewardModel` (``"ctg_mlp"``) the paper's architecture;
   :class:`RewardEnsemble` a bootstrap ensemble. ``RewardModel.from_pretrained(dir)`` loads any registered
-  architecture from ``config.json`` + ``model.safetensors``.
+  architecture from ``config.json`` + ``model.safetensors``; :class:`TrafficGenMCGRewardModel`
+  (``"trafficgen_mcg"``) the same head on a TrafficGen-style (multi-context gating) encoder.
 - :class:`RewardConfig` + :class:`RewardTrainer`: Bradley–Terry training from a
   :class:`~trafficrlhf_sdk.feedback.PreferenceDataset`.
 """
@@ -17,6 +18,7 @@ from trafficrlhf_sdk.reward.model import (
     get_reward_model_architecture,
     reward_model_architectures,
 )
+from trafficrlhf_sdk.reward.trafficgen_mcg import TrafficGenMCGConfig, TrafficGenMCGRewardModel
 from trafficrlhf_sdk.reward.trainer import RewardTrainer, TrainingResult, evaluate_pairs
 
 __all__ = [
@@ -27,6 +29,8 @@ __all__ = [
     "RewardEnsemble",
     "RewardModel",
     "RewardTrainer",
+    "TrafficGenMCGConfig",
+    "TrafficGenMCGRewardModel",
     "TrainingResult",
     "bradley_terry_loss",
     "build_pair_data",

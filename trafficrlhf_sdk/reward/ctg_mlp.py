@@ -21,7 +21,7 @@ from trafficrlhf_sdk.reward.features import FeatureSpec, StepInputs, compute_ste
 from trafficrlhf_sdk.reward.model import RewardModel
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["CTGMLPConfig", "CTGMLPRewardModel"]
+__all__ = ["CTGMLPConfig", "CTGMLPRewardModel", "ItemRewardModel", "tanh_head"]
 
 
 class CTGMLPConfig(BaseModel):
@@ -56,46 +56,42 @@ class CTGMLPConfig(BaseModel):
                            agents=self.agents)
 
 
-class CTGMLPRewardModel(RewardModel):
-    """CTG-style context encoder + 512-512-512-128-32 Tanh MLP + Linear(32, 1) + Tanh, per agent and step."""
+def tanh_head(width: int, hidden_sizes: tuple[int, ...]) -> nn.Sequential:
+    """The paper's reward head: Linear + Tanh for each of ``hidden_sizes`` and for the 1-unit output.
 
-    architecture = "ctg_mlp"
-    Config = CTGMLPConfig
+    Glorot init with the Tanh gain keeps activations alive through six Tanh layers (PyTorch's default shrinks
+    them layer by layer); a small output layer starts every reward near 0, far from saturation.
+    """
+    layers: list[nn.Module] = []
+    for size in (*hidden_sizes, 1):
+        layers += [nn.Linear(width, size), nn.Tanh()]
+        width = size
+    head = nn.Sequential(*layers)
+    linears = [m for m in head if isinstance(m, nn.Linear)]
+    for i, linear in enumerate(linears):
+        gain = 0.1 if i == len(linears) - 1 else nn.init.calculate_gain("tanh")
+        nn.init.xavier_uniform_(linear.weight, gain=gain)
+        nn.init.zeros_(linear.bias)
+    return head
 
-    def __init__(self, config: CTGMLPConfig | dict[str, Any] | None = None) -> None:
-        super().__init__(config)
-        cfg: CTGMLPConfig = self.config  # type: ignore[assignment]
-        if cfg.crop_size % 4:
-            raise ValueError(f"`crop_size` must be a multiple of 4 (two stride-2 convolutions); got {cfg.crop_size}.")
-        self.spec = cfg.feature_spec()
-        c1, c2 = cfg.map_channels
-        side = cfg.crop_size // 4
-        self.map_encoder = nn.Sequential(
-            nn.Conv2d(len(cfg.map_layers), c1, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(c1, c2, 3, stride=2, padding=1), nn.ReLU(), nn.Flatten(),
-            nn.Linear(c2 * side * side, cfg.map_embedding), nn.Tanh(),
-        )
-        layers: list[nn.Module] = []
-        width = self.spec.num_features + cfg.map_embedding
-        for size in (*cfg.hidden_sizes, 1):
-            layers += [nn.Linear(width, size), nn.Tanh()]
-            width = size
-        self.mlp = nn.Sequential(*layers)
-        # Glorot init with the Tanh gain keeps activations alive through six Tanh layers (PyTorch's default
-        # shrinks them layer by layer); a small output layer starts every reward near 0, far from saturation
-        linears = [m for m in self.mlp if isinstance(m, nn.Linear)]
-        for i, linear in enumerate(linears):
-            gain = 0.1 if i == len(linears) - 1 else nn.init.calculate_gain("tanh")
-            nn.init.xavier_uniform_(linear.weight, gain=gain)
-            nn.init.zeros_(linear.bias)
 
-    # ---------------------------------------------------------------- internals
+class ItemRewardModel(RewardModel):
+    """Base of the reward models that score every (selected agent, scored step) item and average them.
+
+    A subclass sets ``self.spec`` (a :class:`FeatureSpec`) and implements :meth:`item_rewards`; it may override
+    :meth:`step_inputs` to add inputs to each item. The aggregation (mean over the agents present at a step, then
+    over the scored steps) and the any-length, any-agents, valid-mask contract are shared.
+    """
+
+    spec: FeatureSpec
+
+    def step_inputs(self, scenario: ScenarioTensor, steps: torch.Tensor | None = None) -> StepInputs:
+        """Inputs of every selected agent at ``steps`` (default: the scored steps)."""
+        return compute_step_inputs(scenario, self.spec, steps)
+
     def item_rewards(self, inputs: StepInputs) -> torch.Tensor:
         """Reward of every (agent, step) item ``(N,)`` in [-1, 1]."""
-        inputs = self.on_device(inputs)
-        crops = inputs.crops.to(torch.float32) / inputs.crop_max
-        code = self.map_encoder(crops)
-        return self.mlp(torch.cat([inputs.features, code], -1)).squeeze(-1)
+        raise NotImplementedError
 
     @staticmethod
     def _group_mean(key: torch.Tensor, rewards: torch.Tensor, groups: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -116,7 +112,7 @@ class CTGMLPRewardModel(RewardModel):
     # ----------------------------------------------------------------- contract
     def prepare(self, scenario: ScenarioTensor) -> StepInputs:
         """Inputs at the scored steps (no gradient needed; compute once, score many times)."""
-        return compute_step_inputs(scenario, self.spec)
+        return self.step_inputs(scenario)
 
     def score_prepared(self, prepared: StepInputs) -> torch.Tensor:
         """Scenario rewards ``(B,)``: mean over scored steps of the mean over agents; 0 for empty scenes."""
@@ -149,6 +145,36 @@ class CTGMLPRewardModel(RewardModel):
         Each is the mean over the selected agents valid at that step (0 where there is none); each step sees the
         states ``step_dt`` and ``2 * step_dt`` before it.
         """
-        inputs = compute_step_inputs(scenario, self.spec, torch.arange(scenario.num_steps))
+        inputs = self.step_inputs(scenario, torch.arange(scenario.num_steps))
         per_step, _ = self._per_step(inputs, self.item_rewards(inputs))
         return per_step
+
+
+class CTGMLPRewardModel(ItemRewardModel):
+    """CTG-style context encoder + 512-512-512-128-32 Tanh MLP + Linear(32, 1) + Tanh, per agent and step."""
+
+    architecture = "ctg_mlp"
+    Config = CTGMLPConfig
+
+    def __init__(self, config: CTGMLPConfig | dict[str, Any] | None = None) -> None:
+        super().__init__(config)
+        cfg: CTGMLPConfig = self.config  # type: ignore[assignment]
+        if cfg.crop_size % 4:
+            raise ValueError(f"`crop_size` must be a multiple of 4 (two stride-2 convolutions); got {cfg.crop_size}.")
+        self.spec = cfg.feature_spec()
+        c1, c2 = cfg.map_channels
+        side = cfg.crop_size // 4
+        self.map_encoder = nn.Sequential(
+            nn.Conv2d(len(cfg.map_layers), c1, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(c1, c2, 3, stride=2, padding=1), nn.ReLU(), nn.Flatten(),
+            nn.Linear(c2 * side * side, cfg.map_embedding), nn.Tanh(),
+        )
+        self.mlp = tanh_head(self.spec.num_features + cfg.map_embedding, cfg.hidden_sizes)
+
+    # ---------------------------------------------------------------- internals
+    def item_rewards(self, inputs: StepInputs) -> torch.Tensor:
+        """Reward of every (agent, step) item ``(N,)`` in [-1, 1]."""
+        inputs = self.on_device(inputs)
+        crops = inputs.crops.to(torch.float32) / inputs.crop_max
+        code = self.map_encoder(crops)
+        return self.mlp(torch.cat([inputs.features, code], -1)).squeeze(-1)
