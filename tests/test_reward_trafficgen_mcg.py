@@ -45,9 +45,10 @@ def _pad(scenes: ScenarioTensor, agents: int, steps: int) -> ScenarioTensor:
     """``scenes`` with ``agents`` never-valid agents and ``steps`` invalid steps appended (garbage states)."""
     pad = torch.nn.functional.pad
     return ScenarioTensor(states=pad(scenes.states, (0, 0, 0, steps, 0, agents), value=77.0),
-                          valid=pad(scenes.valid, (0, steps, 0, agents)), extent=pad(scenes.extent, (0, 0, 0, agents)),
-                          agent_type=pad(scenes.agent_type, (0, agents)), controlled=pad(scenes.controlled, (0, agents)),
-                          dt=scenes.dt, current_index=scenes.current_index, map=scenes.map)
+                          valid=pad(scenes.valid, (0, steps, 0, agents)),
+                          extent=pad(scenes.extent, (0, 0, 0, agents)), agent_type=pad(scenes.agent_type, (0, agents)),
+                          controlled=pad(scenes.controlled, (0, agents)), dt=scenes.dt,
+                          current_index=scenes.current_index, map=scenes.map)
 
 
 def test_registered_with_the_paper_head(model: TrafficGenMCGRewardModel) -> None:
