@@ -1,0 +1,526 @@
+"""The paper's experiments, regenerated with this SDK: Tables 1-4 and Figure 3 of arXiv 2309.00709.
+
+``trafficrlhf experiment paper --out DIR [--quick] [--only table1,...]`` (or :func:`run_paper`) runs, on the first
+``scenes`` long-enough nuScenes val scenes, with stand-in annotators in place of people and learned reward models
+only:
+
+- **table1**: CTG (``ctg-4s``) and CTG + RM (the bundled ``ctg-aligned``) under each of the five guidances;
+- **table2**: CTG, BITS and TrafficGen without and with RM, one reward model (the bundled ``ctg_loop``, trained on
+  CTG candidates) scoring all and aligning BITS and TrafficGen here;
+- **table3**: CTG's encoder only, decoder only and the full model fine-tuned against that reward model;
+- **table4**: reward models with the CTG encoder (``ctg_mlp``) and with a TrafficGen-style encoder
+  (``trafficgen_mcg``), trained on one feedback set over CTG, BITS and TrafficGen candidates, each aligning BITS
+  and TrafficGen;
+- **figure3**: reward-model accuracy against the number of labelled contexts, over seeds.
+
+Each writes ``DIR/<name>/result.json``, ``result.md`` and ``result.png`` and is skipped on a rerun when its
+``result.json`` exists; evaluations, alignments, campaigns and reward models are cached under ``DIR`` as well, so
+an interrupted run resumes. ``DIR/summary.md`` gathers the tables.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import time
+from collections.abc import Callable
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.experiments.report import COLUMNS, direction_rows, fmt, markdown_table, plot_bars, write_result
+from trafficrlhf_sdk.experiments.steps import (
+    ExperimentRun,
+    align,
+    evaluate,
+    labelled_campaign,
+    resolve_path,
+    train_reward_model,
+)
+
+__all__ = ["GUIDANCES", "TABLES", "PaperConfig", "run_paper"]
+
+TABLES = ("table1", "table2", "table3", "table4", "figure3")
+GUIDANCES = ("speed_limit", "target_speed", "no_collision", "no_offroad", "goal_waypoint")
+METRICS = ("realism_ctg", "realism_body", "realism_meta", "failure_rate", "reward_cost")
+GUIDANCE_OBJECTIVE = {"speed_limit": "guidance_speed_limit", "target_speed": "guidance_target_speed",
+                      "no_collision": "collision_rate", "no_offroad": "offroad_rate",
+                      "goal_waypoint": "guidance_goal_waypoint"}
+
+# the [align] sections of the loop recipes (BITS, TrafficGen) and of docs/recipes/ctg-rlhf.toml without the
+# steering head (CTG); see PaperConfig.align_ctg for the one setting that differs
+ALIGN_BITS = {"alpha": 3.0, "kl_coef": 0.05, "learning_rate": 2e-4, "ppo_epochs": 4, "minibatch_contexts": 4,
+              "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8, "failure_fraction": 0.75,
+              "failure_scenes": 24, "credit": "agent", "holdout_every": 10, "early_stopping_patience": 6}
+ALIGN_TRAFFICGEN = {"alpha": 6.0, "kl_coef": 0.05, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
+                    "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
+                    "early_stopping_patience": 6}
+ALIGN_CTG = {"alpha": 3.0, "imitation_coef": 0.0, "passing_anchor_coef": 1.0, "denoising_steps": 4,
+             "learning_rate": 1e-4, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
+             "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
+             "early_stopping_patience": 6}
+QUICK_ALIGN = {"epochs": 1, "contexts_per_epoch": 2, "samples_per_context": 2, "ppo_epochs": 1,
+               "minibatch_contexts": 2, "failure_fraction": 0.0, "num_scenes": 4, "holdout_every": None,
+               "early_stopping_patience": None}
+
+
+class PaperConfig(BaseModel):
+    """Everything ``trafficrlhf experiment paper`` runs; :meth:`quick` is the small form CI runs."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # > what and where
+    label: str = Field("full", description="Name of this configuration, recorded with every result ('full', "
+                                           "'quick').")
+    only: tuple[Literal["table1", "table2", "table3", "table4", "figure3"], ...] = Field(
+        TABLES, min_length=1, description="Tables and figures to produce, in this order.")
+    source: str = Field("nuscenes_pred", description="Registered scenario source (val: evaluation, train: feedback "
+                                                     "and alignment).")
+    root: str | None = Field(None, description="Data directory of the source; None: its default.")
+    # > evaluation protocol
+    scenes: int = Field(100, ge=1, description="First N long-enough val scenes, sorted by name.")
+    rollouts: int = Field(3, ge=1, description="Closed-loop rollouts per scene (metrics pooled over them); K >= 2 "
+                                              "adds the realism meta-metric at that K.")
+    seed: int = Field(0, description="Seed of evaluation, campaigns, annotators, reward models and alignment.")
+    batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch.")
+    threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
+    progress: bool = Field(True, description="Progress bars for simulation and alignment.")
+    guidance: str | None = Field("no_collision", description="Guidance of Tables 2-4 (sampling, alignment, "
+                                                             "evaluation).")
+    guidances: tuple[str, ...] = Field(GUIDANCES, min_length=1, description="Guidances of Table 1.")
+    # > models
+    ctg_base: str = Field("ctg-4s", description="CTG's weights (a bundled checkpoint's name or a folder).")
+    ctg_aligned: str = Field("ctg-aligned", description="CTG + RM: the checkpoint aligned by the RLHF loop.")
+    bits: str = Field("bits", description="BITS's weights.")
+    trafficgen: str = Field("trafficgen-4s", description="TrafficGen's weights.")
+    reward_model: str = Field("reference_models/reward/ctg_loop", description="The reward model of Tables 1-3 "
+                              "(trained on CTG candidates); a folder, relative to the working directory or to the "
+                              "repository.")
+    reward_aggregation: Literal["mean", "worst", "lcb"] = Field("lcb", description="How the fine-tuner reads an "
+                                                                "ensemble reward model (one member: 'mean').")
+    # > alignment recipes (AlignConfig fields)
+    align_bits: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_BITS), description="BITS + RM recipe "
+                                       "(the loop recipe's [align]).")
+    align_trafficgen: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_TRAFFICGEN),
+                                             description="TrafficGen + RM recipe (the loop recipe's [align]).")
+    align_ctg: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_CTG), description="Table 3's recipe: "
+                                      "docs/recipes/ctg-rlhf.toml's [align] without the steering head, at the "
+                                      "AlignConfig default learning rate 1e-4 (the recipe's 1e-3 is for a fresh "
+                                      "zero-effect head, too large a step for pretrained networks).")
+    table3_groups: dict[str, list[str] | None] = Field(
+        default_factory=lambda: {"encoder": ["encoder"], "decoder": ["decoder"], "full": None},
+        description="Table 3's variants: name -> CTG parameter groups trained (None: all).")
+    align_overrides: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields applied to every "
+                                            "alignment over its recipe (the quick form's small sizes).")
+    # > Table 4: feedback over three models and two reward-model backbones
+    feedback_contexts: int = Field(48, ge=1, description="Labelled train contexts of Table 4's feedback set.")
+    feedback_models: list[str] = Field(default_factory=lambda: ["ctg", "ctg", "bits", "bits", "trafficgen",
+                                                                "trafficgen"],
+                                       description="The traffic model of each candidate slot (bundled weights).")
+    feedback_seconds: float = Field(4.0, gt=0, le=30, description="Length of each candidate (s).")
+    annotators: list[str] = Field(default_factory=lambda: ["attentive", "safety", "flow"],
+                                  description="Stand-in annotator profiles labelling every context.")
+    contrast_scenes: int = Field(120, ge=0, description="Recorded train scenes (from the split's end) giving "
+                                                        "automatic contrast pairs to both reward models; 0: none.")
+    reward: dict[str, Any] = Field(default_factory=lambda: {"ensemble_size": 3, "max_epochs": 12,
+                                                            "contrast_weight": 2.0},
+                                   description="RewardConfig fields of Table 4's reward models.")
+    backbones: dict[str, dict[str, Any]] = Field(
+        default_factory=lambda: {"CTG encoder": {"architecture": "ctg_mlp"},
+                                 "TrafficGen encoder": {"architecture": "trafficgen_mcg"}},
+        description="Table 4's reward models: name -> architecture and architecture_config.")
+    # > Figure 3
+    figure3_contexts: int = Field(10_000, ge=2, description="Labelled CTG train contexts (first N long-enough; "
+                                                            "more than there are: all).")
+    figure3_dev_fraction: float = Field(0.1472, gt=0, lt=1, description="Share of them held out for early "
+                                                                          "stopping (400 of the 469 train scenes).")
+    figure3_sizes: tuple[int, ...] = Field((25, 50, 100, 200, 400), min_length=1,
+                                           description="Numbers of training contexts on the x axis.")
+    figure3_seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Training seeds per size.")
+    figure3_steps: int = Field(300, ge=1, description="Optimizer steps a small training set gets at least "
+                                                      "(more epochs, up to 40).")
+    figure3_reward: dict[str, Any] = Field(default_factory=dict, description="RewardConfig fields of Figure 3's "
+                                           "reward models over the defaults.")
+
+    @classmethod
+    def quick(cls, **fields: Any) -> PaperConfig:
+        """The small form (CI): 4 scenes, 2 rollouts, one-epoch alignments, tiny feedback and reward models; every
+        table's code path runs, in about 5 minutes on 2 cores."""
+        small = {"label": "quick", "scenes": 4, "rollouts": 2, "progress": False, "align_overrides": QUICK_ALIGN,
+                 "feedback_contexts": 2, "contrast_scenes": 2,
+                 "reward": {"ensemble_size": 1, "max_epochs": 2, "batch_size": 2, "contrast_weight": 2.0},
+                 "figure3_contexts": 12, "figure3_sizes": (4, 8), "figure3_seeds": (0,), "figure3_steps": 4,
+                 "figure3_reward": {"max_epochs": 2}}
+        return cls(**{**small, **fields})
+
+
+def _command(config: PaperConfig, name: str) -> str:
+    return f"trafficrlhf experiment paper --out DIR{' --quick' if config.label == 'quick' else ''} --only {name}"
+
+
+def _aggregation(config: PaperConfig, ensemble: bool) -> str:
+    return config.reward_aggregation if ensemble else "mean"
+
+
+def _flat(evaluation: dict[str, Any], reward: str = "rm") -> dict[str, Any]:
+    """One evaluation's metrics with the reward cost under reward model ``reward``."""
+    return {**evaluation["metrics"], "reward_cost": evaluation["reward_cost"].get(reward)}
+
+
+def _recipe(config: PaperConfig, recipe: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    return {**recipe, **extra, **config.align_overrides}
+
+
+# --------------------------------------------------------------------------------------------------------- tables
+def table1(run: ExperimentRun) -> dict[str, Any]:
+    """CTG and CTG + RM under each guidance: realism deviation, failure rate (and reward cost, the guidance's own
+    objective)."""
+    cfg = run.config
+    rm = {"rm": resolve_path(cfg.reward_model)}
+    rows, pairs = [], []
+    for guidance in cfg.guidances:
+        base = _flat(evaluate(run, cfg.ctg_base, "ctg", cfg.ctg_base, guidance, rm))
+        aligned = _flat(evaluate(run, cfg.ctg_aligned, "ctg", cfg.ctg_aligned, guidance, rm))
+        objective = GUIDANCE_OBJECTIVE.get(guidance)
+        for name, values in (("CTG", base), ("CTG + RM", aligned)):
+            rows.append({"guidance": guidance, "model": name, **{m: values.get(m) for m in METRICS},
+                         "objective": objective, "objective_value": values.get(objective)})
+        pairs.append((f"{guidance}: CTG → CTG + RM", base, aligned))
+    headers = ["guidance", "model", *(COLUMNS[m] for m in METRICS), "guidance objective"]
+    body = [[r["guidance"], r["model"], *(r[m] for m in METRICS),
+             f"{r['objective']} {fmt(r['objective_value'])}"] for r in rows]
+    return {"title": "Table 1: CTG and CTG + RM under each guidance", "rows": rows,
+            "markdown": markdown_table(headers, body), "comparisons": direction_rows(pairs, METRICS),
+            "plot": ([f"{r['guidance']}\n{r['model']}" for r in rows],
+                     {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate")}),
+            "notes": [f"CTG = `{cfg.ctg_base}`, CTG + RM = `{cfg.ctg_aligned}` (aligned by the RLHF loop against a "
+                      "learned reward model); reward cost under "
+                      f"`{cfg.reward_model}`; the guidance objective is the metric of the guidance in use "
+                      "(speed-limit violation m/s, target-speed error m/s, collision rate, off-road rate, goal "
+                      "distance m)."]}
+
+
+def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: dict[str, Any],
+                ensemble: bool) -> str:
+    summary = align(run, name, model, checkpoint, reward, _recipe(run.config, recipe),
+                    _aggregation(run.config, ensemble))
+    return summary["folder"]
+
+
+def _is_ensemble(path: str) -> bool:
+    with open(os.path.join(path, "config.json"), encoding="utf-8") as handle:
+        return json.load(handle).get("architecture") == "ensemble"
+
+
+def table2(run: ExperimentRun) -> dict[str, Any]:
+    """CTG, BITS and TrafficGen without and with RM, one reward model trained on CTG candidates."""
+    cfg = run.config
+    reward = resolve_path(cfg.reward_model)
+    rm = {"rm": reward}
+    ensemble = _is_ensemble(reward)
+    bits_rm = _align_pair(run, "table2_bits_rm", "bits", cfg.bits, reward, cfg.align_bits, ensemble)
+    tg_rm = _align_pair(run, "table2_trafficgen_rm", "trafficgen", cfg.trafficgen, reward, cfg.align_trafficgen,
+                        ensemble)
+    entries = [("CTG", "ctg", cfg.ctg_base, cfg.ctg_base), ("CTG + RM", "ctg", cfg.ctg_aligned, cfg.ctg_aligned),
+               ("BITS", "bits", cfg.bits, cfg.bits), ("BITS + RM", "bits", bits_rm, "table2_bits_rm"),
+               ("TrafficGen", "trafficgen", cfg.trafficgen, cfg.trafficgen),
+               ("TrafficGen + RM", "trafficgen", tg_rm, "table2_trafficgen_rm")]
+    values = {name: _flat(evaluate(run, label, model, checkpoint, cfg.guidance, rm))
+              for name, model, checkpoint, label in entries}
+    rows = [{"model": name, **{m: values[name].get(m) for m in METRICS}} for name, *_ in entries]
+    pairs = [(f"{m}: without → with RM", values[m], values[f"{m} + RM"]) for m in ("CTG", "BITS", "TrafficGen")]
+    return {"title": "Table 2: CTG, BITS and TrafficGen without and with RM (one reward model, trained on CTG "
+                     "candidates)", "rows": rows,
+            "markdown": markdown_table(["model", *(COLUMNS[m] for m in METRICS)],
+                                       [[r["model"], *(r[m] for m in METRICS)] for r in rows]),
+            "comparisons": direction_rows(pairs, METRICS),
+            "plot": ([r["model"] for r in rows], {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate",
+                                                                                    "reward_cost")}),
+            "notes": [f"RM = `{cfg.reward_model}`; CTG + RM = `{cfg.ctg_aligned}`; BITS + RM and TrafficGen + RM "
+                      f"aligned here from `{cfg.bits}` and `{cfg.trafficgen}` with the loop recipes' settings; "
+                      f"guidance `{cfg.guidance}`."]}
+
+
+def table3(run: ExperimentRun) -> dict[str, Any]:
+    """Fine-tuning CTG's encoder only, decoder only and the full model against the same reward model."""
+    cfg = run.config
+    reward = resolve_path(cfg.reward_model)
+    rm = {"rm": reward}
+    ensemble = _is_ensemble(reward)
+    base = _flat(evaluate(run, cfg.ctg_base, "ctg", cfg.ctg_base, cfg.guidance, rm))
+    rows = [{"variant": "CTG (not fine-tuned)", "groups": "", "epochs": None, "align_s": None,
+             **{m: base.get(m) for m in METRICS}}]
+    pairs = []
+    for variant, groups in cfg.table3_groups.items():
+        name = f"table3_ctg_{variant}"
+        summary = align(run, name, "ctg", cfg.ctg_base, reward, _recipe(cfg, cfg.align_ctg, groups=groups),
+                        _aggregation(cfg, ensemble))
+        values = _flat(evaluate(run, name, "ctg", summary["folder"], cfg.guidance, rm))
+        rows.append({"variant": f"CTG + RM, {variant}", "groups": ",".join(summary.get("groups") or []),
+                     "epochs": summary.get("epochs"), "align_s": summary.get("wall_time_s"),
+                     **{m: values.get(m) for m in METRICS}})
+        pairs.append((f"CTG → CTG + RM ({variant})", base, values))
+    headers = ["variant", "groups trained", "epochs", "alignment s", *(COLUMNS[m] for m in METRICS)]
+    body = [[r["variant"], r["groups"], "" if r["epochs"] is None else str(r["epochs"]),
+             "" if r["align_s"] is None else f"{r['align_s']:.0f}", *(r[m] for m in METRICS)] for r in rows]
+    return {"title": "Table 3: fine-tuning CTG's encoder only, decoder only and the full model", "rows": rows,
+            "markdown": markdown_table(headers, body), "comparisons": direction_rows(pairs, METRICS),
+            "plot": ([r["variant"] for r in rows], {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate",
+                                                                                      "reward_cost")}),
+            "notes": [f"Recipe: `docs/recipes/ctg-rlhf.toml`'s [align] without the steering head, learning rate "
+                      f"{cfg.align_ctg.get('learning_rate')}; RM = `{cfg.reward_model}`; guidance `{cfg.guidance}`."]}
+
+
+def table4(run: ExperimentRun) -> dict[str, Any]:
+    """Reward models with the CTG and the TrafficGen encoder on one feedback set over CTG, BITS and TrafficGen
+    candidates, each aligning BITS and TrafficGen."""
+    from trafficrlhf_sdk.feedback.preference import export_preferences
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES
+
+    cfg = run.config
+    folder = run.folder("table4")
+    store = FeedbackStore(os.path.join(folder, "feedback.sqlite"))
+    try:
+        unknown = [p for p in cfg.annotators if p not in PROFILES]
+        if unknown:
+            raise TrafficRLHFError(f"annotator profiles {unknown} are unknown; use some of {sorted(PROFILES)}.")
+        annotators = {p: PROFILES[p].model_copy(update={"seed": cfg.seed}) for p in cfg.annotators}
+        labelled_campaign(run, store, "mixed", cfg.feedback_models[0], cfg.feedback_contexts, "train", annotators,
+                          cfg.guidance, candidate_models=list(cfg.feedback_models),
+                          candidates=len(cfg.feedback_models), seconds=cfg.feedback_seconds)
+        dataset = export_preferences(store, "mixed", val_fraction=0.15, seed=cfg.seed)
+    finally:
+        store.close()
+    contrast = None
+    if cfg.contrast_scenes:
+        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
+
+        contrast = contrast_dataset(recorded_windows(cfg.source, "train", cfg.contrast_scenes, cfg.root,
+                                                     from_end=True, future_steps=round(cfg.feedback_seconds * 10)))
+    ensemble = int(cfg.reward.get("ensemble_size", 1)) > 1
+    reward_models, accuracy = {}, {}
+    for index, (backbone, spec) in enumerate(cfg.backbones.items()):
+        card = train_reward_model(run, os.path.join(folder, f"reward_model_{index}"), dataset,
+                                  {**cfg.reward, **spec}, contrast, title=f"Table 4 reward model: {backbone}")
+        reward_models[backbone] = card["folder"]
+        accuracy[backbone] = card["metrics"].get("val_accuracy")
+    costs = {f"rm{i}": path for i, path in enumerate(reward_models.values())}
+    bases = {"BITS": ("bits", cfg.bits, cfg.align_bits), "TrafficGen": ("trafficgen", cfg.trafficgen,
+                                                                        cfg.align_trafficgen)}
+    rows, pairs = [], []
+    for model_name, (model, checkpoint, recipe) in bases.items():
+        base_eval = evaluate(run, checkpoint, model, checkpoint, cfg.guidance, costs)
+        rows.append({"model": model_name, "backbone": "", "rm_val_accuracy": None,
+                     **base_eval["metrics"], "costs": base_eval["reward_cost"]})
+        for index, (backbone, path) in enumerate(reward_models.items()):
+            name = f"table4_{model}_rm{index}"
+            summary = align(run, name, model, checkpoint, path, _recipe(cfg, recipe), _aggregation(cfg, ensemble))
+            aligned = evaluate(run, name, model, summary["folder"], cfg.guidance, costs)
+            rows.append({"model": f"{model_name} + RM", "backbone": backbone, "rm_val_accuracy": accuracy[backbone],
+                         **aligned["metrics"], "costs": aligned["reward_cost"]})
+            pairs.append((f"{model_name} → + RM ({backbone})", _flat(base_eval, f"rm{index}"),
+                          _flat(aligned, f"rm{index}")))
+    names = list(reward_models)
+    headers = ["model", "RM backbone", "RM val. accuracy", *(COLUMNS[m] for m in METRICS[:4]),
+               *(f"reward cost, {n} RM" for n in names)]
+    body = [[r["model"], r["backbone"], r["rm_val_accuracy"], *(r.get(m) for m in METRICS[:4]),
+             *(r["costs"].get(f"rm{i}") for i in range(len(names)))] for r in rows]
+    return {"title": "Table 4: reward models with the CTG and the TrafficGen encoder, aligning BITS and TrafficGen",
+            "rows": rows, "markdown": markdown_table(headers, body), "comparisons": direction_rows(pairs, METRICS),
+            "plot": ([f"{r['model']}\n{r['backbone']}" for r in rows],
+                     {m: [r.get(m) for r in rows] for m in ("realism_ctg", "failure_rate")}),
+            "reward_models": reward_models, "feedback": {"contexts": dataset.num_contexts,
+                                                         "pairs": int(dataset.pairs.shape[0])},
+            "notes": [f"Feedback: {dataset.num_contexts} train contexts, candidates from "
+                      f"{', '.join(cfg.feedback_models)} (bundled weights), labelled by "
+                      f"{', '.join(cfg.annotators)}; {cfg.contrast_scenes} contrast scenes; the same data trains "
+                      "both reward models. Reward cost of a row under each reward model; the direction check uses "
+                      "the reward model that aligned the row."]}
+
+
+def figure3(run: ExperimentRun) -> dict[str, Any]:
+    """Reward-model accuracy against the number of labelled training contexts, with its spread over seeds."""
+    import torch
+
+    from trafficrlhf_sdk.feedback.preference import export_preferences
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+    from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotatorConfig
+    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer, build_pair_data, evaluate_pairs, filter_pairs
+    from trafficrlhf_sdk.reward.model import get_reward_model_architecture
+    from trafficrlhf_sdk.reward.oracle import hidden_realism, strict_pairs
+
+    cfg = run.config
+    folder = run.folder("figure3")
+    store = FeedbackStore(os.path.join(folder, "feedback.sqlite"))
+    try:
+        options = {"checkpoint": cfg.ctg_base}
+        noisy = {"noisy": SyntheticAnnotatorConfig(beta=20.0, epsilon=0.1, seed=cfg.seed)}
+        oracle = {"oracle": SyntheticAnnotatorConfig(beta=None, epsilon=0.0, seed=cfg.seed)}
+        labelled_campaign(run, store, "train", "ctg", cfg.figure3_contexts, "train", noisy, cfg.guidance, options)
+        labelled_campaign(run, store, "test", "ctg", cfg.scenes, "val", oracle, cfg.guidance, options)
+        base = RewardConfig(progress=False, seed=cfg.seed, **cfg.figure3_reward)
+        template = get_reward_model_architecture(base.architecture)(base.architecture_config)
+        train_all = filter_pairs(export_preferences(store, "train", val_fraction=cfg.figure3_dev_fraction,
+                                                    seed=cfg.seed), ["noisy"])
+        test = filter_pairs(export_preferences(store, "test", val_fraction=0.0), ["oracle"])
+        strict = strict_pairs(test, hidden_realism(store, test))
+    finally:
+        store.close()
+    data = build_pair_data(template.prepare, train_all)
+    test_all = build_pair_data(template.prepare, test)
+    test_strict = build_pair_data(template.prepare, filter_pairs(test, mask=strict)) if bool(strict.any()) else None
+    train_ids = [i for i, s in enumerate(data.split) if s == "train"]
+    dev_ids = [i for i, s in enumerate(data.split) if s == "val"]
+    sizes = [s for s in cfg.figure3_sizes if s <= len(train_ids)] or [len(train_ids)]
+    runs_path = os.path.join(folder, "runs.json")
+    runs: list[dict[str, Any]] = []
+    if os.path.isfile(runs_path):
+        with open(runs_path, encoding="utf-8") as handle:
+            runs = json.load(handle)
+    done = {(r["seed"], r["contexts"]) for r in runs}
+    for seed in cfg.figure3_seeds:
+        order = torch.randperm(len(train_ids), generator=torch.Generator().manual_seed(seed)).tolist()
+        for size in sizes:
+            if (seed, size) in done:
+                continue
+            subset = data.subset([train_ids[i] for i in order[:size]] + dev_ids)
+            batch = 4 if size <= 50 else 8 if size <= 100 else base.batch_size  # small sets: more, smaller steps
+            epochs = max(1, min(40, math.ceil(cfg.figure3_steps * batch / size)))
+            if "max_epochs" in cfg.figure3_reward:
+                epochs = min(epochs, int(cfg.figure3_reward["max_epochs"]))
+            began = time.perf_counter()
+            result = RewardTrainer(base.model_copy(update={"seed": seed, "max_epochs": epochs, "batch_size": batch,
+                                                           "num_threads": cfg.threads}),
+                                   train_dataset=subset).train()
+            runs.append({"seed": seed, "contexts": size, "pairs": len(subset.split_subset("train")),
+                         "accuracy": None if test_strict is None else
+                         evaluate_pairs(result.model, test_strict)["accuracy"],
+                         "accuracy_all_pairs": evaluate_pairs(result.model, test_all)["accuracy"],
+                         "dev_accuracy": result.metrics.get("val_accuracy"), "epochs_run": len(result.history),
+                         "seconds": time.perf_counter() - began})
+            run.log(f"figure 3: seed {seed}, {size} contexts: strict accuracy {fmt(runs[-1]['accuracy'], 3)}, all "
+                    f"pairs {fmt(runs[-1]['accuracy_all_pairs'], 3)}")
+            with open(runs_path, "w", encoding="utf-8") as handle:
+                json.dump(runs, handle, indent=1)
+    summary = [_accuracy_summary(size, [r for r in runs if r["contexts"] == size]) for size in sizes]
+    return {"title": "Figure 3: reward-model accuracy against the number of labelled contexts", "runs": runs,
+            "rows": summary, "test_pairs": len(test_all), "test_strict_pairs": 0 if test_strict is None else
+            len(test_strict), "train_contexts": len(train_ids), "dev_contexts": len(dev_ids),
+            "markdown": markdown_table(["training contexts", "pairs (mean)", "strict accuracy mean", "std", "min",
+                                        "max", "all pairs, mean"],
+                                       [[str(s["contexts"]), f"{s['pairs']:.0f}", s["mean"], s["std"], s["min"],
+                                         s["max"], s["mean_all_pairs"]] for s in summary]),
+            "comparisons": [], "figure": summary,
+            "notes": [f"CTG (`{cfg.ctg_base}`, guidance `{cfg.guidance}`) candidates on {len(train_ids)} + "
+                      f"{len(dev_ids)} (early stopping) train contexts labelled by a noisy stand-in annotator "
+                      f"(β = 20, 10 % mistakes); accuracy on {cfg.scenes} val contexts against a noise-free one: "
+                      f"{0 if test_strict is None else len(test_strict)} pairs whose winner is strictly more "
+                      f"realistic (ties carry no preference), and all {len(test_all)} pairs. Seeds "
+                      f"{', '.join(map(str, cfg.figure3_seeds))}; one single `ctg_mlp` model per run."]}
+
+
+def _accuracy_summary(size: int, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    strict = [r["accuracy"] for r in runs if r["accuracy"] is not None]
+    every = [r["accuracy_all_pairs"] for r in runs]
+    mean = sum(strict) / len(strict) if strict else None
+    std = (sum((v - mean) ** 2 for v in strict) / (len(strict) - 1)) ** 0.5 if len(strict) > 1 else 0.0
+    return {"contexts": size, "pairs": sum(r["pairs"] for r in runs) / max(len(runs), 1), "mean": mean,
+            "std": std if strict else None, "min": min(strict) if strict else None,
+            "max": max(strict) if strict else None, "mean_all_pairs": sum(every) / len(every) if every else None}
+
+
+def plot_figure3(path: str, summary: list[dict[str, Any]], runs: list[dict[str, Any]], title: str) -> str:
+    """Strict accuracy, mean ± std over seeds with the min-max band and one dot per run, and the all-pairs mean;
+    x on a log scale. Returns ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [s["contexts"] for s in summary]
+    nan = float("nan")
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.fill_between(x, [nan if s["min"] is None else s["min"] for s in summary],
+                    [nan if s["max"] is None else s["max"] for s in summary], alpha=0.15, color="tab:blue",
+                    label="min-max over seeds")
+    ax.errorbar(x, [nan if s["mean"] is None else s["mean"] for s in summary],
+                yerr=[0.0 if s["std"] is None else s["std"] for s in summary], marker="o", capsize=4,
+                color="tab:blue", label="strict pairs: mean ± std")
+    ax.scatter([r["contexts"] for r in runs], [nan if r["accuracy"] is None else r["accuracy"] for r in runs], s=10,
+               color="tab:blue", alpha=0.5)
+    ax.plot(x, [s["mean_all_pairs"] for s in summary], linestyle="--", color="tab:gray", label="all pairs (mean)")
+    if len(set(x)) > 1:
+        ax.set_xscale("log")
+    ax.set_xticks(x)
+    ax.set_xticklabels([str(v) for v in x])
+    ax.set_xlabel("labelled training contexts")
+    ax.set_ylabel("held-out accuracy")
+    ax.axhline(0.5, color="black", linewidth=0.5, linestyle=":")
+    ax.set_ylim(0.3, 1.0)
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+STEPS: dict[str, Callable[[ExperimentRun], dict[str, Any]]] = {
+    "table1": table1, "table2": table2, "table3": table3, "table4": table4, "figure3": figure3}
+
+
+# --------------------------------------------------------------------------------------------------------- runner
+def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Produce ``config.only`` in ``out_dir`` (each table skipped when its ``result.json`` exists) and write
+    ``out_dir/summary.md``; returns ``{name: result}`` for every table of ``config.only`` with the total wall
+    time of this call."""
+    import torch
+
+    os.makedirs(out_dir, exist_ok=True)
+    if config.threads is not None:
+        torch.set_num_threads(config.threads)
+    run = ExperimentRun(config, out_dir, log)
+    began = time.perf_counter()
+    results: dict[str, Any] = {}
+    for name in config.only:
+        folder = os.path.join(out_dir, name)
+        path = os.path.join(folder, "result.json")
+        if os.path.isfile(path):
+            log(f"{name}: done before ({path}); skipped")
+            with open(path, encoding="utf-8") as handle:
+                results[name] = json.load(handle)
+            continue
+        log(f"{name}: starting")
+        tic = time.perf_counter()
+        produced = STEPS[name](run)
+        produced.update(command=_command(config, name), seed=config.seed, rollouts=config.rollouts,
+                        scenes=config.scenes, wall_time_s=time.perf_counter() - tic, threads=torch.get_num_threads(),
+                        machine=platform.machine(), cpus=os.cpu_count(), config=config.model_dump(mode="json"),
+                        label=config.label)
+        os.makedirs(folder, exist_ok=True)
+        if name == "figure3":
+            plot_figure3(os.path.join(folder, "result.png"), produced["figure"], produced["runs"], produced["title"])
+        else:
+            labels, series = produced.pop("plot")
+            plot_bars(os.path.join(folder, "result.png"), labels, series, produced["title"])
+        write_result(folder, produced, produced["markdown"], produced["comparisons"], produced.get("notes", ()))
+        with open(path, encoding="utf-8") as handle:
+            results[name] = json.load(handle)
+        log(f"{name}: done in {produced['wall_time_s']:.0f} s -> {folder}")
+    total = time.perf_counter() - began
+    parts = [f"# Paper experiments ({config.label})", "",
+             f"This call: {total:.0f} s on {os.cpu_count()} CPUs ({torch.get_num_threads()} torch threads).", ""]
+    for name in TABLES:
+        md = os.path.join(out_dir, name, "result.md")
+        if os.path.isfile(md):
+            with open(md, encoding="utf-8") as handle:
+                parts += [handle.read(), ""]
+    with open(os.path.join(out_dir, "summary.md"), "w", encoding="utf-8") as handle:
+        handle.write("\n".join(parts))
+    log(f"all done in {total:.0f} s: {os.path.join(out_dir, 'summary.md')}")
+    return {"results": results, "wall_time_s": total}
