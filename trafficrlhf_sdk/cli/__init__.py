@@ -9,6 +9,7 @@ from trafficrlhf_sdk.cli import (  # noqa: F401  (importing a command module att
     compare,
     data_commands,
     evaluate,
+    experiment_commands,
     feedback_commands,
     rlhf_commands,
     rm_commands,

@@ -63,8 +63,8 @@ ALIGN_CTG = {"alpha": 3.0, "imitation_coef": 0.0, "passing_anchor_coef": 1.0, "d
              "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
              "early_stopping_patience": 6}
 QUICK_ALIGN = {"epochs": 1, "contexts_per_epoch": 2, "samples_per_context": 2, "ppo_epochs": 1,
-               "minibatch_contexts": 2, "failure_fraction": 0.0, "num_scenes": 4, "holdout_every": None,
-               "early_stopping_patience": None}
+               "minibatch_contexts": 2, "failure_fraction": 0.5, "failure_scenes": 4, "num_scenes": 4,
+               "holdout_every": None, "early_stopping_patience": None}
 
 
 class PaperConfig(BaseModel):
