@@ -143,7 +143,8 @@ def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, rew
           ) -> dict[str, Any]:
     """Align ``model`` from ``checkpoint`` against ``reward_model`` with the AlignConfig ``fields``
     (:func:`~trafficrlhf_sdk.alignment.recipe.run_recipe`) into ``out_dir/models/<name>``; skipped when that folder
-    already holds a finished run. Returns the run's summary plus its ``folder``."""
+    already holds a finished run, resumed from its newest checkpoint when it holds an interrupted one. Returns the
+    run's summary plus its ``folder``."""
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
 
     folder = os.path.join(run.out_dir, "models", name)
@@ -153,6 +154,9 @@ def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, rew
         settings = {"guidance": cfg.guidance, "seed": cfg.seed, "progress_bar": cfg.progress,
                     **({"source": cfg.source} if cfg.source != "nuscenes_pred" else {}),
                     **({"root": cfg.root} if cfg.root else {}), **fields}
+        checkpoints = os.path.join(folder, "checkpoints")
+        if os.path.isdir(checkpoints) and any(n.startswith("checkpoint-") for n in os.listdir(checkpoints)):
+            settings["resume"] = True  # an interrupted run: continue from its newest checkpoint
         recipe = AlignRecipe(model=model, checkpoint=checkpoint, reward_model=reward_model,
                              model_options=model_options or {}, reward_aggregation=aggregation,  # type: ignore[arg-type]
                              align=settings)
