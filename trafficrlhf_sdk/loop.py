@@ -37,6 +37,7 @@ from trafficrlhf_sdk.errors import TrafficRLHFError
 __all__ = ["RLHFConfig", "rlhf"]
 
 STATE_FILE = "state.json"
+PROBE_PASS = 0.9  # a reward model should rank the log above each perturbation at least this often
 
 
 class RLHFConfig(BaseModel):
@@ -260,6 +261,11 @@ def _reward_model(config: RLHFConfig, out_dir: str, campaigns: list[str], folder
         f"{trainer.dataset_info.get('contrast_pairs', 0)} contrast): val accuracy "
         f"{result.metrics.get('val_accuracy', float('nan')):.3f}"
         + ("; probes " + ", ".join(f"{k} {v['pass_rate']:.2f}" for k, v in probes.items()) if probes else ""))
+    weak = {k: v["pass_rate"] for k, v in (probes or {}).items() if v["pass_rate"] < PROBE_PASS}
+    if weak:
+        log(f"round {r}: warning: the reward model ranks the log below its perturbation in more than "
+            f"{1 - PROBE_PASS:.0%} of the probes for " + ", ".join(f"{k} ({v:.2f})" for k, v in weak.items())
+            + "; PPO is likely to exploit that (more contrast scenes or a higher reward.contrast_weight help)")
     _mark(state, out_dir, step, **{f"reward_model_{r}": path, f"probes_{r}": probes,
                                    f"reward_metrics_{r}": result.metrics})
 
