@@ -218,3 +218,44 @@ def test_create_and_extend_campaign_on_real_data(tmp_path, nuscenes_source) -> N
     assert after[:2] == before  # existing contexts untouched
     again = create_campaign(FeedbackStore(tmp_path / "again.db"), config)  # same seed: same candidates
     assert torch.equal(FeedbackStore(tmp_path / "again.db").load_context(again.added[0]).candidates, record.candidates)
+
+
+@pytest.mark.data
+def test_closed_loop_contexts_start_from_the_models_own_driving(tmp_path, nuscenes_source) -> None:  # type: ignore[no-untyped-def]
+    """Constant velocity leaves the road: its context is cut one second before its first failure, the history is
+    its own driving up to the cut (the log after it) and as long as a logged context's; a policy that never fails
+    is cut at a random step of its drive, with the log as history."""
+    from trafficrlhf_sdk.feedback.campaign import _open_source, closed_loop_context
+    from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+    config = CampaignConfig(name="cl", model="constant_velocity", contexts="closed_loop", candidate_seconds=2.0,
+                            drive_seconds=6.0, root=nuscenes_source.root)
+    source = _open_source(config)
+    cut_before_failure = 0
+    for scene_id in source.scene_ids("val")[:6]:
+        scene = source.load_scene("val", scene_id)
+        start = scene.current_index
+        context = closed_loop_context(build_policy("constant_velocity", None, 0), scene, 6.0, 2.0, seed=1)
+        cut = scene.num_steps - context.num_steps + start
+        assert context.current_index == start and start <= cut <= start + 60
+        driven = simulate(build_policy("constant_velocity", None, 0), scene, SimulationConfig(duration_s=6.0))
+        sim = driven.simulated
+        failed = (collisions_per_step(sim) | offroad_per_step(sim))[0] & sim.valid[0] & driven.controlled[0][:, None]
+        failed[:, : start + 1] = False
+        mine = context.valid[0, :, : start + 1]
+        assert torch.equal(context.states[0, :, : start + 1][mine], sim.states[0, :, cut - start: cut + 1][mine])
+        if failed.any():
+            first = int(torch.arange(sim.num_steps)[failed.any(0)].min())
+            assert cut == max(start, first - 10)
+            cut_before_failure += 1
+        replay = closed_loop_context(build_policy("log_replay", None, 0), scene, 6.0, 2.0, seed=1)
+        cut = scene.num_steps - replay.num_steps + start
+        same = replay.valid[0, :, : start + 1]
+        assert torch.allclose(replay.states[0, :, : start + 1][same], scene.states[0, :, cut - start: cut + 1][same])
+    assert cut_before_failure >= 3
+    store = FeedbackStore(tmp_path / "cl.db")
+    report = create_campaign(store, config.model_copy(update={"num_contexts": 2, "num_candidates": 2}))
+    assert len(report.added) == 2 and store.load_context(report.added[0]).candidates.shape[2] == 20
+    with pytest.raises(ValueError, match="closed_loop"):
+        CampaignConfig(name="x", model="a", contexts="closed_loop", num_candidates=2, candidate_models=["a", "b"])

@@ -60,6 +60,10 @@ class RLHFConfig(BaseModel):
     seconds: float = Field(4.0, gt=0, le=30, description="Length of each candidate (s).")
     unguided_share: float = Field(0.5, ge=0, le=1, description="Share of the contexts whose candidates are drawn "
                                   "without guidance (candidate sets that differ where it matters).")
+    contexts: Literal["log", "closed_loop"] = Field("log", description="Where candidates start: after the "
+                                                    "logged history, or after the round's policy drove the scene "
+                                                    "itself, cut shortly before its first failure (preferences "
+                                                    "where the policy gets into trouble).")
     annotators: list[str] = Field(default_factory=lambda: ["attentive", "safety", "flow"],
                                   description="Stand-in annotator profiles that label every round.")
     people: bool = Field(False, description="Wait for people to label each round in the browser app "
@@ -173,7 +177,7 @@ def _generate(config: RLHFConfig, store: Any, r: int, policy: str | None, scenes
             f"{'guidance ' + guidance if guidance else 'no guidance'}, {policy or 'bundled weights'})")
         create_campaign(store, CampaignConfig(
             name=name, model=config.model, guidance=guidance, model_options=options, source=config.source,
-            split="train", root=config.root, scene_ids=part, num_candidates=config.candidates,
+            split="train", root=config.root, scene_ids=part, num_candidates=config.candidates, contexts=config.contexts,
             candidate_seconds=config.seconds, seed=config.seed + 1000 * r + len(made)))
         made.append(name)
     _mark(state, out_dir, step, **{f"campaigns_{r}": made})

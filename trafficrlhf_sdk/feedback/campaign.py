@@ -13,6 +13,12 @@ the scene (:func:`context_seed`), and ``reset`` re-seeds it, so a context's cand
 guidance, campaign seed, scene): extending a campaign later regenerates nothing and changes nothing that
 exists, and the same command reproduces the same candidates.
 
+**Contexts the policy reaches itself.** With ``contexts="closed_loop"`` the model first drives the scene in
+closed loop for up to ``drive_seconds``; the context is cut one second before the first collision or off-road
+step of a driven agent (at a seeded random step of the drive when none fails), so its history is the model's own
+driving and the candidates start where the model gets into trouble, the states a fine-tuner trains on
+(iterated RLHF collects preferences where the policy drives).
+
 The logged future over the same window is stored as the hidden reference ("none realistic" makes it the
 winner). Maps are cropped to the agents' area plus a margin so the database stays small.
 
@@ -26,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -68,6 +74,12 @@ class CampaignConfig(BaseModel):
         None, ge=1, description="Annotators per item; None: every annotator labels every item."
     )
     map_margin_m: float = Field(25.0, ge=0, description="Map kept around the agents' positions (m).")
+    contexts: Literal["log", "closed_loop"] = Field("log", description="'log': candidates start after the logged "
+                                                    "history; 'closed_loop': after the model's own closed-loop "
+                                                    "driving, cut shortly before its first failure (see the "
+                                                    "module docstring).")
+    drive_seconds: float = Field(6.0, gt=0, le=20, description="With contexts='closed_loop': the longest drive "
+                                                                  "before a context is cut (s).")
     candidate_models: list[str] | None = Field(
         None, description="The traffic model of each of the N candidates, in slot order (several models in one "
                           "set, e.g. ['a', 'a', 'b', 'b', 'c']); None: all N from `model`. Guidance and "
@@ -78,6 +90,9 @@ class CampaignConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check_models(self) -> CampaignConfig:
+        if self.contexts == "closed_loop" and self.candidate_models is not None:
+            raise ValueError("contexts='closed_loop' drives one model before the candidates; leave "
+                             "`candidate_models` unset or use contexts='log'.")
         if self.candidate_models is not None and len(self.candidate_models) != self.num_candidates:
             raise ValueError(f"`candidate_models` must name one model per candidate ({self.num_candidates}); got "
                              f"{len(self.candidate_models)}: {self.candidate_models}. Repeat a model to give it "
@@ -134,11 +149,45 @@ def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int,
             logged.valid[0, :, future].clone())
 
 
+def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float, candidate_seconds: float,
+                        seed: int, lead_seconds: float = 1.0) -> ScenarioTensor:
+    """``scene`` (B = 1) after ``policy`` drove its controlled agents in closed loop, cut ``lead_seconds`` before
+    the first collision or off-road step of a driven agent (at a random step of the drive, drawn from ``seed``,
+    when none fails): the model's states up to the cut, the log after it, the same history length as ``scene``
+    and ``current_index`` at the cut."""
+    from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
+
+    start, dt = scene.current_index, scene.dt
+    drive = max(1, min(round(drive_seconds / dt), scene.num_steps - 1 - start - round(candidate_seconds / dt)))
+    with torch.no_grad():
+        rollout = simulate(policy, scene, SimulationConfig(duration_s=drive * dt))
+    sim = rollout.simulated
+    driven = rollout.controlled[0]
+    failed = collisions_per_step(sim)[0]
+    if sim.map is not None and "drivable" in sim.map.layers:
+        failed = failed | offroad_per_step(sim)[0]
+    failed = failed & sim.valid[0] & driven[:, None]
+    steps = torch.arange(sim.num_steps)
+    failed &= (steps > start) & (steps <= start + drive)
+    if failed.any():
+        cut = max(start, int(steps[failed.any(0)].min()) - round(lead_seconds / dt))
+    else:
+        gen = torch.Generator().manual_seed(seed)
+        cut = start + int(torch.randint(0, drive + 1, (1,), generator=gen))
+    t = min(cut + 1, sim.num_steps)
+    states = torch.cat([sim.states[:, :, :t], scene.states[:, :, t:]], 2)
+    valid = torch.cat([sim.valid[:, :, :t], scene.valid[:, :, t:]], 2)
+    hybrid = scene.replace_unchecked(states=states * valid[..., None], valid=valid)
+    window = hybrid.time_slice(cut - start, scene.num_steps)
+    return window.replace_unchecked(current_index=start, controlled=scene.controlled & window.valid[:, :, start])
+
+
 def _open_source(cfg: CampaignConfig) -> Any:
     from trafficrlhf_sdk import get_scenario_source
 
-    options: dict[str, Any] = {"history_s": cfg.history_seconds, "min_future_s": cfg.candidate_seconds,
-                               "max_future_s": cfg.candidate_seconds + 1.0}
+    future = cfg.candidate_seconds + (cfg.drive_seconds if cfg.contexts == "closed_loop" else 0.0)
+    options: dict[str, Any] = {"history_s": cfg.history_seconds, "min_future_s": future,
+                               "max_future_s": future + 1.0}
     if cfg.root is not None:
         options["root"] = cfg.root
     return get_scenario_source(cfg.source, **options)
@@ -227,6 +276,8 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
         elif not slots:
             scene = source.load_scene(cfg["split"], scene_id)
             policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
+            if cfg.get("contexts", "log") == "closed_loop":
+                scene = closed_loop_context(policy, scene, cfg["drive_seconds"], cfg["candidate_seconds"], seed)
             with torch.no_grad():
                 context, cands, cand_valid, logged, logged_valid = generate_candidates(
                     policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
