@@ -586,3 +586,17 @@ def test_resume_falls_back_to_an_intact_checkpoint_and_refuses_changed_settings(
     assert len(result.history) == 3  # epoch 1 from the intact checkpoint, then epochs 2 and 3
     state = json.loads((out / "checkpoints" / "checkpoint-3" / "trainer_state.json").read_text())
     assert state["config_changes"] == [{"from_epoch": 2, "changes": {"learning_rate": [0.0001, 0.001]}}]
+
+
+def test_an_adapter_plans_for_a_scene_with_nobody_left_to_drive(val_scenes, make_gru_adapter) -> None:  # type: ignore[no-untyped-def]
+    """When no controlled agent is present at the replanning step (their logged tracks ended), the plan holds
+    every agent's course instead of asking the model to sample zero agents."""
+    adapter = make_gru_adapter()
+    scene = val_scenes[:2]
+    now = scene.current_index
+    empty = scene.replace_unchecked(controlled=torch.zeros_like(scene.controlled))
+    plan = adapter.plan(empty, 12)
+    assert plan.states.shape == (2, scene.num_agents, 12, 4) and torch.isfinite(plan.states).all()
+    speed = scene.states[:, :, now, 2]
+    moved = (plan.states[:, :, 0, :2] - scene.states[:, :, now, :2]).norm(dim=-1)
+    assert torch.allclose(moved, speed.abs() * scene.dt, atol=1e-4)

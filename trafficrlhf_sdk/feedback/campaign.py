@@ -154,7 +154,8 @@ def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float
     """``scene`` (B = 1) after ``policy`` drove its controlled agents in closed loop, cut ``lead_seconds`` before
     the first collision or off-road step of a driven agent (at a random step of the drive, drawn from ``seed``,
     when none fails): the model's states up to the cut, the log after it, the same history length as ``scene``
-    and ``current_index`` at the cut."""
+    and ``current_index`` at the cut; ``controlled`` = the driven agents present and on the road there. ``scene``
+    itself when no such agent is left."""
     from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 
     start, dt = scene.current_index, scene.dt
@@ -179,7 +180,12 @@ def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float
     valid = torch.cat([sim.valid[:, :, :t], scene.valid[:, :, t:]], 2)
     hybrid = scene.replace_unchecked(states=states * valid[..., None], valid=valid)
     window = hybrid.time_slice(cut - start, scene.num_steps)
-    return window.replace_unchecked(current_index=start, controlled=scene.controlled & window.valid[:, :, start])
+    controlled = rollout.controlled & window.valid[:, :, start]
+    if window.map is not None and "drivable" in window.map.layers:  # as the simulator keeps agents at a start
+        controlled &= window.map.lookup(window.xy[:, :, start].double())
+    if not controlled.any():  # nobody left to drive from the cut: the logged context
+        return scene
+    return window.replace_unchecked(current_index=start, controlled=controlled)
 
 
 def _open_source(cfg: CampaignConfig) -> Any:

@@ -183,6 +183,10 @@ class TrafficModelAdapter(abc.ABC):
         """Sample ``plan_samples`` futures, keep the one with the lowest guidance loss (sample 0 without
         guidance), and extend it to ``horizon`` steps if the model plans fewer."""
         context = context.to(self.options.device)
+        now = context.current_index
+        if not (context.controlled & context.valid[:, :, now]).any():  # nobody to plan for: hold course
+            return Plan(extend_constant_velocity(context.states[:, :, now: now + 1], horizon + 1, context.dt)[
+                :, :, 1:].cpu())
         samples = 1 if self.guidance is None else self.options.plan_samples
         with torch.enable_grad() if self.guidance is not None else torch.no_grad():
             out = self.sample(context, samples, self.guidance, self._generator)
