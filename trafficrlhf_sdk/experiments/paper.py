@@ -437,6 +437,7 @@ def plot_figure3(path: str, summary: list[dict[str, Any]], runs: list[dict[str, 
     """Strict accuracy, mean ± std over seeds with the min-max band and one dot per run, and the all-pairs mean;
     x on a log scale. Returns ``path``."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -455,6 +456,7 @@ def plot_figure3(path: str, summary: list[dict[str, Any]], runs: list[dict[str, 
     ax.plot(x, [s["mean_all_pairs"] for s in summary], linestyle="--", color="tab:gray", label="all pairs (mean)")
     if len(set(x)) > 1:
         ax.set_xscale("log")
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.set_xticks(x)
     ax.set_xticklabels([str(v) for v in x])
     ax.set_xlabel("labelled training contexts")
