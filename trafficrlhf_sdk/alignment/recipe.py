@@ -19,12 +19,12 @@ from __future__ import annotations
 import json
 import os
 import time
-import tomllib
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from trafficrlhf_sdk.alignment.config import AlignConfig, paper_alpha
+from trafficrlhf_sdk.config_files import read_toml
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
 __all__ = ["AlignRecipe", "run_recipe"]
@@ -61,11 +61,7 @@ class AlignRecipe(BaseModel):
         if not os.path.isfile(path):
             raise DataNotFoundError(f"--config {path!r}: no such file; give a TOML recipe (see "
                                     "reference_models/*/*/recipe.toml or loop.toml).")
-        try:
-            with open(path, "rb") as handle:
-                data = tomllib.load(handle)
-        except tomllib.TOMLDecodeError as exc:
-            raise DataFormatError(f"--config {path!r}: not valid TOML ({exc}).") from None
+        data = read_toml(path)
         try:
             recipe = cls(**data)
             AlignConfig(**recipe.align)  # fail early, naming the file

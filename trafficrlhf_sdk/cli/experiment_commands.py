@@ -29,22 +29,16 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
                   threads: int | None) -> None:
     """Tables 1-4 and Figure 3 of the paper (arXiv 2309.00709) on nuScenes val scenes, with stand-in annotators
     and learned reward models: markdown, JSON and PNG per table, with commands, seeds and wall times."""
-    import tomllib
+    from trafficrlhf_sdk.config_files import read_toml
 
     from pydantic import ValidationError
 
-    from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+    from trafficrlhf_sdk.errors import DataFormatError
     from trafficrlhf_sdk.experiments.paper import TABLES, PaperConfig, run_paper
 
     fields: dict[str, object] = {}
     if config_path is not None:
-        try:
-            with open(config_path, "rb") as handle:
-                fields = tomllib.load(handle)
-        except FileNotFoundError:
-            raise DataNotFoundError(f"--config {config_path!r}: no such file.") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise DataFormatError(f"--config {config_path!r}: not valid TOML ({exc}).") from None
+        fields = read_toml(config_path)
     if only is not None:
         names = [part.strip() for part in only.split(",") if part.strip()]
         unknown = [n for n in names if n not in TABLES]

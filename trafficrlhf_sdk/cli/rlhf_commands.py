@@ -17,22 +17,16 @@ from trafficrlhf_sdk.cli.app import cli
 def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None) -> None:
     """Rounds of: candidates from the current policy, labels (stand-in annotators or people), a reward model
     retrained on every round's labels, and alignment of the base model against it."""
-    import tomllib
+    from trafficrlhf_sdk.config_files import read_toml
 
     from pydantic import ValidationError
 
-    from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+    from trafficrlhf_sdk.errors import DataFormatError
     from trafficrlhf_sdk.loop import RLHFConfig, rlhf
 
     fields: dict[str, object] = {}
     if config_path is not None:
-        try:
-            with open(config_path, "rb") as handle:
-                fields = tomllib.load(handle)
-        except FileNotFoundError:
-            raise DataNotFoundError(f"--config {config_path!r}: no such file.") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise DataFormatError(f"--config {config_path!r}: not valid TOML ({exc}).") from None
+        fields = read_toml(config_path)
     if rounds is not None:
         fields["rounds"] = rounds
     try:
