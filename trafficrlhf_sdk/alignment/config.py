@@ -63,13 +63,6 @@ class AlignConfig(BaseModel):
                                               "agent gets its own reward and advantage (needs a reward with "
                                               "`agent_scores`).")
 
-    advantage_scale: Literal["context", "batch"] = Field("context", description="Advantages are the rewards "
-                                                         "centred within each context (and agent); 'context' divides "
-                                                         "by each context's own spread, 'batch' by the spread pooled "
-                                                         "over the epoch, so contexts whose samples the reward model "
-                                                         "barely tells apart get small advantages instead of "
-                                                         "amplified noise.")
-
     # ---------------------------------------------------------------- schedule
     epochs: int = Field(70, ge=1, description="Rollout + optimization rounds (paper: 70).")
     contexts_per_epoch: int = Field(16, ge=1, description="Contexts sampled per epoch.")

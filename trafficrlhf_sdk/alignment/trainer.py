@@ -215,7 +215,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
             rewards = mean_over_sampled(per_agent, trace.agents)
             sampled = trace.agents[:, None, :].expand_as(per_agent)
-            adv = self._normalize(per_agent, dim=1, mask=sampled) * sampled.to(per_agent.dtype)
+            adv = self._normalize(per_agent, dim=1) * sampled.to(per_agent.dtype)
             if self.config.passing_anchor_coef > 0:
                 passing = self._passing_agents(scenario, trace.agents, self.config.samples_per_context)
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
@@ -268,15 +268,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         failing = FailureReward().agent_scores(scenario).reshape(agents.shape[0], samples, agents.shape[1]) < 0
         return agents & ~failing.any(1)
 
-    def _normalize(self, rewards: torch.Tensor, dim: int, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped to +-5; the std is
-        each context's own, or pooled over the epoch's (``mask``-ed) entries with ``advantage_scale='batch'``."""
+    @staticmethod
+    def _normalize(rewards: torch.Tensor, dim: int) -> torch.Tensor:
+        """``(r - mean) / (std + eps)`` over the samples of each context (and agent), clipped to +-5."""
         centred = rewards - rewards.mean(dim, keepdim=True)
-        if self.config.advantage_scale == "batch":
-            keep = torch.ones_like(centred, dtype=torch.bool) if mask is None else mask.expand_as(centred)
-            scale = centred[keep].pow(2).mean().sqrt() if keep.any() else centred.new_tensor(0.0)
-        else:
-            scale = rewards.std(dim, unbiased=False, keepdim=True)
+        scale = rewards.std(dim, unbiased=False, keepdim=True)
         return (centred / (scale + 1e-6)).clamp(-ADVANTAGE_CLIP, ADVANTAGE_CLIP)
 
     # ------------------------------------------------------------------ logging
