@@ -10,6 +10,7 @@ import click
 
 from trafficrlhf_sdk.cli.app import cli, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.evaluation.compare import SHARED_ROWS
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -33,24 +34,7 @@ ROWS = (
     ("realism_body_lat_acc", "  lat. acceleration"),
     ("realism_body_jerk", "  jerk"),
     ("realism_body_speed", "  speed (m/s; not in the mean)"),
-    ("guidance_speed_limit", "speed-limit violation (m/s)"),
-    ("guidance_target_speed", "target-speed error (m/s)"),
-    ("guidance_goal_waypoint", "goal distance (m)"),
-    ("speed_ratio", "speed / logged speed"),
-    ("stopped_share", "stopped at the end (share)"),
-    ("stopped_share_logged", "  stopped in the log"),
-    ("reward_cost", "reward cost"),
-    ("realism_meta", "realism meta-metric (higher is better)"),
-    ("realism_meta_linear_speed", "  linear speed"),
-    ("realism_meta_linear_acceleration", "  linear acceleration"),
-    ("realism_meta_angular_speed", "  angular speed"),
-    ("realism_meta_angular_acceleration", "  angular acceleration"),
-    ("realism_meta_distance_to_nearest_object", "  distance to nearest object"),
-    ("realism_meta_collision_indication", "  collision"),
-    ("realism_meta_time_to_collision", "  time to collision"),
-    ("realism_meta_distance_to_road_edge", "  distance to road edge"),
-    ("realism_meta_offroad_indication", "  off-road"),
-)
+) + SHARED_ROWS
 
 
 def _chosen_scenes(available: list[str], wanted: tuple[str, ...], split: str) -> list[str]:

@@ -9,16 +9,7 @@ from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
 __all__ = ["change_interval_table", "comparison_table", "meta_metric_table", "read_results", "scene_change_table"]
 
-ROWS = (
-    ("failure_rate", "failure rate"),
-    ("collision_rate", "collision rate"),
-    ("collision_rate_own", "  with an agent it drives"),
-    ("collision_rate_replayed", "  with a replayed agent"),
-    ("offroad_rate", "off-road rate"),
-    ("failure_rate_corners", "failure rate (box corners)"),
-    ("realism_ctg", "realism dev. (ctg)"),
-    ("realism_body", "realism dev. (body)"),
-    ("realism_body_speed", "speed-histogram dev. (body, m/s)"),
+SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
     ("guidance_target_speed", "target-speed error (m/s)"),
     ("guidance_goal_waypoint", "goal distance (m)"),
@@ -37,6 +28,19 @@ ROWS = (
     ("realism_meta_distance_to_road_edge", "  distance to road edge"),
     ("realism_meta_offroad_indication", "  off-road"),
 )
+"""The rows after the failure and realism rows, shared with ``trafficrlhf evaluate``'s table."""
+
+ROWS = (
+    ("failure_rate", "failure rate"),
+    ("collision_rate", "collision rate"),
+    ("collision_rate_own", "  with an agent it drives"),
+    ("collision_rate_replayed", "  with a replayed agent"),
+    ("offroad_rate", "off-road rate"),
+    ("failure_rate_corners", "failure rate (box corners)"),
+    ("realism_ctg", "realism dev. (ctg)"),
+    ("realism_body", "realism dev. (body)"),
+    ("realism_body_speed", "speed-histogram dev. (body, m/s)"),
+) + SHARED_ROWS
 
 
 def _label(result: dict, folder: str) -> str:
