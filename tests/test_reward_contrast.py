@@ -165,3 +165,42 @@ def test_conservative_ensembles_read_the_worst_member_or_a_lower_confidence_boun
         assert torch.allclose(lcb, members.mean(0) - 2.0 * members.std(0))
     with pytest.raises(ValueError, match="aggregation"):
         ensemble.conservative("median")
+
+
+class _Broken:
+    """A reward broken in one way: it pays for driving faster, slower, jerkier, sideways off the path the agent
+    was on, or closer to its lead."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        from trafficrlhf_sdk.metrics.geometry import following_gaps
+
+        now = scenario.current_index
+        if self.kind in ("faster", "slower"):
+            speed = _future_speed(scenario).mean(-1)
+            return speed if self.kind == "faster" else -speed
+        if self.kind == "jerky":
+            speed = torch.diff(scenario.xy[:, :, now:], dim=2).norm(dim=-1) / scenario.dt
+            return torch.diff(speed, n=2, dim=2).abs().mean((1, 2))
+        if self.kind == "off_lane":  # lateral offset from the line the agent was heading along at "now"
+            yaw = scenario.yaw[:, :, now, None]
+            rel = scenario.xy[:, :, now:] - scenario.xy[:, :, now, None]
+            return (-torch.sin(yaw) * rel[..., 0] + torch.cos(yaw) * rel[..., 1]).abs().mean((1, 2))
+        gaps = following_gaps(scenario.xy, scenario.yaw, scenario.states[..., 2], scenario.extent, scenario.valid)
+        return -torch.nan_to_num(gaps[:, :, now:], nan=0.0, posinf=0.0).mean((1, 2))
+
+
+@pytest.mark.parametrize("kind", PERTURBATIONS)
+def test_each_probe_catches_a_reward_broken_its_way(kind: str) -> None:
+    scenes = _scenes()
+    if kind == "tailgate":  # car 0 follows car 2 in its lane, 15 m behind
+        states = scenes.states.clone()
+        states[:, 0, :, 1] = states[:, 2, :, 1]
+        states[:, 0, :, 0] = states[:, 2, :, 0] - 15.0
+        states[:, 0, :, 2] = states[:, 2, :, 2]
+        scenes = scenes.replace_unchecked(states=states)
+    result = probe_reward_model(_Broken(kind), scenes, (kind,))[kind]
+    assert result["scenes"] >= 1 and result["pass_rate"] == 0.0, result
+    assert probe_reward_model(_LikesTheLog(scenes), scenes, (kind,))[kind]["pass_rate"] == 1.0
