@@ -24,26 +24,24 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 __all__ = ["CTGMLPConfig", "CTGMLPRewardModel", "ItemRewardModel", "tanh_head"]
 
 
-class CTGMLPConfig(BaseModel):
-    """Options of :class:`CTGMLPRewardModel` (stored in ``config.json``)."""
+class StepFeatureOptions(BaseModel):
+    """The per-(agent, step) feature settings every built-in reward architecture shares (stored in its
+    ``config.json``); :meth:`feature_spec` turns them into the :class:`FeatureSpec` of feature extraction."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
-                                          description="MLP widths (the paper's 512-512-512-128-32); Tanh after each.")
     step_dt: float = Field(0.5, gt=0, description="Seconds between scored steps (2 Hz as the paper's reward cost).")
     history_steps: int = Field(0, ge=0, description="Raw past states seen per step, every `step_dt` (the "
                                                      "kinematics always use the last two); 0 generalises best.")
     num_neighbours: int = Field(6, ge=0, description="Nearest other agents seen per step.")
     neighbour_radius_m: float = Field(40.0, gt=0, description="Agents farther than this (m) are not neighbours.")
-    crop_size: int = Field(16, ge=4, description="Map crop cells per side (multiple of 4).")
+    crop_size: int = Field(16, ge=4, description="Map crop cells per side (a multiple of the architecture's "
+                                                 "downsampling: 4 for ctg_mlp, `patch` for trafficgen_mcg).")
     crop_resolution_m: float = Field(1.0, gt=0, description="Size of a crop cell (m).")
     crop_supersample: int = Field(2, ge=1, le=15, description="Raster samples per cell side (averaged).")
     crop_behind_fraction: float = Field(0.25, ge=0, le=1, description="Share of the crop behind the agent.")
     map_layers: tuple[str, ...] = Field(("drivable", "road_divider", "lane_divider"),
                                         description="Map layers of the crop, by name (missing ones are empty).")
-    map_channels: tuple[int, int] = Field((16, 32), description="Channels of the two stride-2 conv layers.")
-    map_embedding: int = Field(64, ge=1, description="Size of the map code fed to the MLP.")
     agents: str = Field("controlled", pattern="^(controlled|all)$",
                         description="Agents averaged: 'controlled' (those a model drove, else all) or 'all'.")
 
@@ -54,6 +52,15 @@ class CTGMLPConfig(BaseModel):
                            crop_resolution_m=self.crop_resolution_m, crop_supersample=self.crop_supersample,
                            crop_behind_fraction=self.crop_behind_fraction, map_layers=self.map_layers,
                            agents=self.agents)
+
+
+class CTGMLPConfig(StepFeatureOptions):
+    """Options of :class:`CTGMLPRewardModel` (stored in ``config.json``)."""
+
+    hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
+                                          description="MLP widths (the paper's 512-512-512-128-32); Tanh after each.")
+    map_channels: tuple[int, int] = Field((16, 32), description="Channels of the two stride-2 conv layers.")
+    map_embedding: int = Field(64, ge=1, description="Size of the map code fed to the MLP.")
 
 
 def tanh_head(width: int, hidden_sizes: tuple[int, ...]) -> nn.Sequential:

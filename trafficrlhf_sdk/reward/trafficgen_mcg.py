@@ -30,14 +30,13 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from torch import nn
 
-from trafficrlhf_sdk.reward.ctg_mlp import ItemRewardModel, tanh_head
+from trafficrlhf_sdk.reward.ctg_mlp import ItemRewardModel, StepFeatureOptions, tanh_head
 from trafficrlhf_sdk.reward.features import (
     SIZE_SCALE,
     SPEED_SCALE,
-    FeatureSpec,
     StepInputs,
     _rotate,
     compute_step_inputs,
@@ -52,10 +51,8 @@ __all__ = ["ContextGating", "TrafficGenMCGConfig", "TrafficGenMCGRewardModel", "
 NEIGHBOUR_FEATURES = 9  # x, y, v_lon, v_lat, cos, sin, length, width, valid
 
 
-class TrafficGenMCGConfig(BaseModel):
+class TrafficGenMCGConfig(StepFeatureOptions):
     """Options of :class:`TrafficGenMCGRewardModel` (stored in ``config.json``)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
                                           description="Head MLP widths (the paper's 512-512-512-128-32); Tanh after "
@@ -63,27 +60,8 @@ class TrafficGenMCGConfig(BaseModel):
     width: int = Field(64, ge=4, description="Width of the agent and map embeddings and of every gating block "
                                              "(TrafficGen: 1024; compact here).")
     gating_blocks: int = Field(3, ge=1, description="Context-gating blocks per set (TrafficGen: 5).")
-    step_dt: float = Field(0.5, gt=0, description="Seconds between scored steps (2 Hz as the paper's reward cost).")
-    history_steps: int = Field(0, ge=0, description="Raw past states in the agent's own features, every `step_dt`.")
     num_neighbours: int = Field(8, ge=0, description="Nearest other agents in the agent set.")
-    neighbour_radius_m: float = Field(40.0, gt=0, description="Agents farther than this (m) are left out.")
-    crop_size: int = Field(16, ge=4, description="Map crop cells per side (a multiple of `patch`).")
-    crop_resolution_m: float = Field(1.0, gt=0, description="Size of a crop cell (m).")
-    crop_supersample: int = Field(2, ge=1, le=15, description="Raster samples per cell side (averaged).")
-    crop_behind_fraction: float = Field(0.25, ge=0, le=1, description="Share of the crop behind the agent.")
     patch: int = Field(4, ge=1, description="Crop cells per side of one map vector.")
-    map_layers: tuple[str, ...] = Field(("drivable", "road_divider", "lane_divider"),
-                                        description="Map layers of the crop, by name (missing ones are empty).")
-    agents: str = Field("controlled", pattern="^(controlled|all)$",
-                        description="Agents averaged: 'controlled' (those a model drove, else all) or 'all'.")
-
-    def feature_spec(self) -> FeatureSpec:
-        """The settings of the agent's own features and map crop (neighbour flags included, as in ctg_mlp)."""
-        return FeatureSpec(step_dt=self.step_dt, history_steps=self.history_steps, num_neighbours=self.num_neighbours,
-                           neighbour_radius_m=self.neighbour_radius_m, crop_size=self.crop_size,
-                           crop_resolution_m=self.crop_resolution_m, crop_supersample=self.crop_supersample,
-                           crop_behind_fraction=self.crop_behind_fraction, map_layers=self.map_layers,
-                           agents=self.agents)
 
 
 def neighbour_vectors(scenario: ScenarioTensor, scene: torch.Tensor, agent: torch.Tensor, step: torch.Tensor,
