@@ -14,7 +14,8 @@ from trafficrlhf_sdk.models.features import agent_poses, history_features, map_c
 from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-from ctg_reference.model import MAP_BEHIND_FRACTION, CTGConfig, draw_device
+from ctg_reference.config import CTGConfig
+from ctg_reference.model import MAP_BEHIND_FRACTION, draw_device
 
 __all__ = ["FEATURE_KEYS", "PLAN_KEYS", "agent_features", "co_denoised_rows", "drop_neighbour_plans", "future_targets",
            "logged_neighbour_plans", "neighbour_plan_features", "select_rows", "window_mask"]

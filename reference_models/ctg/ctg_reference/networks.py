@@ -1,6 +1,6 @@
 """The compact CTG's networks: context encoder, temporal U-Net denoiser and scene-level mixer.
 
-Plain PyTorch modules built from a :class:`~ctg_reference.model.CTGConfig`; :class:`~ctg_reference.model.CTGModel`
+Plain PyTorch modules built from a :class:`~ctg_reference.config.CTGConfig`; :class:`~ctg_reference.model.CTGModel`
 wires them into the diffusion model. Shapes are stated per module; all inputs are in the agent frame.
 """
 
@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 if TYPE_CHECKING:
-    from ctg_reference.model import CTGConfig
+    from ctg_reference.config import CTGConfig
 
 __all__ = ["CoDenoiseMixer", "ContextEncoder", "ResBlock1d", "SinusoidalEmbedding", "TemporalUNet", "mlp"]
 

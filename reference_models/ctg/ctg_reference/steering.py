@@ -16,7 +16,7 @@ from torch import nn
 from ctg_reference.networks import SinusoidalEmbedding, mlp
 
 if TYPE_CHECKING:
-    from ctg_reference.model import CTGConfig
+    from ctg_reference.config import CTGConfig
 
 __all__ = ["MAP_BEHIND_FRACTION", "FollowHead", "SteerHead", "lead_gaps", "neighbour_proximity", "road_profile"]
 
