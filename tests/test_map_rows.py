@@ -10,9 +10,8 @@ from hypothesis import strategies as st
 from trafficrlhf_sdk.errors import ScenarioValidationError
 from trafficrlhf_sdk.models.features import map_crops
 from trafficrlhf_sdk.reward.features import FeatureSpec, compute_step_inputs
-from trafficrlhf_sdk.scenario.io import scenario_from_bytes, scenario_to_bytes
 from trafficrlhf_sdk.scenario.map import MapRaster, crop_map
-from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor, scenario_from_bytes, scenario_to_bytes
 from trafficrlhf_sdk.testing.strategies import scenario_tensors
 
 SETTINGS = settings(max_examples=40, deadline=None)

@@ -32,8 +32,8 @@ from safetensors.torch import save_file
 
 from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore
-from trafficrlhf_sdk.scenario.io import safe_load_file, scenario_from_tensors, scenario_tensors
-from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor, scenario_from_tensors, scenario_tensors
 
 __all__ = ["PreferenceDataset", "export_preferences", "split_contexts"]
 

@@ -55,8 +55,7 @@ from trafficrlhf_sdk.feedback.records import (
 from trafficrlhf_sdk.feedback.schema import SCHEMA_SQL, SCHEMA_VERSION, migrate
 from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.statistics import SQLITE_MAX_INT, StoreStatistics
-from trafficrlhf_sdk.scenario.io import scenario_from_bytes, scenario_to_bytes
-from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor, scenario_from_bytes, scenario_to_bytes
 
 __all__ = [
     "SCHEMA_VERSION",
