@@ -306,9 +306,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             p.requires_grad_(id(p) in chosen)
         bar = None
         if cfg.progress_bar:
-            from tqdm.auto import tqdm
+            from trafficrlhf_sdk.console import progress
 
-            bar = tqdm(total=cfg.epochs, initial=self.start_epoch, desc=f"align {self.model.name}", unit="epoch")
+            bar = progress(total=cfg.epochs, initial=self.start_epoch, desc=f"align {self.model.name}", unit="epoch")
         saved = done = self.start_epoch
         previous_term = _checkpoint_on_sigterm()
         try:

@@ -144,9 +144,9 @@ def run_batched(policy: ClosedLoopPolicy, scenario: ScenarioTensor, config: Eval
     shared = {"policy": policy, "scenario": scenario, "config": config,
               "policy_seed": policy_seed(policy, config.seed)}
     if progress and (execution is None or not execution.uses_ray):
-        from tqdm.auto import tqdm
+        from trafficrlhf_sdk.console import progress as progress_bar
 
-        parts = [_simulate_task(shared, task) for task in tqdm(tasks, desc="simulating", unit="batch")]
+        parts = [_simulate_task(shared, task) for task in progress_bar(tasks, desc="simulating", unit="batch")]
     else:
         parts = run_tasks(_simulate_task, shared, tasks, execution)
     seed_policy(policy, shared["policy_seed"])

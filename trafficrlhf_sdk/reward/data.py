@@ -165,9 +165,9 @@ def build_pair_data(prepare: Callable[[ScenarioTensor], Any], dataset: Preferenc
     future_id[ctx, slot] = torch.arange(len(ctx))
     contexts = ctx.unique().tolist()
     if progress:
-        from tqdm.auto import tqdm
+        from trafficrlhf_sdk.console import progress as progress_bar
 
-        contexts = tqdm(contexts, desc="featurizing", unit="context", leave=False)
+        contexts = progress_bar(contexts, desc="featurizing", unit="context", leave=False)
     parts = []
     with torch.no_grad():
         for c in contexts:

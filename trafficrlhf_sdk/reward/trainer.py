@@ -203,10 +203,10 @@ class RewardTrainer:
         steps_per_epoch = math.ceil(len(contexts) / cfg.batch_size)
         bar = None
         if cfg.progress:
-            from tqdm.auto import tqdm
+            from trafficrlhf_sdk.console import progress
 
             label = f"reward model {member + 1}/{cfg.ensemble_size}" if cfg.ensemble_size > 1 else "reward model"
-            bar = tqdm(total=cfg.max_epochs * steps_per_epoch, desc=label, unit="step", leave=False)
+            bar = progress(total=cfg.max_epochs * steps_per_epoch, desc=label, unit="step", leave=False)
         best = (math.inf, -1, copy.deepcopy(model.state_dict()))
         history: list[dict[str, float]] = []
         stale = 0

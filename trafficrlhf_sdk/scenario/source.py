@@ -94,7 +94,7 @@ class ScenarioSource(abc.ABC):
             raise UnknownComponentError(f"source {self.name!r} has no scene long enough in split {split!r}.")
         scenes = self.iter_scenes(split, ids)
         if progress:
-            from tqdm.auto import tqdm
+            from trafficrlhf_sdk.console import progress as progress_bar
 
-            scenes = tqdm(scenes, total=len(ids), desc=f"loading {self.name}/{split}", unit="scene")
+            scenes = progress_bar(scenes, total=len(ids), desc=f"loading {self.name}/{split}", unit="scene")
         return ScenarioTensor.concat(list(scenes))

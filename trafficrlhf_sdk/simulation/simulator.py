@@ -169,9 +169,9 @@ def simulate(
 
     replans = range(start, end, config.replan_every)
     if progress:
-        from tqdm.auto import tqdm
+        from trafficrlhf_sdk.console import progress as progress_bar
 
-        replans = tqdm(replans, desc="closed loop", unit="replan", leave=False)
+        replans = progress_bar(replans, desc="closed loop", unit="replan", leave=False)
     began = time.perf_counter()
     policy_time = 0.0
     for t in replans:
