@@ -22,9 +22,15 @@ from typing import Any
 from trafficrlhf_sdk._lazy import lazy_exports
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.hookspecs import hookimpl
-from trafficrlhf_sdk.plugins import list_plugins, registry
-
-__version__ = "0.1.0"
+from trafficrlhf_sdk.plugins import (
+    build_policy,
+    get_metric,
+    get_scenario_source,
+    get_traffic_model,
+    list_plugins,
+)
+from trafficrlhf_sdk.plugins import registry as registry  # the registries, for plugins and their tests
+from trafficrlhf_sdk.version import __version__
 
 _EXPORTS = {
     "AgentType": "scenario",
@@ -67,27 +73,8 @@ __all__ = [
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
-def get_scenario_source(name: str, **options: Any) -> Any:
-    """Instantiate the registered scenario source ``name`` with its config ``options`` (e.g. ``root=...``)."""
-    source_cls = registry("scenario_sources").get(name)
-    return source_cls(**options)
-
-
-def get_traffic_model(name: str, **options: Any) -> Any:
-    """Instantiate the registered traffic model (or built-in policy) ``name``."""
-    factory = registry("traffic_models").get(name)
-    return factory(**options)
-
-
 def from_pretrained(checkpoint: str, **options: Any) -> Any:
     """The traffic model saved in ``checkpoint``: a folder, or a bundled checkpoint's name such as
     ``"ctg-aligned"`` (``trafficrlhf plugins`` lists them); its ``config.json`` names the adapter. ``options``
     (e.g. ``guidance="no_collision"``, ``seed=0``) go to the adapter."""
-    from trafficrlhf_sdk.plugins import build_policy
-
     return build_policy(None, {**options, "checkpoint": checkpoint})
-
-
-def get_metric(name: str) -> Any:
-    """The registered metric ``name``."""
-    return registry("metrics").get(name)

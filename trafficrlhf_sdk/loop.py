@@ -103,7 +103,7 @@ def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print,
          poll_s: float = 10.0) -> dict[str, Any]:
     """Run (or resume) the loop of ``config`` in ``out_dir``; returns the state (each round's reward model,
     aligned model and figures). See the module docstring."""
-    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.plugins import get_scenario_source
     from trafficrlhf_sdk.feedback.store import FeedbackStore
 
     os.makedirs(out_dir, exist_ok=True)

@@ -88,6 +88,23 @@ def registry(kind: str) -> Registry[Any]:
     return result
 
 
+def get_scenario_source(name: str, **options: Any) -> Any:
+    """Instantiate the registered scenario source ``name`` with its config ``options`` (e.g. ``root=...``)."""
+    source_cls = registry("scenario_sources").get(name)
+    return source_cls(**options)
+
+
+def get_traffic_model(name: str, **options: Any) -> Any:
+    """Instantiate the registered traffic model (or built-in policy) ``name``."""
+    factory = registry("traffic_models").get(name)
+    return factory(**options)
+
+
+def get_metric(name: str) -> Any:
+    """The registered metric ``name``."""
+    return registry("metrics").get(name)
+
+
 def build_traffic_model(name: str, options: dict[str, Any], optional: tuple[str, ...] = ()) -> Any:
     """Instantiate registered traffic model ``name`` with ``options`` (None values dropped).
 

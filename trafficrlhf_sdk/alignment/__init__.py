@@ -37,7 +37,7 @@ def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: 
     place and returned with the per-epoch history.
     """
     if isinstance(model, str):
-        from trafficrlhf_sdk import get_traffic_model
+        from trafficrlhf_sdk.plugins import get_traffic_model
 
         model = get_traffic_model(model)
     if isinstance(reward_model, str):

@@ -57,7 +57,7 @@ class TrafficRLHFEnv(gym.Env):
                  map_size_px: int = 8, map_resolution_m: float = 2.0, reward_history_steps: int = 10) -> None:
         super().__init__()
         if scenes is None:
-            from trafficrlhf_sdk import get_scenario_source
+            from trafficrlhf_sdk.plugins import get_scenario_source
 
             src = get_scenario_source(source, **({"root": root} if root else {}))
             scenes = src.load_batch(split, num_scenes)

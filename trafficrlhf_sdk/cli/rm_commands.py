@@ -212,8 +212,8 @@ def _not_finite(result: Any, prefix: str = "") -> list[str]:
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def info_command(model_dir: str | None, as_json: bool) -> None:
     """Describe a saved reward model (architecture, size, data, metrics); without MODEL_DIR, list architectures."""
-    from trafficrlhf_sdk.reward.model import reward_model_architectures
-    from trafficrlhf_sdk.reward.serialization import load_reward_model, read_config, sha256_file
+    from trafficrlhf_sdk.reward.model import load_reward_model, reward_model_architectures
+    from trafficrlhf_sdk.reward.serialization import read_config, sha256_file
     from trafficrlhf_sdk.scenario.io import safe_load_file
 
     registry = reward_model_architectures()

@@ -219,7 +219,7 @@ def evaluate_policy(
     (:class:`~trafficrlhf_sdk.metrics.realism_meta.RealismMetaMetric`) is added, for the policy and, as the
     ceiling at this K, for the log scored against K copies of itself.
     """
-    from trafficrlhf_sdk import get_metric
+    from trafficrlhf_sdk.plugins import get_metric
 
     config = config or EvaluationConfig()
     metrics = [get_metric(name) for name in config.metrics] + list(extra_metrics)

@@ -38,9 +38,8 @@ def resolve_path(path: str) -> str:
     root of a source checkout, where the bundled reward models live); an error naming both otherwise."""
     if os.path.exists(path):
         return os.path.abspath(path)
-    import trafficrlhf_sdk
-
-    beside = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(trafficrlhf_sdk.__file__))), path)
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # trafficrlhf_sdk/
+    beside = os.path.join(os.path.dirname(package), path)
     if os.path.exists(beside):
         return beside
     raise DataNotFoundError(f"{path!r} does not exist here nor at {beside!r}; give the reward-model folder's path.")
@@ -61,7 +60,7 @@ class ExperimentRun:
     def scenes(self) -> Any:
         """The first ``config.scenes`` long-enough val scenes of the source, sorted by name."""
         if self._scenes is None:
-            from trafficrlhf_sdk import get_scenario_source
+            from trafficrlhf_sdk.plugins import get_scenario_source
 
             source = get_scenario_source(self.config.source, **self._root())
             ids = source.scene_ids("val")[: self.config.scenes]

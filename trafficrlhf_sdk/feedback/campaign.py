@@ -189,7 +189,7 @@ def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float
 
 
 def _open_source(cfg: CampaignConfig) -> Any:
-    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.plugins import get_scenario_source
 
     future = cfg.candidate_seconds + (cfg.drive_seconds if cfg.contexts == "closed_loop" else 0.0)
     options: dict[str, Any] = {"history_s": cfg.history_seconds, "min_future_s": future,
@@ -211,7 +211,7 @@ def create_campaign(store: FeedbackStore, config: CampaignConfig,
                     on_context: Callable[[str], None] | None = None, execution: Any = None) -> CampaignReport:
     """Create campaign ``config.name`` in ``store`` and generate its contexts (one transaction per context).
     ``execution``: a :class:`~trafficrlhf_sdk.parallel.ExecutionConfig` to generate candidates on Ray workers."""
-    from trafficrlhf_sdk import __version__
+    from trafficrlhf_sdk.version import __version__
 
     source = _open_source(config)
     source.check_split(config.split)
@@ -260,7 +260,7 @@ def _scene_list(source: Any, config: CampaignConfig) -> list[str]:
 
 def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list[str],
           on_context: Callable[[str], None] | None, execution: Any = None) -> CampaignReport:
-    from trafficrlhf_sdk import __version__
+    from trafficrlhf_sdk.version import __version__
 
     cfg = campaign.config
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}

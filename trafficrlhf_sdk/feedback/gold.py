@@ -82,7 +82,7 @@ def gold_candidates(record: ContextRecord, seed: int = 0) -> tuple[torch.Tensor,
 def add_gold_items(store: FeedbackStore, campaign: Campaign | str, count: int, seed: int = 0) -> list[int]:
     """Add ``count`` gold items to ``campaign``, built from its first regular items that have none yet; returns
     their ids. Raises :class:`InvalidChoiceError` when the campaign has too few regular items."""
-    from trafficrlhf_sdk import __version__
+    from trafficrlhf_sdk.version import __version__
 
     campaign = store.campaign(campaign) if isinstance(campaign, str) else campaign
     if count < 1:

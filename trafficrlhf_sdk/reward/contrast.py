@@ -150,7 +150,7 @@ def recorded_windows(source: str = "nuscenes_pred", split: str = "val", num_scen
                      root: str | None = None, from_end: bool = False, future_steps: int = 40) -> ScenarioTensor:
     """:func:`log_windows` of the first (``from_end``: last) ``num_scenes`` long-enough scenes of ``split``: held-out
     logs for probes (``val``) or contrast pairs (the end of ``train``, away from the scenes campaigns start with)."""
-    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.plugins import get_scenario_source
 
     reader = get_scenario_source(source, **({"root": root} if root else {}))
     ids = reader.scene_ids(split)

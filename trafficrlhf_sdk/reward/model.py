@@ -23,14 +23,15 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import nn
 
-from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.errors import DataFormatError, UnknownComponentError
+from trafficrlhf_sdk.reward.serialization import load_weights, read_config, read_weights, save_reward_model
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "get_reward_model_architecture",
-           "reward_model_architectures"]
+           "load_reward_model", "reward_model_architectures"]
 
 
 class ScenarioInputs:
@@ -140,8 +141,6 @@ class RewardModel(nn.Module):
         ``commands``, ``notes`` (see :func:`~trafficrlhf_sdk.reward.serialization.render_model_card`).
         ``dtype=torch.float16`` stores the weights in half precision (they load back as float32).
         """
-        from trafficrlhf_sdk.reward.serialization import save_reward_model
-
         return save_reward_model(self, directory, {**self.card_info, **(card or {})}, dtype)
 
     @classmethod
@@ -160,8 +159,6 @@ class RewardModel(nn.Module):
             DataFormatError: unreadable, tampered, truncated or mis-shaped files.
             UnknownComponentError: ``config.json`` names an architecture no installed plugin registers.
         """
-        from trafficrlhf_sdk.reward.serialization import load_reward_model
-
         model = load_reward_model(directory, verify=verify, device=device)
         if not isinstance(model, cls):
             raise DataFormatError(f"{os.fspath(directory)!r} holds a {type(model).__name__} "
@@ -184,6 +181,34 @@ def get_reward_model_architecture(name: str) -> type[RewardModel]:
         raise DataFormatError(f"reward-model architecture {name!r} is registered as {cls!r}, which is not a "
                               "RewardModel subclass; fix the plugin that registers it.")
     return cls
+
+
+def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
+                      device: str | torch.device = "cpu") -> RewardModel:
+    """Rebuild the model of a folder written by :meth:`RewardModel.save_pretrained` (see
+    :meth:`RewardModel.from_pretrained`): the class from the architecture registry, never from pickle."""
+    directory = os.fspath(directory)
+    config = read_config(directory)
+    name = config["architecture"]
+    architectures = reward_model_architectures()
+    if name not in architectures:
+        raise UnknownComponentError(
+            f"{directory!r} needs the reward-model architecture {name!r}, which no installed plugin registers "
+            f"(registered: {architectures.names()}). Install the plugin that provides it (see `trafficrlhf plugins`)."
+        )
+    cls = architectures.get(name)
+    if not (isinstance(cls, type) and issubclass(cls, RewardModel)):
+        raise DataFormatError(f"architecture {name!r} is registered as {cls!r}, not a RewardModel subclass.")
+    try:
+        model = cls(config["config"])
+    except (ValidationError, TypeError, ValueError) as exc:
+        raise DataFormatError(f"{directory!r}: config.json's `config` does not fit architecture {name!r}: "
+                              f"{' '.join(str(exc).split())}") from exc
+    tensors, weights = read_weights(directory, config, verify)
+    load_weights(model, tensors, weights, config, directory)
+    model.card_info = {k: config[k] for k in ("data", "training", "metrics") if k in config}
+    model.card_info.update(config.get("card") or {})
+    return model.to(device).eval()
 
 
 class EnsembleConfig(BaseModel):

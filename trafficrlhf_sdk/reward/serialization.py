@@ -16,15 +16,15 @@ import os
 from typing import Any
 
 import torch
-from pydantic import ValidationError
 from safetensors.torch import save_file
+from torch import nn
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, UnknownComponentError
-from trafficrlhf_sdk.reward.model import RewardModel, reward_model_architectures
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.version import __version__
 
-__all__ = ["CARD_FILE", "CONFIG_FILE", "WEIGHTS_FILE", "load_reward_model", "read_config", "render_model_card",
-           "save_reward_model", "sha256_file"]
+__all__ = ["CARD_FILE", "CONFIG_FILE", "WEIGHTS_FILE", "load_weights", "read_config", "read_weights",
+           "render_model_card", "save_reward_model", "sha256_file"]
 
 FORMAT_VERSION = "1"
 CARD_KEYS = ("title", "summary", "notes", "commands", "intended_use", "license", "license_text")
@@ -42,15 +42,14 @@ def sha256_file(path: str) -> str:
     return digest.hexdigest()
 
 
-def save_reward_model(model: RewardModel, directory: str | os.PathLike[str], info: dict[str, Any],
+def save_reward_model(model: Any, directory: str | os.PathLike[str], info: dict[str, Any],
                       dtype: torch.dtype | None = None) -> str:
-    """Write the three files of ``model`` into ``directory`` (created); returns the directory.
+    """Write the three files of ``model`` (a :class:`~trafficrlhf_sdk.reward.RewardModel`) into ``directory``
+    (created); returns the directory.
 
     ``dtype`` (e.g. ``torch.float16``) stores floating-point weights in that type (half the bytes); loading casts
     them back to the model's dtype.
     """
-    from trafficrlhf_sdk import __version__
-
     if not model.architecture:
         raise ValueError(f"{type(model).__name__} has no `architecture` name; set the class attribute and "
                          "register it with `register_reward_model_architectures`.")
@@ -106,26 +105,15 @@ def read_config(directory: str | os.PathLike[str]) -> dict[str, Any]:
     return config
 
 
-def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
-                      device: str | torch.device = "cpu") -> RewardModel:
-    """Rebuild the model of a folder written by :func:`save_reward_model` (see ``RewardModel.from_pretrained``)."""
+def read_weights(directory: str | os.PathLike[str], config: dict[str, Any],
+                 verify: bool = True) -> tuple[dict[str, torch.Tensor], str]:
+    """The tensors of the weights file that ``config`` (the folder's ``config.json``) names, and its path.
+
+    The file must lie inside ``directory``, match the SHA-256 recorded in ``config`` (with ``verify``) and hold
+    weights of the architecture ``config`` names.
+    """
     directory = os.fspath(directory)
-    config = read_config(directory)
     name = config["architecture"]
-    architectures = reward_model_architectures()
-    if name not in architectures:
-        raise UnknownComponentError(
-            f"{directory!r} needs the reward-model architecture {name!r}, which no installed plugin registers "
-            f"(registered: {architectures.names()}). Install the plugin that provides it (see `trafficrlhf plugins`)."
-        )
-    cls = architectures.get(name)
-    if not (isinstance(cls, type) and issubclass(cls, RewardModel)):
-        raise DataFormatError(f"architecture {name!r} is registered as {cls!r}, not a RewardModel subclass.")
-    try:
-        model = cls(config["config"])
-    except (ValidationError, TypeError, ValueError) as exc:
-        raise DataFormatError(f"{directory!r}: config.json's `config` does not fit architecture {name!r}: "
-                              f"{' '.join(str(exc).split())}") from exc
     weights_info = config.get("weights", {})
     if not isinstance(weights_info, dict):
         raise DataFormatError(f"{directory!r}: config.json's `weights` must be an object, got {weights_info!r:.60}.")
@@ -155,6 +143,14 @@ def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
     if header.get("architecture") not in (None, name):
         raise DataFormatError(f"{weights!r} holds weights of architecture {header.get('architecture')!r} but "
                               f"config.json says {name!r}; the two files do not belong together.")
+    return tensors, weights
+
+
+def load_weights(model: nn.Module, tensors: dict[str, torch.Tensor], weights: str, config: dict[str, Any],
+                 directory: str | os.PathLike[str]) -> None:
+    """Copy ``tensors`` (read from the file ``weights`` by :func:`read_weights`) into ``model``, built from
+    ``config``, after checking every tensor name, shape, dtype and value."""
+    name = config["architecture"]
     state = model.state_dict()
     missing = sorted(set(state) - set(tensors))
     unexpected = sorted(set(tensors) - set(state))
@@ -171,13 +167,10 @@ def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
         raise DataFormatError(f"{weights!r}: tensor {not_float[0]!r} is not floating point.")
     for key, tensor in tensors.items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            raise DataFormatError(f"reward model {directory!r}: tensor {key!r} holds "
+            raise DataFormatError(f"reward model {os.fspath(directory)!r}: tensor {key!r} holds "
                                   f"{int((~torch.isfinite(tensor)).sum())} NaN or infinite value(s); the weights are "
                                   "unusable: restore them or re-train.")
     model.load_state_dict({k: t.to(state[k].dtype) for k, t in tensors.items()})
-    model.card_info = {k: config[k] for k in ("data", "training", "metrics") if k in config}
-    model.card_info.update(config.get("card") or {})
-    return model.to(device).eval()
 
 
 def _table(rows: dict[str, Any]) -> str:
