@@ -15,7 +15,7 @@ from trafficrlhf_sdk.evaluation.compare import SHARED_ROWS
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from trafficrlhf_sdk.evaluation.protocol import EvaluationReport
+    from trafficrlhf_sdk.evaluation.runs import EvaluationOutcome
 
 ROWS = (
     ("failure_rate", "failure rate (any)"),
@@ -37,20 +37,6 @@ ROWS = (
 ) + SHARED_ROWS
 
 
-def _chosen_scenes(available: list[str], wanted: tuple[str, ...], split: str) -> list[str]:
-    """``wanted`` in the order given, each checked against the split's long-enough scenes."""
-    import difflib
-
-    known = set(available)
-    for name in wanted:
-        if name not in known:
-            close = difflib.get_close_matches(name, available, n=3)
-            hint = f" Did you mean {', '.join(close)}?" if close else ""
-            raise TrafficRLHFError(f"--scene-id {name!r} is not a long-enough scene of split {split!r} "
-                                   f"({len(available)} are; `trafficrlhf inspect` lists them).{hint}")
-    return list(dict.fromkeys(wanted))
-
-
 def _fmt(value: float | None) -> str:
     return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4f}"
 
@@ -66,7 +52,9 @@ def _fmt(value: float | None) -> str:
               help="First N long-enough scenes of the split, sorted by name.")
 @click.option("--scene-id", "scene_id", multiple=True,
               help="Evaluate only this scene (repeatable), e.g. one that `--worst-scenes` listed; overrides --scenes.")
-@click.option("--guidance", default=None, help="Guidance name(s), comma separated, for models that support it.")
+@click.option("--guidance", default=None,
+              help="Guidance name(s), comma separated, for models that support it [default: none, or the guidance a "
+                   "bundled checkpoint's card was measured with; `none` turns that off].")
 @click.option("--checkpoint", default=None,
               help="Weights: a folder, or a bundled checkpoint's name such as ctg-aligned (`trafficrlhf plugins`).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
@@ -116,105 +104,42 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
 
     The same metrics are computed on the logged data of the same scenes, for reference.
     """
-    import torch
-
-    from trafficrlhf_sdk import get_scenario_source
-    from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy, seeds_summary
+    from trafficrlhf_sdk.evaluation.runs import EvaluationRequest, run_evaluation
     from trafficrlhf_sdk.parallel import ExecutionConfig
-    from trafficrlhf_sdk.plugins import build_policy
     from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
-    if out_dir is not None:
-        _check_out_dir(out_dir)
-    if render_worst and not out_dir:
-        raise TrafficRLHFError(f"--render-worst {render_worst} writes PNGs under --out, which is not set; add "
-                               "--out DIR (or drop --render-worst).")
-    seeds = _parse_seeds(seed_list, out_dir, as_json) if seed_list is not None else None
-    extra_metrics = []
-    if reward_model_dir is not None:  # load before simulating: a bad folder fails at once
-        from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric
-        from trafficrlhf_sdk.reward import RewardModel
-
-        extra_metrics.append(RewardCostMetric(RewardModel.from_pretrained(reward_model_dir).step_rewards))
-    if seeds:
-        seed = seeds[0]
-    torch.manual_seed(seed)
-    # build the model first: a bad --model/--guidance fails before any data is read
-    extra = parse_key_values(model_options, "--model-option")
-    policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint, "seed": seed})
-    model = model or str(getattr(policy, "name", None) or type(policy).__name__)
-    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
-    options: dict = {"root": root} if root else {}
-    if duration != 10.0:
-        options["min_future_s"] = duration
-    scenario_source = get_scenario_source(source, **options)
-    long_enough = scenario_source.scene_ids(split)
-    scene_ids = _chosen_scenes(long_enough, scene_id, split) if scene_id else long_enough[:num_scenes]
-    if not scene_ids:
-        raise TrafficRLHFError(f"split {split!r} of source {source!r} has no scene long enough for a {duration:g} s "
-                               "rollout; try a shorter --duration.")
-    _report_short_scenes(scenario_source, split, len(long_enough), duration, as_json)
-    if not scene_id and num_scenes > len(scene_ids):
-        click.echo(f"note: --scenes {num_scenes} asked for more than the {len(scene_ids)} long-enough scenes of "
-                   f"{source}/{split}; evaluating all {len(scene_ids)}.", err=True)
-    scenario = scenario_source.load_batch(split, scene_ids=scene_ids, progress=True)
-    # a source that lists without reading (a large ScenarioNet folder) can hand over scenes too short: say so
-    last = torch.where(scenario.valid.any(1), torch.arange(scenario.num_steps), -1).amax(-1)
-    short = last < scenario.current_index + round(duration / scenario.dt)
-    if short.any():
-        if bool(short.all()):
-            raise TrafficRLHFError(f"all {len(scene_ids)} scenes are shorter than 3 s + {duration:g} s; try a shorter "
-                                   "--duration.")
-        click.echo(f"{int(short.sum())} of {len(scene_ids)} loaded scenes are shorter than 3 s + {duration:g} s and "
-                   "are skipped; a shorter --duration keeps them.", err=True)
-        scenario = scenario[(~short).nonzero().flatten()]
-        scene_ids = [s for s, drop in zip(scene_ids, short.tolist()) if not drop]
-    metadata = {"model": model, "source": source, "split": split, "guidance": guidance, "checkpoint": checkpoint,
-                "reward_model": reward_model_dir, "model_options": extra, "late_agents": late_agents,
-                "after_log_end": after_log_end, "scene_ids": list(scene_ids)}
-    simulation = SimulationConfig(late_agents=late_agents, after_log_end=after_log_end,  # type: ignore[arg-type]
-                                  duration_s=duration)
-    metadata.update(rollouts=rollouts, duration_s=duration)
-    if seeds:
-        import os
-
-        folders, results = [], []
-        for index, run_seed in enumerate(seeds):
-            if index:
-                torch.manual_seed(run_seed)
-                policy = build_policy(model, {**extra, "guidance": guidance, "checkpoint": checkpoint,
-                                              "seed": run_seed})
-            run = evaluate_policy(policy, scenario, EvaluationConfig(simulation=simulation, batch_size=batch_size,
-                                                                   seed=run_seed, rollouts=rollouts),
-                                  extra_metrics=extra_metrics, progress=True, metadata=metadata, execution=execution)
-            results.append(run.to_json())
-            if out_dir:
-                folders.append(os.path.join(str(out_dir), f"seed_{run_seed}"))
-                run.save(folders[-1])
-                if render_worst:
-                    _render_worst(run, render_worst, folders[-1])
-        if as_json:
-            click.echo(json.dumps(seeds_summary(results), indent=2))
-        else:
-            _print_seeds(folders, worst_scenes)
-        return
-    config = EvaluationConfig(simulation=simulation, batch_size=batch_size, seed=seed, rollouts=rollouts)
-    report = evaluate_policy(policy, scenario, config, extra_metrics=extra_metrics, progress=True, metadata=metadata,
-                             execution=execution)
-    paths = report.save(out_dir) if out_dir else []
-    if render_worst and out_dir:
-        paths += _render_worst(report, render_worst, out_dir)
+    seeds = _parse_seeds(seed_list, out_dir, as_json) if seed_list is not None else (seed,)
+    request = EvaluationRequest(
+        model=model, checkpoint=checkpoint, guidance=guidance,
+        model_options=parse_key_values(model_options, "--model-option"), source=source, split=split, root=root,
+        num_scenes=num_scenes, scene_ids=scene_id, seeds=seeds, batch_size=batch_size, rollouts=rollouts,
+        simulation=SimulationConfig(late_agents=late_agents, after_log_end=after_log_end,  # type: ignore[arg-type]
+                                    duration_s=duration),
+        reward_model=reward_model_dir, execution=ExecutionConfig(workers=workers, ray_address=ray_address))
+    outcome = run_evaluation(request, out_dir, render_worst, log=lambda line: click.echo(line, err=True),
+                             seed_folders=seed_list is not None)
     if as_json:
-        click.echo(json.dumps(report.to_json(), indent=2))
-        return
+        runs = outcome.runs
+        click.echo(json.dumps(runs.summary() if seed_list is not None else runs.reports[0].to_json(), indent=2))
+    elif seed_list is not None:
+        _print_seeds(outcome.folders, worst_scenes)
+    else:
+        _print_run(outcome, source, split, duration, rollouts, worst_scenes)
+
+
+def _print_run(outcome: EvaluationOutcome, source: str, split: str, duration: float, rollouts: int,
+               worst_scenes: int) -> None:
+    """The run's metrics beside the logged data's, where its failures are, its wall time and the files written."""
+    import torch
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"{model} on {source}/{split}: {report.num_scenes} scenes, "
+    report = outcome.runs.reports[0]
+    table = Table(title=f"{outcome.label} on {source}/{split}: {report.num_scenes} scenes, "
                         f"{report.num_controlled_agents} controlled agents, {duration:g} s closed loop"
                         + (f", {rollouts} rollouts per scene" if rollouts > 1 else ""))
     table.add_column("metric")
-    table.add_column(model, justify="right")
+    table.add_column(outcome.label, justify="right")
     table.add_column("logged data", justify="right")
     for key, label in ROWS:
         if key in report.values:
@@ -224,36 +149,11 @@ def evaluate_command(model: str | None, source: str, split: str, root: str | Non
     _print_concentration(console, [report.to_json()], worst_scenes)
     console.print(f"wall time {report.wall_time_s:.1f} s (closed loop {report.simulation_time_s:.1f} s) on "
                   f"{torch.get_num_threads()} threads")
-    for path in paths:
+    for path in outcome.paths:
         console.print(f"wrote {path}")
 
 
-def _report_short_scenes(source: object, split: str, usable: int, duration: float, as_json: bool) -> None:
-    """Say how many scenes of ``split`` are too short for ``duration`` (never drop them silently)."""
-    listed = getattr(source, "all_scene_ids", None)
-    if listed is None or as_json:
-        return
-    total = len(listed(split))
-    if total > usable:
-        click.echo(f"{total - usable} of {total} scenes of {split!r} are shorter than 3 s + {duration:g} s and are "
-                   "skipped; a shorter --duration keeps more of them.", err=True)
-
-
-def _check_out_dir(out_dir: str) -> None:
-    """Refuse an ``--out`` that cannot take the results, before anything is simulated."""
-    import os
-
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise TrafficRLHFError(f"--out {out_dir!r} is a file, not a folder; pass a folder (it is created if needed).")
-    parent = os.path.abspath(out_dir)
-    while not os.path.exists(parent):
-        parent = os.path.dirname(parent)
-    if not os.path.isdir(parent) or not os.access(parent, os.W_OK | os.X_OK):
-        raise TrafficRLHFError(f"--out {out_dir!r} cannot be written ({parent!r} is not a writable folder); pass a "
-                               "folder you can write to.")
-
-
-def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
+def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> tuple[int, ...]:
     """``--seeds`` as a list of distinct ints; without ``--json`` it needs ``--out`` (the table reads the folders)."""
     try:
         seeds = [int(part) for part in text.split(",") if part.strip()]
@@ -264,7 +164,7 @@ def _parse_seeds(text: str, out_dir: str | None, as_json: bool) -> list[int]:
     if not out_dir and not as_json:
         raise TrafficRLHFError(f"--seeds {text} writes one folder per seed under --out, which is not set; "
                                "add --out DIR (or --json to print the runs instead).")
-    return seeds
+    return tuple(seeds)
 
 
 def _print_seeds(folders: list[str], worst_scenes: int) -> None:
@@ -304,21 +204,3 @@ def _print_concentration(console: Console, results: list[dict], top: int) -> Non
                       f"{metrics['collision_rate'][row.scene_id]:.3f}", f"{metrics['offroad_rate'][row.scene_id]:.3f}",
                       f"{100 * row.share:.1f} %", f"{100 * row.cumulative_share:.1f} %")
     console.print(table)
-
-
-def _render_worst(report: EvaluationReport, top: int, out_dir: str) -> list[str]:
-    """PNGs of the ``top`` scenes carrying most of the failure rate, named ``<rank>_<scene>.png``."""
-    import os
-
-    from trafficrlhf_sdk.evaluation.failures import first_failures, save_failure_png
-    from trafficrlhf_sdk.evaluation.breakdown import pooled_per_scene, worst_scenes
-
-    result, rollout = report.to_json(), report.rollout
-    if rollout is None:
-        raise ValueError("the report holds no rollout to draw; make it with evaluate_policy.")
-    scene_ids = result["metadata"]["scene_ids"]
-    failures = first_failures(rollout)
-    rows = [row for row in worst_scenes(pooled_per_scene([result]), top) if row.value > 0]
-    return [save_failure_png(rollout, scene_ids.index(row.scene_id),
-                             os.path.join(out_dir, "worst_scenes", f"{rank:02d}_{row.scene_id}.png"), failures=failures)
-            for rank, row in enumerate(rows, start=1)]

@@ -5,7 +5,9 @@ and drawings of failures.
 - :func:`pooled_per_scene`, :func:`worst_scenes`, :func:`paired_change_interval`, ... (``breakdown``);
 - :func:`comparison_table` and friends over saved runs (``compare``);
 - :func:`first_failures`, :func:`save_failure_png` (``failures``);
-- :func:`write_report`, the one-page report of an RLHF loop (``report``).
+- :func:`write_report`, the one-page report of an RLHF loop (``report``);
+- :func:`run_evaluation` + :class:`EvaluationRequest` -> :class:`EvaluationOutcome`: scene selection, one run per
+  seed (:func:`evaluate_seeds` -> :class:`SeedRuns`, their mean) and the files written (``runs``).
 """
 
 from trafficrlhf_sdk._lazy import lazy_exports
@@ -16,8 +18,6 @@ _EXPORTS = {
     "evaluate_policy": "protocol",
     "compute_metrics": "protocol",
     "run_batched": "protocol",
-    "seed_policy": "protocol",
-    "policy_seed": "protocol",
     "load_scene_histograms": "protocol",
     "save_scene_histograms": "protocol",
     "plot_histograms": "protocol",
@@ -42,6 +42,16 @@ _EXPORTS = {
     "save_failure_png": "failures",
     "render_failures": "failures",
     "write_report": "report",
+    "run_label": "compare",
+    "EvaluationRequest": "runs",
+    "EvaluationOutcome": "runs",
+    "SeedRuns": "runs",
+    "evaluate_seeds": "runs",
+    "select_scenes": "runs",
+    "load_scenes": "runs",
+    "check_out_dir": "runs",
+    "render_worst": "runs",
+    "run_evaluation": "runs",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

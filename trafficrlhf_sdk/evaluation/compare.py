@@ -7,7 +7,8 @@ import os
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["change_interval_table", "comparison_table", "meta_metric_table", "read_results", "scene_change_table"]
+__all__ = ["change_interval_table", "comparison_table", "meta_metric_table", "read_results", "run_label",
+           "scene_change_table"]
 
 SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
@@ -43,13 +44,20 @@ ROWS = (
 ) + SHARED_ROWS
 
 
-def _label(result: dict, folder: str) -> str:
-    meta = result.get("metadata", {})
-    model = meta.get("model") or os.path.basename(os.path.normpath(folder))
-    label = f"{model} + {meta['guidance']}" if meta.get("guidance") else str(model)
-    if meta.get("checkpoint"):  # aligned or retrained weights: say which
-        label += f" ({os.path.basename(os.path.normpath(str(meta['checkpoint'])))})"
+def run_label(metadata: dict, folder: str = "") -> str:
+    """The name of a run in tables: the model, its guidance and, when one was given, the checkpoint (a bundled
+    checkpoint's name, or a folder's last two parts), so a base and its aligned checkpoint never share a column."""
+    model = metadata.get("model") or os.path.basename(os.path.normpath(folder)) or "model"
+    label = f"{model} + {metadata['guidance']}" if metadata.get("guidance") else str(model)
+    checkpoint = metadata.get("checkpoint")
+    if checkpoint:  # aligned or retrained weights: say which
+        parts = os.path.normpath(str(checkpoint)).split(os.sep)
+        label += f" ({'/'.join(parts[-2:]) if len(parts) > 1 else parts[0]})"
     return label
+
+
+def _label(result: dict, folder: str) -> str:
+    return run_label(result.get("metadata", {}), folder)
 
 
 def read_results(folder: str) -> dict:
