@@ -19,7 +19,13 @@ from trafficrlhf_sdk.feedback import (
     UnknownCampaignError,
     UnknownItemError,
 )
-from trafficrlhf_sdk.feedback.campaign import CampaignConfig, build_policy, create_campaign, crop_map, extend_campaign
+from trafficrlhf_sdk.feedback.campaign import (
+    CampaignConfig,
+    campaign_policy,
+    create_campaign,
+    crop_map,
+    extend_campaign,
+)
 from trafficrlhf_sdk.testing.feedback import make_tiny_campaign, tiny_context
 
 
@@ -191,10 +197,10 @@ def test_crop_map_keeps_lookups() -> None:
     assert torch.equal(cropped.lookup(probe), scenario.map.lookup(probe))  # type: ignore[union-attr]
 
 
-def test_build_policy_rejects_guidance_it_cannot_use() -> None:
+def test_campaign_policy_rejects_guidance_it_cannot_use() -> None:
     with pytest.raises(TrafficRLHFError, match="does not accept guidance"):
-        build_policy("constant_velocity", "no_collision", 0)
-    assert build_policy("noisy_log", None, 3).seed == 3
+        campaign_policy("constant_velocity", "no_collision", 0)
+    assert campaign_policy("noisy_log", None, 3).seed == 3
 
 
 @pytest.mark.data
@@ -236,10 +242,10 @@ def test_closed_loop_contexts_start_from_the_models_own_driving(tmp_path, nuscen
     for scene_id in source.scene_ids("val")[:6]:
         scene = source.load_scene("val", scene_id)
         start = scene.current_index
-        context = closed_loop_context(build_policy("constant_velocity", None, 0), scene, 6.0, 2.0, seed=1)
+        context = closed_loop_context(campaign_policy("constant_velocity", None, 0), scene, 6.0, 2.0, seed=1)
         cut = scene.num_steps - context.num_steps + start
         assert context.current_index == start and start <= cut <= start + 60
-        driven = simulate(build_policy("constant_velocity", None, 0), scene, SimulationConfig(duration_s=6.0))
+        driven = simulate(campaign_policy("constant_velocity", None, 0), scene, SimulationConfig(duration_s=6.0))
         sim = driven.simulated
         failed = (collisions_per_step(sim) | offroad_per_step(sim))[0] & sim.valid[0] & driven.controlled[0][:, None]
         failed[:, : start + 1] = False
@@ -249,7 +255,7 @@ def test_closed_loop_contexts_start_from_the_models_own_driving(tmp_path, nuscen
             first = int(torch.arange(sim.num_steps)[failed.any(0)].min())
             assert cut == max(start, first - 10)
             cut_before_failure += 1
-        replay = closed_loop_context(build_policy("log_replay", None, 0), scene, 6.0, 2.0, seed=1)
+        replay = closed_loop_context(campaign_policy("log_replay", None, 0), scene, 6.0, 2.0, seed=1)
         cut = scene.num_steps - replay.num_steps + start
         same = replay.valid[0, :, : start + 1]
         assert torch.allclose(replay.states[0, :, : start + 1][same], scene.states[0, :, cut - start: cut + 1][same])

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
-__all__ = ["ExecutionConfig", "campaign_candidates", "derive_seed", "ray_session", "run_tasks"]
+__all__ = ["ExecutionConfig", "derive_seed", "ray_session", "run_tasks"]
 
 T = TypeVar("T")
 
@@ -115,38 +115,3 @@ def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
         shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
         pool = ActorPool([actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)])
         return list(pool.map(lambda a, task: a.run.remote(task), list(tasks)))
-
-
-def _candidates_task(shared: dict[str, Any], scene_id: str) -> tuple[Any, ...]:
-    """One campaign context's candidates (runs in-process or on a Ray worker): the scene is read from the shipped
-    source, and the shipped model is re-seeded with the context's seed (what building it with that seed does)."""
-    import torch
-
-    from trafficrlhf_sdk.evaluation.protocol import seed_policy
-    from trafficrlhf_sdk.feedback.campaign import _mixed_candidates, context_seed, generate_candidates
-
-    campaign, cfg = shared["campaign"], shared["campaign"].config
-    scene = shared["source"].load_scene(cfg["split"], scene_id)
-    key = (cfg["source"], cfg["split"], scene_id)
-    if cfg.get("candidate_models"):
-        return _mixed_candidates(campaign, scene, cfg["candidate_models"], cfg, key)
-    policy = shared["policy"]
-    seed_policy(policy, context_seed(campaign.seed, *key))
-    with torch.no_grad():
-        return generate_candidates(policy, scene, campaign.num_candidates, cfg["candidate_seconds"],
-                                   cfg["map_margin_m"])
-
-
-def campaign_candidates(campaign: Any, source: Any, scene_ids: Sequence[str],
-                        execution: ExecutionConfig | None = None) -> dict[str, tuple[Any, ...]]:
-    """Candidates of a feedback campaign's contexts ``{scene_id: (context, candidates, valid, logged,
-    logged_valid)}``, as :func:`~trafficrlhf_sdk.feedback.campaign.create_campaign` makes them, computed on
-    ``execution`` (Ray workers; in-process without). The model is built once and shipped once with the source;
-    each task re-seeds it with its context's seed. Storing stays with the caller (one writer to the database)."""
-    from trafficrlhf_sdk.feedback.campaign import build_policy
-
-    cfg = campaign.config
-    policy = None if cfg.get("candidate_models") else \
-        build_policy(campaign.model, campaign.guidance, campaign.seed, cfg.get("model_options"))
-    shared = {"campaign": campaign, "source": source, "policy": policy}
-    return dict(zip(scene_ids, run_tasks(_candidates_task, shared, list(scene_ids), execution)))

@@ -21,11 +21,11 @@ from trafficrlhf_sdk.metrics.realism import QUANTITIES, SPECS, RealismMetric
 from trafficrlhf_sdk.metrics.realism_meta import RealismMetaConfig, RealismMetaMetric
 from trafficrlhf_sdk.parallel import ExecutionConfig, derive_seed, run_tasks
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
-from trafficrlhf_sdk.simulation.policies import ClosedLoopPolicy
+from trafficrlhf_sdk.simulation.policies import ClosedLoopPolicy, policy_seed, seed_policy
 from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig, log_rollout, simulate
 
 __all__ = ["SCENE_HISTOGRAMS", "EvaluationConfig", "EvaluationReport", "evaluate_policy", "load_scene_histograms",
-           "plot_histograms", "policy_seed", "run_batched", "save_scene_histograms", "seed_policy"]
+           "plot_histograms", "run_batched", "save_scene_histograms"]
 
 SCENE_HISTOGRAMS = "scene_histograms.npz"
 DEFAULT_METRICS = ("failure", "failure_corners", "realism_ctg", "realism_body", "guidance_objectives", "speed")
@@ -96,23 +96,6 @@ class EvaluationReport:
             paths.append(plot_histograms(self.histograms, os.path.join(directory, "histograms.png"),
                                          title=str(self.metadata.get("model", ""))))
         return paths
-
-
-def seed_policy(policy: ClosedLoopPolicy, seed: int) -> None:
-    """Set the sampling seed of ``policy`` where it has one (adapters' ``options.seed``, ``NoisyLogPolicy.seed``);
-    deterministic policies have none. ``reset`` re-seeds the sampler from it at every rollout."""
-    options = getattr(policy, "options", None)
-    if options is not None and hasattr(options, "seed"):
-        policy.options = options.model_copy(update={"seed": seed})  # type: ignore[attr-defined]
-    elif isinstance(getattr(policy, "seed", None), int):
-        policy.seed = seed  # type: ignore[attr-defined]
-
-
-def policy_seed(policy: ClosedLoopPolicy, default: int) -> int:
-    """The sampling seed ``policy`` was built with (``default`` for a policy without one)."""
-    options = getattr(policy, "options", None)
-    value = getattr(options, "seed", None) if options is not None else getattr(policy, "seed", None)
-    return value if isinstance(value, int) else default
 
 
 def _simulate_task(shared: dict[str, Any], task: tuple[int, int]) -> tuple[torch.Tensor, ...]:

@@ -40,12 +40,16 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
+from trafficrlhf_sdk.parallel import ExecutionConfig, run_tasks
+from trafficrlhf_sdk.plugins import build_policy, get_scenario_source, list_plugins, registry
 from trafficrlhf_sdk.scenario.map import crop_map
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.policies import seed_policy
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+from trafficrlhf_sdk.version import __version__
 
-__all__ = ["CampaignConfig", "CampaignReport", "build_policy", "context_seed", "create_campaign", "crop_map",
-           "extend_campaign", "generate_candidates"]
+__all__ = ["CampaignConfig", "CampaignReport", "campaign_candidates", "campaign_policy", "context_seed",
+           "create_campaign", "crop_map", "extend_campaign", "generate_candidates"]
 
 MAX_CANDIDATES = 9  # keys 1..9 pick a candidate in the app
 
@@ -114,12 +118,10 @@ def context_seed(campaign_seed: int, source: str, split: str, scene_id: str) -> 
     return _shuffle_key(campaign_seed, source, split, scene_id) % (2**31 - 1)
 
 
-def build_policy(model: str, guidance: str | None, seed: int, options: dict[str, Any] | None = None) -> Any:
-    """Instantiate registered traffic model ``model``: ``guidance`` for a model that takes none is an error
-    (silently dropping it would mislabel the campaign); ``seed`` is passed where accepted (deterministic policies
-    have none); other ``options`` must be accepted."""
-    from trafficrlhf_sdk.plugins import build_policy
-
+def campaign_policy(model: str, guidance: str | None, seed: int, options: dict[str, Any] | None = None) -> Any:
+    """Instantiate registered traffic model ``model`` for a campaign: ``guidance`` for a model that takes none is
+    an error (silently dropping it would mislabel the campaign); ``seed`` is passed where accepted (deterministic
+    policies have none); other ``options`` must be accepted."""
     return build_policy(model, {**(options or {}), "guidance": guidance, "seed": seed})
 
 
@@ -189,8 +191,6 @@ def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float
 
 
 def _open_source(cfg: CampaignConfig) -> Any:
-    from trafficrlhf_sdk.plugins import get_scenario_source
-
     future = cfg.candidate_seconds + (cfg.drive_seconds if cfg.contexts == "closed_loop" else 0.0)
     options: dict[str, Any] = {"history_s": cfg.history_seconds, "min_future_s": future,
                                "max_future_s": future + 1.0}
@@ -200,23 +200,19 @@ def _open_source(cfg: CampaignConfig) -> Any:
 
 
 def _provenance(model: str) -> dict[str, Any]:
-    from trafficrlhf_sdk.plugins import list_plugins, registry
-
     owner = registry("traffic_models").owner(model)
     versions = {p["name"]: p["version"] for p in list_plugins()}
     return {"model_plugin": owner, "model_plugin_version": versions.get(owner)}
 
 
-def create_campaign(store: FeedbackStore, config: CampaignConfig,
-                    on_context: Callable[[str], None] | None = None, execution: Any = None) -> CampaignReport:
+def create_campaign(store: FeedbackStore, config: CampaignConfig, on_context: Callable[[str], None] | None = None,
+                    execution: ExecutionConfig | None = None) -> CampaignReport:
     """Create campaign ``config.name`` in ``store`` and generate its contexts (one transaction per context).
     ``execution``: a :class:`~trafficrlhf_sdk.parallel.ExecutionConfig` to generate candidates on Ray workers."""
-    from trafficrlhf_sdk.version import __version__
-
     source = _open_source(config)
     source.check_split(config.split)
     for model in dict.fromkeys(config.candidate_models or [config.model]):  # fail early
-        build_policy(model, config.guidance, config.seed, config.model_options)
+        campaign_policy(model, config.guidance, config.seed, config.model_options)
     stored = config.model_dump(mode="json")
     stored["provenance"] = _provenance(config.model)
     if config.candidate_models:
@@ -228,7 +224,8 @@ def create_campaign(store: FeedbackStore, config: CampaignConfig,
 
 def extend_campaign(store: FeedbackStore, name: str, scene_ids: Sequence[str] | None = None,
                     num_contexts: int | None = None, root: str | None = None,
-                    on_context: Callable[[str], None] | None = None, execution: Any = None) -> CampaignReport:
+                    on_context: Callable[[str], None] | None = None,
+                    execution: ExecutionConfig | None = None) -> CampaignReport:
     """Add contexts to campaign ``name`` with its stored model, guidance, seed and sizes (``execution``: as for
     :func:`create_campaign`).
 
@@ -259,16 +256,12 @@ def _scene_list(source: Any, config: CampaignConfig) -> list[str]:
 
 
 def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list[str],
-          on_context: Callable[[str], None] | None, execution: Any = None) -> CampaignReport:
-    from trafficrlhf_sdk.version import __version__
-
+          on_context: Callable[[str], None] | None, execution: ExecutionConfig | None = None) -> CampaignReport:
     cfg = campaign.config
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
     added, skipped = [], []
     made: dict[str, Any] = {}
     if execution is not None and execution.uses_ray:  # scale-out hook: generate on Ray workers, store here
-        from trafficrlhf_sdk.parallel import campaign_candidates
-
         todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
         made = campaign_candidates(campaign, source, todo, execution)
     for scene_id in scene_ids:
@@ -281,7 +274,7 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
             context, cands, cand_valid, logged, logged_valid = made.pop(scene_id)
         elif not slots:
             scene = source.load_scene(cfg["split"], scene_id)
-            policy = build_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
+            policy = campaign_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
             if cfg.get("contexts", "log") == "closed_loop":
                 scene = closed_loop_context(policy, scene, cfg["drive_seconds"], cfg["candidate_seconds"], seed)
             with torch.no_grad():
@@ -306,7 +299,7 @@ def _mixed_candidates(campaign: Campaign, scene: ScenarioTensor, slots: list[str
     for model in dict.fromkeys(slots):
         seed = context_seed(campaign.seed, *key) if model == slots[0] else \
             _shuffle_key(campaign.seed, model, *key) % (2**31 - 1)
-        policy = build_policy(model, campaign.guidance, seed, cfg.get("model_options"))
+        policy = campaign_policy(model, campaign.guidance, seed, cfg.get("model_options"))
         with torch.no_grad():
             parts[model] = generate_candidates(policy, scene, slots.count(model), cfg["candidate_seconds"],
                                                cfg["map_margin_m"])
@@ -323,3 +316,31 @@ def _mixed_candidates(campaign: Campaign, scene: ScenarioTensor, slots: list[str
         context = context.replace_unchecked(map=crop_map(scene.map, shown, cfg["map_margin_m"]))
         context = ScenarioTensor(**{f: getattr(context, f) for f in context.__dataclass_fields__})
     return context, candidates, candidate_valid, logged, logged_valid
+
+
+def _candidates_task(shared: dict[str, Any], scene_id: str) -> tuple[Any, ...]:
+    """One campaign context's candidates (runs in-process or on a Ray worker): the scene is read from the shipped
+    source, and the shipped model is re-seeded with the context's seed (what building it with that seed does)."""
+    campaign, cfg = shared["campaign"], shared["campaign"].config
+    scene = shared["source"].load_scene(cfg["split"], scene_id)
+    key = (cfg["source"], cfg["split"], scene_id)
+    if cfg.get("candidate_models"):
+        return _mixed_candidates(campaign, scene, cfg["candidate_models"], cfg, key)
+    policy = shared["policy"]
+    seed_policy(policy, context_seed(campaign.seed, *key))
+    with torch.no_grad():
+        return generate_candidates(policy, scene, campaign.num_candidates, cfg["candidate_seconds"],
+                                   cfg["map_margin_m"])
+
+
+def campaign_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str],
+                        execution: ExecutionConfig | None = None) -> dict[str, tuple[Any, ...]]:
+    """Candidates of a feedback campaign's contexts ``{scene_id: (context, candidates, valid, logged,
+    logged_valid)}``, as :func:`create_campaign` makes them, computed on ``execution`` (Ray workers; in-process
+    without). The model is built once and shipped once with the source; each task re-seeds it with its context's
+    seed. Storing stays with the caller (one writer to the database)."""
+    cfg = campaign.config
+    policy = None if cfg.get("candidate_models") else \
+        campaign_policy(campaign.model, campaign.guidance, campaign.seed, cfg.get("model_options"))
+    shared = {"campaign": campaign, "source": source, "policy": policy}
+    return dict(zip(scene_ids, run_tasks(_candidates_task, shared, list(scene_ids), execution)))

@@ -13,6 +13,8 @@ _EXPORTS = {
     "LogReplayPolicy": "policies",
     "NoisyLogPolicy": "policies",
     "Plan": "policies",
+    "policy_seed": "policies",
+    "seed_policy": "policies",
     "Rollout": "simulator",
     "SimulationConfig": "simulator",
     "log_rollout": "simulator",

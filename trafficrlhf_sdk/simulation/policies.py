@@ -9,7 +9,8 @@ import torch
 from trafficrlhf_sdk.errors import ScenarioValidationError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["ClosedLoopPolicy", "ConstantVelocityPolicy", "LogReplayPolicy", "NoisyLogPolicy", "Plan"]
+__all__ = ["ClosedLoopPolicy", "ConstantVelocityPolicy", "LogReplayPolicy", "NoisyLogPolicy", "Plan", "policy_seed",
+           "seed_policy"]
 
 
 class Plan(NamedTuple):
@@ -38,6 +39,23 @@ class ClosedLoopPolicy(Protocol):
 
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:
         """States ``(B, A, horizon, 4)`` after ``context.current_index``, from the simulated past only."""
+
+
+def seed_policy(policy: ClosedLoopPolicy, seed: int) -> None:
+    """Set the sampling seed of ``policy`` where it has one (adapters' ``options.seed``, ``NoisyLogPolicy.seed``);
+    deterministic policies have none. ``reset`` re-seeds the sampler from it at every rollout."""
+    options = getattr(policy, "options", None)
+    if options is not None and hasattr(options, "seed"):
+        policy.options = options.model_copy(update={"seed": seed})  # type: ignore[attr-defined]
+    elif isinstance(getattr(policy, "seed", None), int):
+        policy.seed = seed  # type: ignore[attr-defined]
+
+
+def policy_seed(policy: ClosedLoopPolicy, default: int) -> int:
+    """The sampling seed ``policy`` was built with (``default`` for a policy without one)."""
+    options = getattr(policy, "options", None)
+    value = getattr(options, "seed", None) if options is not None else getattr(policy, "seed", None)
+    return value if isinstance(value, int) else default
 
 
 class LogReplayPolicy:
