@@ -5,9 +5,6 @@ from __future__ import annotations
 import difflib
 import json
 import os
-import sys
-from collections import Counter
-from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 import click
@@ -19,9 +16,9 @@ from trafficrlhf_sdk.cli.app import cli, format_error
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 
 if TYPE_CHECKING:
-    from trafficrlhf_sdk.scenario import ScenarioSource, ScenarioTensor
+    from trafficrlhf_sdk.scenario import ScenarioSource
 
-__all__ = ["inspect_command", "plugins_command", "render_command", "scene_statistics", "sources_command"]
+__all__ = ["inspect_command", "plugins_command", "render_command", "sources_command"]
 
 json_option = click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON instead of a table.")
 split_option = click.option("--split", default="val", show_default=True, help="Which split of the source.")
@@ -140,70 +137,6 @@ def sources_command(as_json: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ inspect
-def _summary(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"mean": None, "min": None, "max": None}
-    return {"mean": round(sum(values) / len(values), 4), "min": round(min(values), 4), "max": round(max(values), 4)}
-
-
-def _total_scene_count(source: ScenarioSource, split: str) -> int | None:
-    """Number of scenes in ``split`` before the length filter, when the source offers ``all_scene_ids``."""
-    all_ids = getattr(source, "all_scene_ids", None)
-    if not callable(all_ids):
-        return None
-    try:
-        return len(all_ids(split))
-    except Exception:  # optional information only
-        return None
-
-
-def scene_statistics(scenes: Iterable[ScenarioTensor]) -> dict[str, Any]:
-    """Summary statistics over scenes (each a ScenarioTensor; every scene of every batch counts once)."""
-    from trafficrlhf_sdk.scenario import AgentType
-
-    agents: list[int] = []
-    controlled: list[int] = []
-    durations: list[float] = []
-    history_s: list[float] = []
-    future_s: list[float] = []
-    dts: set[float] = set()
-    types: Counter[str] = Counter()
-    speed_sum, speed_count = 0.0, 0
-    scene_ids: list[str] = []
-    for batch in scenes:
-        for b in range(batch.num_scenes):
-            valid = batch.valid[b]
-            present = valid.any(-1)
-            agents.append(int(present.sum()))
-            controlled.append(int((batch.controlled[b] & present).sum()))
-            active = valid.any(0).nonzero().flatten()
-            span = int(active[-1] - active[0] + 1) if len(active) else 0
-            durations.append(span * batch.dt)
-            history_s.append(batch.current_index * batch.dt)
-            future_s.append((batch.num_steps - 1 - batch.current_index) * batch.dt)
-            dts.add(batch.dt)
-            for code in batch.agent_type[b][present].tolist():
-                types[AgentType(code).name if code in AgentType._value2member_map_ else str(code)] += 1
-            speeds = batch.speed[b][valid].abs()
-            speed_sum += float(speeds.double().sum())
-            speed_count += int(speeds.numel())
-            scene_ids.append(batch.scene_ids[b] if batch.scene_ids else str(len(scene_ids)))
-    return {
-        "scenes_loaded": len(agents),
-        "dt_s": sorted(dts),
-        "agents": {"total": sum(agents), "per_scene_mean": sum(agents) / len(agents) if agents else None,
-                   "per_scene_max": max(agents, default=None), "per_scene_min": min(agents, default=None)},
-        "controlled_agents": {"total": sum(controlled),
-                              "per_scene_mean": sum(controlled) / len(controlled) if controlled else None},
-        "duration_s": _summary(durations),
-        "history_s": _summary(history_s),
-        "future_s": _summary(future_s),
-        "agent_types": dict(sorted(types.items())),
-        "mean_speed_mps": speed_sum / speed_count if speed_count else None,
-        "scene_ids": scene_ids,
-    }
-
-
 def _fmt(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -223,40 +156,34 @@ def _fmt_summary(summary: dict[str, float | None], unit: str = "s") -> str:
 def inspect_command(source_name: str, split: str, root: str | None, num_scenes: int | None, list_ids: bool,
                     as_json: bool) -> None:
     """Load scenes of SOURCE and print statistics (scenes, agents, durations, types, speeds)."""
-    source = open_source(source_name, root)
-    source.check_split(split)
-    ids = source.scene_ids(split)
-    if list_ids:
-        if as_json:
-            _echo_json(ids)
-        else:
-            click.echo("\n".join(ids))
-        return
-    if not ids:
-        raise TrafficRLHFError(
-            f"source {source_name!r} has no scene long enough in split {split!r} at {source.root!r} (needs "
-            f"{source.config.history_s} s of history + {source.config.min_future_s} s of future)."
-        )
-    chosen = ids[:num_scenes]
-    from tqdm.auto import tqdm
+    from trafficrlhf_sdk.scenario.statistics import inspect_source
 
-    scenes = tqdm((source.load_scene(split, scene_id) for scene_id in chosen), total=len(chosen),
-                  desc=f"loading {source_name}/{split}", unit="scene", file=sys.stderr, disable=None, leave=False)
-    stats = scene_statistics(scenes)
-    report = {"source": source_name, "split": split, "root": str(source.root),
-              "scenes": {"loaded": stats.pop("scenes_loaded"), "long_enough": len(ids),
-                         "total": _total_scene_count(source, split)},
-              **stats}
+    source = open_source(source_name, root)
+    if list_ids:
+        source.check_split(split)
+        ids = source.scene_ids(split)
+        click.echo(json.dumps(ids, indent=2) if as_json else "\n".join(ids))
+        return
+    report = inspect_source(source, split, num_scenes)
     if as_json:
         _echo_json(report)
         return
+    table = Table(title=f"{source_name} / {split}", title_justify="left", show_header=False)
+    table.add_column("property", style="bold")
+    table.add_column("value", overflow="fold")
+    for key, value in _inspect_rows(report):
+        table.add_row(escape(key), escape(value))
+    _console().print(table)
 
+
+def _inspect_rows(report: dict[str, Any]) -> list[tuple[str, str]]:
+    """The lines of ``inspect``'s table, from :func:`~trafficrlhf_sdk.scenario.statistics.inspect_source`."""
     scenes_info = report["scenes"]
     scene_line = f"{scenes_info['loaded']} loaded of {scenes_info['long_enough']} long enough"
     if scenes_info["total"] is not None:
         scene_line += f" ({scenes_info['total']} in the split)"
     a, c = report["agents"], report["controlled_agents"]
-    rows = [
+    return [
         ("root", report["root"]),
         ("scenes", scene_line),
         ("time step", ", ".join(f"{dt:g} s" for dt in report["dt_s"])),
@@ -268,12 +195,6 @@ def inspect_command(source_name: str, split: str, root: str | None, num_scenes: 
         ("agent types", ", ".join(f"{name}: {count}" for name, count in report["agent_types"].items()) or "-"),
         ("mean speed (valid agents)", f"{_fmt(report['mean_speed_mps'], 2)} m/s"),
     ]
-    table = Table(title=f"{source_name} / {split}", title_justify="left", show_header=False)
-    table.add_column("property", style="bold")
-    table.add_column("value", overflow="fold")
-    for key, value in rows:
-        table.add_row(escape(key), escape(value))
-    _console().print(table)
 
 
 # ------------------------------------------------------------------------------------------------- render
