@@ -105,16 +105,17 @@ def _record_with(candidates: torch.Tensor, scenario, logged, logged_valid):  # t
 
 
 def test_judgment_notices_pace_stop_and_go_and_lane_keeping() -> None:
-    """The log re-timed faster or slower costs pace, an oscillating clock stop-and-go, a sideways drift lane
-    keeping; the faithful copy costs nothing, and every fault ranks below it."""
+    """The log re-timed faster (1.5x) or slower (half speed) than the cars drove before and than their neighbours
+    costs pace, an oscillating clock stop-and-go, a sideways drift lane keeping; the faithful copy costs nothing,
+    and every fault ranks below it."""
     from trafficrlhf_sdk.reward.contrast import perturb_future
     from trafficrlhf_sdk.testing.feedback import tiny_context
 
     scenario, _, _, logged, logged_valid = tiny_context(["faithful"])
     now = scenario.current_index
     variants = {"faithful": scenario.states[0, :, now + 1:]}
-    for kind in ("faster", "slower", "jerky", "off_lane"):
-        variants[kind] = perturb_future(scenario, kind, 0.5)[0].states[0, :, now + 1:]
+    for kind, strength in (("faster", 0.5), ("slower", 1.0), ("jerky", 0.5), ("off_lane", 0.5)):
+        variants[kind] = perturb_future(scenario, kind, strength)[0].states[0, :, now + 1:]
     judgment = judge_realism(_record_with(torch.stack(list(variants.values())), scenario, logged, logged_valid),
                              include_logged=False)
     realism = dict(zip(variants, judgment.realism.tolist()))

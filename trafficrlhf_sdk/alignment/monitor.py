@@ -7,7 +7,7 @@ before the failures of the starting model's closed-loop driving, where alignment
 once and sampled with the same random numbers every epoch, so the curve moves with the policy and not with the
 draw. The samples are scored with
 
-- the stand-in annotators' hidden realism judgment (:func:`~trafficrlhf_sdk.feedback.synthetic.judge_scenarios`,
+- the stand-in annotators' realism judgment (:func:`~trafficrlhf_sdk.feedback.judgment.judge_scenarios`,
   profile ``attentive``), which the reward model only saw through noisy choices, and
 - optionally a second reward model trained on other annotators' labels,
 
@@ -47,14 +47,13 @@ class HeldOutMonitor:
         self.best: tuple[float, int] | None = None  # (smoothed realism, epoch)
         self.best_state: dict[str, torch.Tensor] | None = None
 
-    def scores(self, samples: ScenarioTensor, logged: ScenarioTensor, agents: torch.Tensor) -> dict[str, float]:
+    def scores(self, samples: ScenarioTensor, agents: torch.Tensor) -> dict[str, float]:
         """``heldout_realism`` (and ``heldout_reward``) of ``samples`` (windows whose ``current_index`` is the start
-        of the sampled future) against ``logged`` (the same windows of the log) over ``agents (B, A)``."""
-        from trafficrlhf_sdk.feedback.synthetic import judge_scenarios
+        of the sampled future, with the history before it) over ``agents (B, A)``."""
+        from trafficrlhf_sdk.feedback.judgment import judge_scenarios
 
-        now = samples.current_index
-        with torch.no_grad():
-            judgment = judge_scenarios(samples.time_slice(now), logged.time_slice(now), agents, self.config)
+        with torch.no_grad():  # the judgment reads the samples' history and futures, never the logged future
+            judgment = judge_scenarios(samples, agents, self.config)
             out = {"heldout_realism": float(judgment.realism.mean())}
             if self.reward is not None:
                 out["heldout_reward"] = float(self.reward.score(samples).float().mean())

@@ -235,10 +235,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         contexts = self.monitor_contexts
         out = self._sample(contexts, derived_generator(cfg.seed, "monitor-samples"), MONITOR_SAMPLES)
         scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
-        now = contexts.current_index
-        logged = self.monitor_logged.repeat_scenes(MONITOR_SAMPLES).time_slice(max(0, now - REWARD_HISTORY_STEPS),
-                                                                               now + 1 + self.reward_steps)
-        return self.monitor.scores(scenario, logged, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
+        return self.monitor.scores(scenario, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
 
     def _draw_monitor_contexts(self) -> tuple[ScenarioTensor, ScenarioTensor]:
         """Logged windows and failure-focused windows of the starting model, from the held-out training scenes
