@@ -81,10 +81,9 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
                   contrast_scenes: int | None, title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card."""
-    import torch
-
-    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer
-    from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
+    from trafficrlhf_sdk.reward import RewardConfig
+    from trafficrlhf_sdk.reward.card import train_and_save
+    from trafficrlhf_sdk.reward.evaluation import load_preferences
 
     dataset, store = load_preferences(db_path, campaigns, data_dir, annotators, val_fraction, split_seed)
     overrides = {"max_epochs": epochs, "learning_rate": lr, "batch_size": batch_size, "margin": margin,
@@ -93,56 +92,28 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                           ensemble_size=ensemble, bootstrap=bootstrap, seed=seed, num_threads=threads,
                           device=device, val_fraction=val_fraction,
                           progress=not quiet, **{k: v for k, v in overrides.items() if v is not None})
+    # the command line that made this model, for the card
+    commands = ["trafficrlhf " + shlex.join(sys.argv[1:])] if os.path.basename(sys.argv[0]) == "trafficrlhf" else []
+    trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
+                             annotators=annotators, contrast_scenes=contrast_scenes, half=half,
+                             test_campaign=test_campaign, test_annotators=test_annotators,
+                             tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
+                             log=None if quiet else _echo_epoch, on_start=lambda info: _echo_start(architecture, info))
+    result = trained.result
+    _echo_metrics(f"trained in {result.train_seconds:.1f} s (best epochs {result.best_epochs}) -> {out_dir}",
+                  trained.card["metrics"])
 
-    def log(row: dict[str, float]) -> None:
-        if not quiet:
-            shown = {k: round(v, 4) for k, v in row.items() if k.startswith(("train_loss", "train_acc", "val_loss",
-                                                                              "val_acc", "val_margin"))}
-            click.echo(f"  member {int(row['member'])} epoch {int(row['epoch'])}: {shown} ({row['seconds']:.1f} s)")
 
-    contrast = None
-    if contrast_scenes is not None:
-        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
-
-        source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
-        contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, from_end=True))
-    trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast)
-    info = trainer.dataset_info
+def _echo_start(architecture: str, info: dict[str, Any]) -> None:
     click.echo(f"training {architecture} on {info['train_pairs']} pairs / {info['train_contexts']} contexts, "
                f"validating on {info['val_pairs']} pairs / {info['val_contexts']} contexts, "
-               f"{info['contrast_pairs']} contrast pairs "
-               f"(featurized in {trainer.featurize_seconds:.1f} s)")
-    result = trainer.train()
-    model = result.model
-    if half:  # round to float16 now, so the test metrics below are those of the weights that are saved
-        model.half().float()
-    card: dict[str, Any] = {"metrics": dict(result.metrics)}
-    if test_campaign is not None:
-        if store is None:
-            raise click.UsageError("--test-campaign needs --db (the campaign is read from the same database).")
-        test, _ = load_preferences(db_path, test_campaign, None, test_annotators)
-        test_metrics = evaluate_model(model, test, store, tie_tolerance)
-        card["metrics"].update({f"test_{k}": v for k, v in test_metrics.items()})
-        card["data"] = {**model.card_info.get("data", {}), "test_campaign": test_campaign,
-                        "test_annotators": list(test_annotators) or "all"}
-    if db_path is not None:
-        card.setdefault("data", dict(model.card_info.get("data", {})))
-        card["data"].update({"campaign": campaigns[0] if len(campaigns) == 1 else list(campaigns),
-                             "annotators": list(annotators) or "all",
-                             "scenes": sorted({f"{k['source']}/{k['split']}" for k in dataset.context_keys})})
-    if title:
-        card["title"] = title
-    if notes:
-        card["notes"] = "\n\n".join(notes)
-    if os.path.basename(sys.argv[0]) == "trafficrlhf":  # the command line that made this model, for the card
-        card["commands"] = ["trafficrlhf " + shlex.join(sys.argv[1:])]
-    model.save_pretrained(out_dir, card, dtype=torch.float16 if half else None)
-    with open(os.path.join(out_dir, "training_log.json"), "w", encoding="utf-8") as handle:
-        json.dump({"history": result.history, "best_epochs": result.best_epochs,
-                   "train_seconds": result.train_seconds, "featurize_seconds": result.featurize_seconds}, handle,
-                  indent=2)
-    _echo_metrics(f"trained in {result.train_seconds:.1f} s (best epochs {result.best_epochs}) -> {out_dir}",
-                  card["metrics"])
+               f"{info['contrast_pairs']} contrast pairs (featurized in {info['featurize_seconds']:.1f} s)")
+
+
+def _echo_epoch(row: dict[str, float]) -> None:
+    shown = {k: round(v, 4) for k, v in row.items()
+             if k.startswith(("train_loss", "train_acc", "val_loss", "val_acc", "val_margin"))}
+    click.echo(f"  member {int(row['member'])} epoch {int(row['epoch'])}: {shown} ({row['seconds']:.1f} s)")
 
 
 @rm.command("eval")
@@ -160,8 +131,9 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="With --db: pairs whose hidden realism differs by at most this are ties (strict accuracy).")
 @click.option("--probes", "probe_scenes", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Also probe the model on N held-out val scenes: the logged future must score above the same "
-                   "future made faster, slower, jerky, off its lane or tailgating (pass rate per probe and member).")
+              help="Also probe the model on N held-out val scenes (two windows from each scene long enough): the "
+                   "logged future must score above the same future made faster, slower, jerky, off its lane or "
+                   "tailgating (pass rate per probe and member, over the windows the perturbation changes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
                  annotators: tuple[str, ...], subset: str, val_fraction: float, split_seed: int,
@@ -194,7 +166,8 @@ def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data
         _echo_metrics(f"{model.architecture} from {model_dir} on {campaign or data_dir}", result["pairs"])
     for kind, entry in result.get("probes", {}).items():
         members = " / ".join(f"{rate:.2f}" for rate in entry["members"])
-        click.echo(f"  probe {kind:<9} pass {entry['pass_rate']:.3f} on {entry['scenes']} scenes"
+        click.echo(f"  probe {kind:<9} pass {entry['pass_rate']:.3f} on {entry['windows']} windows of "
+                   f"{entry['scenes']} scenes"
                    + (f" (members {members})" if members else "") + f", mean gap {entry['mean_gap']:+.4f}")
 
 
@@ -212,50 +185,27 @@ def _not_finite(result: Any, prefix: str = "") -> list[str]:
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def info_command(model_dir: str | None, as_json: bool) -> None:
     """Describe a saved reward model (architecture, size, data, metrics); without MODEL_DIR, list architectures."""
-    from trafficrlhf_sdk.reward.model import load_reward_model, reward_model_architectures
-    from trafficrlhf_sdk.reward.serialization import read_config, sha256_file
-    from trafficrlhf_sdk.scenario.io import safe_load_file
+    from trafficrlhf_sdk.reward.card import describe_reward_model
+    from trafficrlhf_sdk.reward.model import reward_model_architectures
 
-    registry = reward_model_architectures()
     if model_dir is None:
+        registry = reward_model_architectures()
         rows = [{"architecture": name, "plugin": registry.owner(name)} for name in registry.names()]
-        if as_json:
-            click.echo(json.dumps(rows, indent=2))
-        for row in [] if as_json else rows:
-            click.echo(f"{row['architecture']}\t(plugin {row['plugin']})")
+        click.echo(json.dumps(rows, indent=2) if as_json else
+                   "\n".join(f"{row['architecture']}\t(plugin {row['plugin']})" for row in rows))
         return
-    config = read_config(model_dir)
-    problem = None
-    try:  # "ok" means it loads: SHA-256, tensor names, shapes and dtypes, finite values
-        if config["architecture"] in registry:
-            load_reward_model(model_dir)
-        else:  # the plugin that builds it is missing: only the file can be checked
-            weights = os.path.join(model_dir, str(config.get("weights", {}).get("file", "model.safetensors")))
-            safe_load_file(weights)
-            if sha256_file(weights) != config.get("weights", {}).get("sha256"):
-                problem = f"{weights!r} does not match the SHA-256 recorded in config.json"
-    except TrafficRLHFError as exc:
-        problem = " ".join(str(exc).split())
-    ok = problem is None
-    summary = {"path": model_dir, "architecture": config["architecture"],
-               "registered": config["architecture"] in registry, "num_parameters": config.get("num_parameters"),
-               "weights_sha256_ok": ok, "sdk_version": config.get("sdk_version"), "config": config["config"],
-               "data": {k: v for k, v in config.get("data", {}).items() if k != "metadata"},
-               "metrics": config.get("metrics", {})}
-    if problem is not None:
-        summary["weights_problem"] = problem
+    summary = describe_reward_model(model_dir)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
-        if problem is not None:
-            raise TrafficRLHFError(f"reward model {model_dir!r} does not load: {problem}")
-        return
-    members = config["config"].get("num_members") if config["architecture"] == "ensemble" else None
-    kind = (f"{summary['architecture']} of {members} x {config['config'].get('member_architecture')}" if members
-            else summary["architecture"])
-    click.echo(f"{model_dir}: {kind} ({'registered' if summary['registered'] else 'NOT registered'}"
-               f"), {summary['num_parameters']:,} parameters, weights {'ok' if ok else 'DO NOT LOAD'}, "
-               f"SDK {summary['sdk_version']}")
-    _echo_metrics("data", summary["data"])
-    _echo_metrics("metrics", summary["metrics"])
-    if problem is not None:
-        raise TrafficRLHFError(f"reward model {model_dir!r} does not load: {problem}")
+    else:
+        config = summary["config"]
+        members = config.get("num_members") if summary["architecture"] == "ensemble" else None
+        kind = (f"{summary['architecture']} of {members} x {config.get('member_architecture')}" if members
+                else summary["architecture"])
+        click.echo(f"{model_dir}: {kind} ({'registered' if summary['registered'] else 'NOT registered'}"
+                   f"), {summary['num_parameters']:,} parameters, weights "
+                   f"{'ok' if summary['weights_sha256_ok'] else 'DO NOT LOAD'}, SDK {summary['sdk_version']}")
+        _echo_metrics("data", summary["data"])
+        _echo_metrics("metrics", summary["metrics"])
+    if "weights_problem" in summary:
+        raise TrafficRLHFError(f"reward model {model_dir!r} does not load: {summary['weights_problem']}")

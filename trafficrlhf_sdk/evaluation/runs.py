@@ -240,8 +240,7 @@ def run_evaluation(request: EvaluationRequest, out_dir: str | None = None, rende
     ``log`` hears the notes on skipped scenes."""
     import torch
 
-    from trafficrlhf_sdk import get_scenario_source
-    from trafficrlhf_sdk.plugins import build_policy
+    from trafficrlhf_sdk.plugins import build_policy, get_scenario_source
 
     if out_dir is not None:
         check_out_dir(out_dir)

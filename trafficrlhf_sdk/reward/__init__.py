@@ -6,8 +6,11 @@
   (``"trafficgen_mcg"``) the same head on a TrafficGen-style (multi-context gating) encoder.
 - :class:`RewardConfig` + :class:`RewardTrainer`: Bradley–Terry training from a
   :class:`~trafficrlhf_sdk.feedback.PreferenceDataset`.
+- :func:`train_and_save`: training, the held-out test and the saved folder with its card (:func:`model_card`);
+  :func:`describe_reward_model` reads a saved one back.
 """
 
+from trafficrlhf_sdk.reward.card import TrainedRewardModel, describe_reward_model, model_card, train_and_save
 from trafficrlhf_sdk.reward.config import RewardConfig
 from trafficrlhf_sdk.reward.ctg_mlp import CTGMLPConfig, CTGMLPRewardModel
 from trafficrlhf_sdk.reward.data import PairData, build_pair_data, filter_pairs, split_by_context
@@ -31,13 +34,17 @@ __all__ = [
     "RewardTrainer",
     "TrafficGenMCGConfig",
     "TrafficGenMCGRewardModel",
+    "TrainedRewardModel",
     "TrainingResult",
     "bradley_terry_loss",
     "build_pair_data",
+    "describe_reward_model",
     "evaluate_pairs",
     "filter_pairs",
     "get_reward_model_architecture",
+    "model_card",
     "preference_metrics",
     "reward_model_architectures",
     "split_by_context",
+    "train_and_save",
 ]

@@ -203,10 +203,14 @@ def _members(model: Any) -> list[Any]:
 
 def probe_reward_model(model: Any, scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATIONS,
                        strength: float = DEFAULT_STRENGTH) -> dict[str, dict[str, Any]]:
-    """Per kind: the share of ``scenes`` (those the perturbation changes) where ``model`` scores the perturbed
-    future strictly below the log, for the model and each ensemble member; and the mean score gap (log minus
-    perturbed). A reward model that cannot see a kind passes about half of its probes, one that prefers it
-    fewer. ``model``: anything with ``score(scenario) -> (B,)``."""
+    """Per kind: the share of the windows of ``scenes`` that the perturbation changes (the probes) where
+    ``model`` scores the perturbed future strictly below the log, for the model and each ensemble member; and the
+    mean score gap (log minus perturbed). A reward model that cannot see a kind passes about half of its probes,
+    one that prefers it fewer. ``model``: anything with ``score(scenario) -> (B,)``.
+
+    Each entry counts its ``windows`` (the probes) and the distinct ``scenes`` they come from:
+    :func:`recorded_windows` cuts two windows from most scenes, and a kind changes only windows it applies to
+    (tailgating needs a lead)."""
     def scores(m: Any, scenario: ScenarioTensor) -> torch.Tensor:
         with torch.no_grad():
             return m.score(scenario).detach().float().cpu()
@@ -218,9 +222,12 @@ def probe_reward_model(model: Any, scenes: ScenarioTensor, kinds: Sequence[str] 
         moved, agents = perturb_future(scenes, kind, strength)
         changed = agents.any(-1).cpu()
         if not changed.any():
-            report[kind] = {"scenes": 0, "pass_rate": float("nan"), "members": [], "mean_gap": float("nan")}
+            report[kind] = {"windows": 0, "scenes": 0, "pass_rate": float("nan"), "members": [],
+                            "mean_gap": float("nan")}
             continue
-        entry: dict[str, Any] = {"scenes": int(changed.sum())}
+        ids = scenes.scene_ids or [str(b) for b in range(scenes.num_scenes)]
+        entry: dict[str, Any] = {"windows": int(changed.sum()),
+                                 "scenes": len({ids[b] for b in changed.nonzero().flatten().tolist()})}
         for m in [model, *models]:
             gap = (logged[id(m)] - scores(m, moved))[changed]
             rate = float((gap > 0).float().mean())

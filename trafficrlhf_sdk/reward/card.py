@@ -1,0 +1,154 @@
+"""A reward model's card and its whole training run: train from preferences, test, write the folder.
+
+``trafficrlhf rm train`` is :func:`train_and_save` plus printing; ``rm info`` is :func:`describe_reward_model`.
+The card (``metrics``, ``data``, ``title``, ``notes``, ``commands``) goes into ``config.json`` and ``README.md``
+through :meth:`RewardModel.save_pretrained`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from trafficrlhf_sdk.errors import TrafficRLHFError
+
+__all__ = ["TrainedRewardModel", "describe_reward_model", "model_card", "train_and_save"]
+
+
+def model_card(metrics: dict[str, Any], model: Any, *, dataset: Any = None, campaigns: Sequence[str] = (),
+               annotators: Sequence[str] = (), test_metrics: dict[str, Any] | None = None,
+               test_campaign: str | None = None, test_annotators: Sequence[str] = (), title: str | None = None,
+               notes: Sequence[str] = (), commands: Sequence[str] = ()) -> dict[str, Any]:
+    """The card of a trained reward model.
+
+    Args:
+        metrics: the training metrics (``TrainingResult.metrics``).
+        model: the trained :class:`RewardModel` (its ``card_info["data"]`` is the base of ``data``).
+        dataset: the training :class:`PreferenceDataset`, when it came from ``campaigns`` of a database: its
+            scenes are recorded.
+        campaigns, annotators: the campaigns and annotators (all when empty) whose labels trained it.
+        test_metrics: metrics on a held-out campaign, recorded as ``test_<name>``.
+        test_campaign, test_annotators: that campaign and its annotators.
+        title, notes: the card's title and Markdown paragraphs.
+        commands: the command lines that made the model.
+    """
+    card: dict[str, Any] = {"metrics": dict(metrics)}
+    base = dict(model.card_info.get("data", {}))
+    if test_metrics is not None:
+        card["metrics"].update({f"test_{k}": v for k, v in test_metrics.items()})
+        card["data"] = {**base, "test_campaign": test_campaign, "test_annotators": list(test_annotators) or "all"}
+    if campaigns:
+        card.setdefault("data", base)
+        card["data"].update({"campaign": campaigns[0] if len(campaigns) == 1 else list(campaigns),
+                             "annotators": list(annotators) or "all"})
+        if dataset is not None:
+            card["data"]["scenes"] = sorted({f"{k['source']}/{k['split']}" for k in dataset.context_keys})
+    if title:
+        card["title"] = title
+    if notes:
+        card["notes"] = "\n\n".join(notes)
+    if commands:
+        card["commands"] = list(commands)
+    return card
+
+
+@dataclass
+class TrainedRewardModel:
+    """What :func:`train_and_save` made: the model, its training result and card, and where it lies."""
+
+    model: Any
+    result: Any
+    card: dict[str, Any]
+    out_dir: str
+    dataset_info: dict[str, Any] = field(default_factory=dict)
+
+
+def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None, campaigns: Sequence[str] = (),
+                   annotators: Sequence[str] = (), contrast_scenes: int | None = None, half: bool = False,
+                   test_campaign: str | None = None, test_annotators: Sequence[str] = (), tie_tolerance: float = 0.0,
+                   title: str | None = None, notes: Sequence[str] = (), commands: Sequence[str] = (),
+                   log: Callable[[dict[str, float]], None] | None = None,
+                   on_start: Callable[[dict[str, Any]], None] | None = None) -> TrainedRewardModel:
+    """Train a reward model on ``dataset`` with ``config`` (a :class:`RewardConfig`), test it on a held-out
+    campaign, and write ``out_dir``: ``config.json`` + ``model.safetensors`` + ``README.md`` (the card) and
+    ``training_log.json``.
+
+    ``store`` is the feedback database ``campaigns`` come from (needed by ``test_campaign``, read from the same
+    database). ``contrast_scenes`` N adds contrast pairs from the last N train scenes' logs. ``half`` stores
+    float16 weights, rounded before testing so the card's test metrics are those of the saved weights.
+    ``on_start`` hears the trainer's ``dataset_info`` (pairs, contexts, featurizing time) before training;
+    ``log`` hears each epoch's row.
+    """
+    import torch
+
+    from trafficrlhf_sdk.reward.evaluation import evaluate_model, load_preferences
+    from trafficrlhf_sdk.reward.trainer import RewardTrainer
+
+    if test_campaign is not None and store is None:
+        raise TrafficRLHFError(f"--test-campaign {test_campaign!r} needs --db (the campaign is read from the same "
+                               "database); pass the database the training campaigns come from.")
+    contrast = None
+    if contrast_scenes is not None:
+        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
+
+        source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
+        contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, from_end=True))
+    trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast)
+    info = {**trainer.dataset_info, "featurize_seconds": trainer.featurize_seconds}
+    if on_start is not None:
+        on_start(info)
+    result = trainer.train()
+    model = result.model
+    if half:  # round to float16 now, so the test metrics below are those of the weights that are saved
+        model.half().float()
+    test_metrics = None
+    if test_campaign is not None:
+        test, _ = load_preferences(store.path, test_campaign, None, test_annotators)
+        test_metrics = evaluate_model(model, test, store, tie_tolerance)
+    card = model_card(result.metrics, model, dataset=dataset if campaigns else None, campaigns=campaigns,
+                      annotators=annotators, test_metrics=test_metrics, test_campaign=test_campaign,
+                      test_annotators=test_annotators, title=title, notes=notes, commands=commands)
+    model.save_pretrained(out_dir, card, dtype=torch.float16 if half else None)
+    with open(os.path.join(out_dir, "training_log.json"), "w", encoding="utf-8") as handle:
+        json.dump({"history": result.history, "best_epochs": result.best_epochs,
+                   "train_seconds": result.train_seconds, "featurize_seconds": result.featurize_seconds}, handle,
+                  indent=2)
+    return TrainedRewardModel(model, result, card, out_dir, info)
+
+
+def describe_reward_model(model_dir: str) -> dict[str, Any]:
+    """What ``rm info`` reports on a saved reward model: ``path``, ``architecture``, ``registered``,
+    ``num_parameters``, ``weights_sha256_ok``, ``sdk_version``, ``config``, ``data`` and ``metrics``, plus
+    ``weights_problem`` (one line) when it does not load.
+
+    "ok" means it loads: SHA-256, tensor names, shapes and dtypes, finite values. When the plugin that builds the
+    architecture is missing, only the weights file and its SHA-256 are checked."""
+    from trafficrlhf_sdk.models.checkpoint import sha256_file
+    from trafficrlhf_sdk.reward.model import load_reward_model, reward_model_architectures
+    from trafficrlhf_sdk.reward.serialization import read_config
+    from trafficrlhf_sdk.scenario.io import safe_load_file
+
+    registry = reward_model_architectures()
+    config = read_config(model_dir)
+    problem = None
+    try:
+        if config["architecture"] in registry:
+            load_reward_model(model_dir)
+        else:
+            weights = os.path.join(model_dir, str(config.get("weights", {}).get("file", "model.safetensors")))
+            safe_load_file(weights)
+            if sha256_file(weights) != config.get("weights", {}).get("sha256"):
+                problem = f"{weights!r} does not match the SHA-256 recorded in config.json"
+    except TrafficRLHFError as exc:
+        problem = " ".join(str(exc).split())
+    summary = {"path": model_dir, "architecture": config["architecture"],
+               "registered": config["architecture"] in registry, "num_parameters": config.get("num_parameters"),
+               "weights_sha256_ok": problem is None, "sdk_version": config.get("sdk_version"),
+               "config": config["config"], "data": {k: v for k, v in config.get("data", {}).items() if k != "metadata"},
+               "metrics": config.get("metrics", {})}
+    if problem is not None:
+        summary["weights_problem"] = problem
+    return summary
