@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import click
 
-from trafficrlhf_sdk.cli.app import cli
+from trafficrlhf_sdk.cli.app import cli, parse_key_values
 
 __all__ = ["align_command"]
+
 
 def _comma_list(text: str | None) -> tuple[str, ...] | None:
     """``"a, b,"`` -> ``("a", "b")``; None stays None (AlignConfig validates the names)."""
@@ -57,8 +60,24 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
     Every AlignConfig field is reachable through --config (the committed models' recipes lie beside them in
     reference_models/). The aligned model lands in --out, so `trafficrlhf evaluate --checkpoint OUT` evaluates it.
     """
-    from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
-    from trafficrlhf_sdk.cli.app import parse_key_values
+    from trafficrlhf_sdk.alignment.recipe import run_recipe
+    from trafficrlhf_sdk.parallel import ExecutionConfig
+
+    recipe = _recipe(config_path, model, checkpoint, reward_spec, reward_options, model_options, threads)
+    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
+    summary = run_recipe(recipe, out_dir, execution=execution if execution.uses_ray else None, alpha=alpha,
+                         epochs=epochs, guidance=guidance, groups=_comma_list(groups), num_scenes=num_scenes,
+                         root=root, seed=seed, resume=resume or None, resume_allow_changes=allow_changes or None,
+                         progress_bar=False if quiet else None)
+    click.echo(f"aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.1f} s on "
+               f"{summary['threads']} threads; mean reward {summary['reward_first']:.4f} -> "
+               f"{summary['reward_last']:.4f}; saved to {out_dir}")
+
+
+def _recipe(config_path: str | None, model: str | None, checkpoint: str | None, reward_spec: str | None,
+            reward_options: tuple[str, ...], model_options: tuple[str, ...], threads: int | None) -> Any:
+    """The recipe of ``--config`` (if any) with the command line's options over it."""
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
     from trafficrlhf_sdk.errors import TrafficRLHFError
 
     recipe = AlignRecipe.load(config_path) if config_path else None
@@ -67,29 +86,12 @@ def align_command(config_path: str | None, model: str | None, checkpoint: str | 
     if model is None and checkpoint is None and (recipe is None or (recipe.model is None and not recipe.checkpoint)):
         raise TrafficRLHFError("no traffic model given: pass --model NAME or --checkpoint FOLDER (or --config).")
     base = recipe.model_dump() if recipe is not None else {"reward_model": reward_spec}
-    if model is not None:
-        base["model"] = model
-    if checkpoint is not None:
-        base["checkpoint"] = checkpoint
-    if reward_spec is not None:
-        base["reward_model"] = reward_spec
+    given = {"model": model, "checkpoint": checkpoint, "reward_model": reward_spec, "threads": threads}
+    base.update({key: value for key, value in given.items() if value is not None})
     base["reward_options"] = {**base.get("reward_options", {}),
                               **parse_key_values(reward_options, "--reward-option")}
     base["model_options"] = {**base.get("model_options", {}), **parse_key_values(model_options, "--model-option")}
-    if threads is not None:
-        base["threads"] = threads
-    from trafficrlhf_sdk.parallel import ExecutionConfig
-
-    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
-    execution = execution if execution.uses_ray else None
-    summary = run_recipe(AlignRecipe(**base), out_dir, execution=execution, alpha=alpha, epochs=epochs,
-                         guidance=guidance,
-                         groups=_comma_list(groups), num_scenes=num_scenes, root=root, seed=seed,
-                         resume=resume or None, resume_allow_changes=allow_changes or None,
-                         progress_bar=False if quiet else None)
-    click.echo(f"aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.1f} s on "
-               f"{summary['threads']} threads; mean reward {summary['reward_first']:.4f} -> "
-               f"{summary['reward_last']:.4f}; saved to {out_dir}")
+    return AlignRecipe(**base)
 
 
 def _parse_weights(text: str | None) -> list[float] | None:
