@@ -85,7 +85,7 @@ def test_config_forbids_unknown_keys_and_quick_is_small() -> None:
     full, quick = PaperConfig(), PaperConfig.quick()
     assert full.only == TABLES and full.scenes == 100 and len(full.guidances) == 5
     assert quick.label == "quick" and quick.scenes <= 4 and quick.rollouts >= 2  # the meta-metric path runs
-    assert quick.align_overrides["epochs"] == 1 and quick.only == TABLES
+    assert quick.align_overrides.epochs == 1 and quick.only == TABLES
     assert PaperConfig.quick(scenes=3).scenes == 3
     for name, field in PaperConfig.model_fields.items():
         assert field.description, name

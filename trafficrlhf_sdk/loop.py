@@ -28,11 +28,14 @@ import json
 import os
 import time
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from trafficrlhf_sdk.alignment.config import AlignConfig
+from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS, set_fields
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.reward.config import RewardConfig
 
 __all__ = ["RLHFConfig", "rlhf"]
 
@@ -68,13 +71,15 @@ class RLHFConfig(BaseModel):
                                   description="Stand-in annotator profiles that label every round.")
     people: bool = Field(False, description="Wait for people to label each round in the browser app "
                                             "(`trafficrlhf feedback serve`) instead of stand-in annotators.")
-    reward: dict[str, Any] = Field(default_factory=lambda: {"ensemble_size": 3, "max_epochs": 30},
-                                   description="RewardConfig fields of the reward model.")
+    reward: Annotated[RewardConfig, ONLY_SET_FIELDS] = Field(
+        default_factory=lambda: RewardConfig(ensemble_size=3, max_epochs=30),
+        description="RewardConfig fields of the reward model (table [reward]; `seed` defaults to this config's).")
     contrast_scenes: int = Field(120, ge=0, description="Recorded train scenes (from the end of the split) whose "
                                  "logs give automatic contrast pairs; 0: none.")
     probe_scenes: int = Field(50, ge=0, description="Held-out val scenes the reward model is probed on; 0: none.")
-    align: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields of the alignment stage "
-                                  "(`guidance` and `seed` default to this config's).")
+    align: Annotated[AlignConfig, ONLY_SET_FIELDS] = Field(
+        default_factory=AlignConfig, description="AlignConfig fields of the alignment stage (table [align]; "
+                                                 "`guidance` and `seed` default to this config's).")
     reward_aggregation: Literal["mean", "worst", "lcb"] = Field("mean", description="How the fine-tuner reads the "
                                                                 "ensemble: the members' mean, the worst member, or "
                                                                 "mean - reward_pessimism x std.")
@@ -233,7 +238,7 @@ def _label(config: RLHFConfig, store: Any, campaigns: list[str], r: int, state: 
 
 def _reward_model(config: RLHFConfig, out_dir: str, campaigns: list[str], folder: str, r: int,
                   state: dict[str, Any], log: Callable[[str], None]) -> None:
-    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer
+    from trafficrlhf_sdk.reward import RewardTrainer
     from trafficrlhf_sdk.reward.contrast import contrast_dataset, probe_reward_model, recorded_windows
     from trafficrlhf_sdk.reward.evaluation import load_preferences
 
@@ -246,7 +251,7 @@ def _reward_model(config: RLHFConfig, out_dir: str, campaigns: list[str], folder
     if config.contrast_scenes:
         contrast = contrast_dataset(recorded_windows(config.source, "train", config.contrast_scenes, config.root,
                                                      from_end=True, future_steps=round(config.seconds * 10)))
-    settings = RewardConfig(**{"seed": config.seed + r, "progress": False, **config.reward})
+    settings = RewardConfig(**{"seed": config.seed + r, "progress": False, **set_fields(config.reward)})
     trainer = RewardTrainer(settings, train_dataset=dataset, contrast_dataset=contrast)
     result = trainer.train()
     card: dict[str, Any] = {"metrics": dict(result.metrics),
@@ -281,7 +286,7 @@ def _align(config: RLHFConfig, folder: str, r: int, state: dict[str, Any], out_d
     step = f"round_{r}/align"
     if _done(state, step):
         return
-    fields = {"guidance": config.guidance, "seed": config.seed + r, **config.align}
+    fields = {"guidance": config.guidance, "seed": config.seed + r, **set_fields(config.align)}
     recipe = AlignRecipe(model=config.model, checkpoint=config.checkpoint, model_options=config.model_options,
                          reward_model=os.path.join(folder, "reward_model"), align=fields,
                          reward_aggregation=config.reward_aggregation, reward_pessimism=config.reward_pessimism)

@@ -19,12 +19,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from trafficrlhf_sdk.alignment.config import AlignConfig, paper_alpha
-from trafficrlhf_sdk.config_files import read_toml
+from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS, read_toml, set_fields, validation_message
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
 __all__ = ["AlignRecipe", "run_recipe"]
@@ -52,8 +52,9 @@ class AlignRecipe(BaseModel):
                                              "`heldout_reward`.")
     model_options: dict[str, Any] = Field(default_factory=dict, description="Adapter options while training.")
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
-    align: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields; `alpha` defaults to the "
-                                                                    "paper's value for the model.")
+    align: Annotated[AlignConfig, ONLY_SET_FIELDS] = Field(
+        default_factory=AlignConfig, description="AlignConfig fields (table [align]); `alpha` defaults to the "
+                                                 "paper's value for the model.")
 
     @classmethod
     def load(cls, path: str) -> AlignRecipe:
@@ -63,21 +64,15 @@ class AlignRecipe(BaseModel):
                                     "reference_models/*/*/recipe.toml or loop.toml).")
         data = read_toml(path)
         try:
-            recipe = cls(**data)
-            AlignConfig(**recipe.align)  # fail early, naming the file
+            return cls(**data)
         except ValidationError as exc:
-            raise DataFormatError(f"--config {path!r}: {_one_line(exc)}") from None
-        return recipe
+            raise DataFormatError(f"--config {path!r}: {validation_message(exc)}") from None
 
     def config(self, model_name: str, **overrides: Any) -> AlignConfig:
         """The run's :class:`AlignConfig`: the recipe's fields, then ``overrides`` (None values ignored)."""
-        fields = {**self.align, **{k: v for k, v in overrides.items() if v is not None}}
+        fields = {**set_fields(self.align), **{k: v for k, v in overrides.items() if v is not None}}
         fields.setdefault("alpha", paper_alpha(model_name))
         return AlignConfig(**fields)
-
-
-def _one_line(exc: ValidationError) -> str:
-    return "; ".join(f"{'.'.join(map(str, e['loc'])) or '<recipe>'}: {e['msg']}" for e in exc.errors())
 
 
 def run_recipe(recipe: AlignRecipe, output_dir: str, execution: Any = None, **overrides: Any) -> dict[str, Any]:
@@ -100,7 +95,7 @@ def run_recipe(recipe: AlignRecipe, output_dir: str, execution: Any = None, **ov
             raise TrafficRLHFError(f"reward_aggregation {recipe.reward_aggregation!r} needs an ensemble reward model "
                                    f"(`rm train --ensemble N`); {recipe.reward_model!r} has one member.")
         reward.conservative(recipe.reward_aggregation, recipe.reward_pessimism)
-    seed = overrides.get("seed", recipe.align.get("seed", 0))
+    seed = overrides.get("seed", recipe.align.seed)
     adapter = build_policy(recipe.model, {**recipe.model_options, "checkpoint": recipe.checkpoint, "seed": seed})
     if not hasattr(adapter, "parameter_groups"):
         raise TrafficRLHFError(f"{recipe.model!r} is not a trainable traffic model (no parameter groups).")

@@ -26,11 +26,12 @@ import os
 import platform
 import time
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
-
+from trafficrlhf_sdk.alignment.config import AlignConfig
+from trafficrlhf_sdk.config_files import set_fields
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.experiments.config import TABLES, PaperConfig
 from trafficrlhf_sdk.experiments.report import COLUMNS, direction_rows, fmt, markdown_table, plot_bars, write_result
 from trafficrlhf_sdk.experiments.steps import (
     ExperimentRun,
@@ -41,121 +42,12 @@ from trafficrlhf_sdk.experiments.steps import (
     train_reward_model,
 )
 
-__all__ = ["GUIDANCES", "TABLES", "PaperConfig", "run_paper"]
+__all__ = ["run_paper"]
 
-TABLES = ("table1", "table2", "table3", "table4", "figure3")
-GUIDANCES = ("speed_limit", "target_speed", "no_collision", "no_offroad", "goal_waypoint")
 METRICS = ("realism_ctg", "realism_body", "realism_meta", "failure_rate", "reward_cost")
 GUIDANCE_OBJECTIVE = {"speed_limit": "guidance_speed_limit", "target_speed": "guidance_target_speed",
                       "no_collision": "collision_rate", "no_offroad": "offroad_rate",
                       "goal_waypoint": "guidance_goal_waypoint"}
-
-# the [align] sections of the loop recipes (BITS, TrafficGen) and of docs/recipes/ctg-rlhf.toml without the
-# steering head (CTG); see PaperConfig.align_ctg for the one setting that differs
-ALIGN_BITS = {"alpha": 3.0, "kl_coef": 0.05, "learning_rate": 2e-4, "ppo_epochs": 4, "minibatch_contexts": 4,
-              "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8, "failure_fraction": 0.75,
-              "failure_scenes": 24, "credit": "agent", "holdout_every": 10, "early_stopping_patience": 6}
-ALIGN_TRAFFICGEN = {"alpha": 6.0, "kl_coef": 0.05, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
-                    "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
-                    "early_stopping_patience": 6}
-ALIGN_CTG = {"alpha": 3.0, "imitation_coef": 0.0, "passing_anchor_coef": 1.0, "denoising_steps": 4,
-             "learning_rate": 1e-4, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
-             "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
-             "early_stopping_patience": 6}
-QUICK_ALIGN = {"epochs": 1, "contexts_per_epoch": 2, "samples_per_context": 2, "ppo_epochs": 1,
-               "minibatch_contexts": 2, "failure_fraction": 0.5, "failure_scenes": 4, "num_scenes": 4,
-               "holdout_every": None, "early_stopping_patience": None}
-
-
-class PaperConfig(BaseModel):
-    """Everything ``trafficrlhf experiment paper`` runs; :meth:`quick` is the small form CI runs."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    # > what and where
-    label: str = Field("full", description="Name of this configuration, recorded with every result ('full', "
-                                           "'quick').")
-    only: tuple[Literal["table1", "table2", "table3", "table4", "figure3"], ...] = Field(
-        TABLES, min_length=1, description="Tables and figures to produce, in this order.")
-    source: str = Field("nuscenes_pred", description="Registered scenario source (val: evaluation, train: feedback "
-                                                     "and alignment).")
-    root: str | None = Field(None, description="Data directory of the source; None: its default.")
-    # > evaluation protocol
-    scenes: int = Field(100, ge=1, description="First N long-enough val scenes, sorted by name.")
-    rollouts: int = Field(3, ge=1, description="Closed-loop rollouts per scene (metrics pooled over them); K >= 2 "
-                                              "adds the realism meta-metric at that K.")
-    seed: int = Field(0, description="Seed of evaluation, campaigns, annotators, reward models and alignment.")
-    batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch.")
-    threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
-    progress: bool = Field(True, description="Progress bars for simulation and alignment.")
-    guidance: str | None = Field("no_collision", description="Guidance of Tables 2-4 (sampling, alignment, "
-                                                             "evaluation).")
-    guidances: tuple[str, ...] = Field(GUIDANCES, min_length=1, description="Guidances of Table 1.")
-    # > models
-    ctg_base: str = Field("ctg-4s", description="CTG's weights (a bundled checkpoint's name or a folder).")
-    ctg_aligned: str = Field("ctg-aligned", description="CTG + RM: the checkpoint aligned by the RLHF loop.")
-    bits: str = Field("bits", description="BITS's weights.")
-    trafficgen: str = Field("trafficgen-4s", description="TrafficGen's weights.")
-    reward_model: str = Field("reference_models/reward/ctg_loop", description="The reward model of Tables 1-3 "
-                              "(trained on CTG candidates); a folder, relative to the working directory or to the "
-                              "repository.")
-    reward_aggregation: Literal["mean", "worst", "lcb"] = Field("lcb", description="How the fine-tuner reads an "
-                                                                "ensemble reward model (one member: 'mean').")
-    # > alignment recipes (AlignConfig fields)
-    align_bits: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_BITS), description="BITS + RM recipe "
-                                       "(the loop recipe's [align]).")
-    align_trafficgen: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_TRAFFICGEN),
-                                             description="TrafficGen + RM recipe (the loop recipe's [align]).")
-    align_ctg: dict[str, Any] = Field(default_factory=lambda: dict(ALIGN_CTG), description="Table 3's recipe: "
-                                      "docs/recipes/ctg-rlhf.toml's [align] without the steering head, at the "
-                                      "AlignConfig default learning rate 1e-4 (the recipe's 1e-3 is for a fresh "
-                                      "zero-effect head, too large a step for pretrained networks).")
-    table3_groups: dict[str, list[str] | None] = Field(
-        default_factory=lambda: {"encoder": ["encoder"], "decoder": ["decoder"], "full": None},
-        description="Table 3's variants: name -> CTG parameter groups trained (None: all).")
-    align_overrides: dict[str, Any] = Field(default_factory=dict, description="AlignConfig fields applied to every "
-                                            "alignment over its recipe (the quick form's small sizes).")
-    # > Table 4: feedback over three models and two reward-model backbones
-    feedback_contexts: int = Field(48, ge=1, description="Labelled train contexts of Table 4's feedback set.")
-    feedback_models: list[str] = Field(default_factory=lambda: ["ctg", "ctg", "bits", "bits", "trafficgen",
-                                                                "trafficgen"],
-                                       description="The traffic model of each candidate slot (bundled weights).")
-    feedback_seconds: float = Field(4.0, gt=0, le=30, description="Length of each candidate (s).")
-    annotators: list[str] = Field(default_factory=lambda: ["attentive", "safety", "flow"],
-                                  description="Stand-in annotator profiles labelling every context.")
-    contrast_scenes: int = Field(120, ge=0, description="Recorded train scenes (from the split's end) giving "
-                                                        "automatic contrast pairs to both reward models; 0: none.")
-    reward: dict[str, Any] = Field(default_factory=lambda: {"ensemble_size": 3, "max_epochs": 12,
-                                                            "contrast_weight": 2.0},
-                                   description="RewardConfig fields of Table 4's reward models.")
-    backbones: dict[str, dict[str, Any]] = Field(
-        default_factory=lambda: {"CTG encoder": {"architecture": "ctg_mlp"},
-                                 "TrafficGen encoder": {"architecture": "trafficgen_mcg"}},
-        description="Table 4's reward models: name -> architecture and architecture_config.")
-    # > Figure 3
-    figure3_contexts: int = Field(10_000, ge=2, description="Labelled CTG train contexts (first N long-enough; "
-                                                            "more than there are: all).")
-    figure3_dev_fraction: float = Field(0.1472, gt=0, lt=1, description="Share of them held out for early "
-                                                                          "stopping (400 of the 469 train scenes).")
-    figure3_sizes: tuple[int, ...] = Field((25, 50, 100, 200, 400), min_length=1,
-                                           description="Numbers of training contexts on the x axis.")
-    figure3_seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Training seeds per size.")
-    figure3_steps: int = Field(300, ge=1, description="Optimizer steps a small training set gets at least "
-                                                      "(more epochs, up to 40).")
-    figure3_reward: dict[str, Any] = Field(default_factory=dict, description="RewardConfig fields of Figure 3's "
-                                           "reward models over the defaults.")
-
-    @classmethod
-    def quick(cls, **fields: Any) -> PaperConfig:
-        """The small form (CI): 4 scenes, 2 rollouts, one-epoch alignments, tiny feedback and reward models; every
-        table's code path runs, in about 5 minutes on 2 cores."""
-        small = {"label": "quick", "scenes": 4, "rollouts": 2, "progress": False, "align_overrides": QUICK_ALIGN,
-                 "feedback_contexts": 2, "contrast_scenes": 2,
-                 "reward": {"ensemble_size": 1, "max_epochs": 2, "batch_size": 2, "contrast_weight": 2.0},
-                 "figure3_contexts": 12, "figure3_sizes": (4, 8), "figure3_seeds": (0,), "figure3_steps": 4,
-                 "figure3_reward": {"max_epochs": 2}}
-        return cls(**{**small, **fields})
-
 
 def _command(config: PaperConfig, name: str) -> str:
     return f"trafficrlhf experiment paper --out DIR{' --quick' if config.label == 'quick' else ''} --only {name}"
@@ -170,8 +62,8 @@ def _flat(evaluation: dict[str, Any], reward: str = "rm") -> dict[str, Any]:
     return {**evaluation["metrics"], "reward_cost": evaluation["reward_cost"].get(reward)}
 
 
-def _recipe(config: PaperConfig, recipe: dict[str, Any], **extra: Any) -> dict[str, Any]:
-    return {**recipe, **extra, **config.align_overrides}
+def _recipe(config: PaperConfig, recipe: AlignConfig, **extra: Any) -> dict[str, Any]:
+    return {**set_fields(recipe), **extra, **set_fields(config.align_overrides)}
 
 
 # --------------------------------------------------------------------------------------------------------- tables
@@ -203,7 +95,7 @@ def table1(run: ExperimentRun) -> dict[str, Any]:
                       "distance m)."]}
 
 
-def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: dict[str, Any],
+def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: AlignConfig,
                 ensemble: bool) -> str:
     summary = align(run, name, model, checkpoint, reward, _recipe(run.config, recipe),
                     _aggregation(run.config, ensemble))
@@ -271,7 +163,7 @@ def table3(run: ExperimentRun) -> dict[str, Any]:
             "plot": ([r["variant"] for r in rows], {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate",
                                                                                       "reward_cost")}),
             "notes": [f"Recipe: `docs/recipes/ctg-rlhf.toml`'s [align] without the steering head, learning rate "
-                      f"{cfg.align_ctg.get('learning_rate')}; RM = `{cfg.reward_model}`; guidance `{cfg.guidance}`."]}
+                      f"{cfg.align_ctg.learning_rate}; RM = `{cfg.reward_model}`; guidance `{cfg.guidance}`."]}
 
 
 def table4(run: ExperimentRun) -> dict[str, Any]:
@@ -301,11 +193,12 @@ def table4(run: ExperimentRun) -> dict[str, Any]:
 
         contrast = contrast_dataset(recorded_windows(cfg.source, "train", cfg.contrast_scenes, cfg.root,
                                                      from_end=True, future_steps=round(cfg.feedback_seconds * 10)))
-    ensemble = int(cfg.reward.get("ensemble_size", 1)) > 1
+    ensemble = cfg.reward.ensemble_size > 1
     reward_models, accuracy = {}, {}
     for index, (backbone, spec) in enumerate(cfg.backbones.items()):
         card = train_reward_model(run, os.path.join(folder, f"reward_model_{index}"), dataset,
-                                  {**cfg.reward, **spec}, contrast, title=f"Table 4 reward model: {backbone}")
+                                  {**set_fields(cfg.reward), **set_fields(spec)}, contrast,
+                                  title=f"Table 4 reward model: {backbone}")
         reward_models[backbone] = card["folder"]
         accuracy[backbone] = card["metrics"].get("val_accuracy")
     costs = {f"rm{i}": path for i, path in enumerate(reward_models.values())}
@@ -362,7 +255,7 @@ def figure3(run: ExperimentRun) -> dict[str, Any]:
         oracle = {"oracle": SyntheticAnnotatorConfig(beta=None, epsilon=0.0, seed=cfg.seed)}
         labelled_campaign(run, store, "train", "ctg", cfg.figure3_contexts, "train", noisy, cfg.guidance, options)
         labelled_campaign(run, store, "test", "ctg", cfg.scenes, "val", oracle, cfg.guidance, options)
-        base = RewardConfig(progress=False, seed=cfg.seed, **cfg.figure3_reward)
+        base = RewardConfig(progress=False, seed=cfg.seed, **set_fields(cfg.figure3_reward))
         template = get_reward_model_architecture(base.architecture)(base.architecture_config)
         train_all = filter_pairs(export_preferences(store, "train", val_fraction=cfg.figure3_dev_fraction,
                                                     seed=cfg.seed), ["noisy"])
@@ -390,8 +283,8 @@ def figure3(run: ExperimentRun) -> dict[str, Any]:
             subset = data.subset([train_ids[i] for i in order[:size]] + dev_ids)
             batch = 4 if size <= 50 else 8 if size <= 100 else base.batch_size  # small sets: more, smaller steps
             epochs = max(1, min(40, math.ceil(cfg.figure3_steps * batch / size)))
-            if "max_epochs" in cfg.figure3_reward:
-                epochs = min(epochs, int(cfg.figure3_reward["max_epochs"]))
+            if "max_epochs" in cfg.figure3_reward.model_fields_set:
+                epochs = min(epochs, cfg.figure3_reward.max_epochs)
             began = time.perf_counter()
             result = RewardTrainer(base.model_copy(update={"seed": seed, "max_epochs": epochs, "batch_size": batch,
                                                            "num_threads": cfg.threads}),

@@ -24,7 +24,7 @@ from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.experiments.report import clean_json
 
 if TYPE_CHECKING:
-    from trafficrlhf_sdk.experiments.paper import PaperConfig
+    from trafficrlhf_sdk.experiments.config import PaperConfig
 
 __all__ = ["ExperimentRun", "align", "evaluate", "labelled_campaign", "resolve_path", "train_reward_model"]
 
@@ -154,14 +154,14 @@ def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, rew
                     **({"source": cfg.source} if cfg.source != "nuscenes_pred" else {}),
                     **({"root": cfg.root} if cfg.root else {}), **fields}
         checkpoints = os.path.join(folder, "checkpoints")
-        if os.path.isdir(checkpoints) and any(n.startswith("checkpoint-") for n in os.listdir(checkpoints)):
-            settings["resume"] = True  # an interrupted run: continue from its newest checkpoint
+        # an interrupted run: continue from its newest checkpoint
+        resume = os.path.isdir(checkpoints) and any(n.startswith("checkpoint-") for n in os.listdir(checkpoints))
         recipe = AlignRecipe(model=model, checkpoint=checkpoint, reward_model=reward_model,
                              model_options=model_options or {}, reward_aggregation=aggregation,  # type: ignore[arg-type]
                              align=settings)
         run.log(f"aligning {name}: {model} from {checkpoint or 'its bundled weights'} against {reward_model} "
                 f"({settings.get('epochs')} epochs at most, groups {settings.get('groups') or 'all'})")
-        done = run_recipe(recipe, folder)
+        done = run_recipe(recipe, folder, **({"resume": True} if resume else {}))
         run.log(f"aligned {name} in {done['wall_time_s']:.0f} s ({done['epochs']} epochs)")
     return {**done, "folder": folder}
 
