@@ -20,8 +20,8 @@ import trafficrlhf_sdk.hookspecs as hookspecs
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 from trafficrlhf_sdk.registry import Registry
 
-__all__ = ["DEFAULT_PLUGINS", "build_policy", "build_traffic_model", "checkpoint_model", "get_plugin_manager",
-           "list_plugins", "registry", "resolve_checkpoint"]
+__all__ = ["DEFAULT_PLUGINS", "build_policy", "build_traffic_model", "checkpoint_model", "checkpoint_options",
+           "get_plugin_manager", "list_plugins", "registry", "resolve_checkpoint"]
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 DEFAULT_PLUGINS = (
@@ -159,15 +159,53 @@ def checkpoint_model(folder: str) -> str | None:
     return adapter if isinstance(adapter, str) else None
 
 
+def checkpoint_options(folder: str) -> dict[str, Any]:
+    """The adapter options a checkpoint's card was measured with (``options`` in its ``config.json``; empty when
+    it records none), e.g. ``{"guidance": "no_collision"}``."""
+    import json
+
+    path = os.path.join(folder, "config.json")
+    if not os.path.isfile(path):
+        return {}
+    try:
+        with open(path, encoding="utf-8") as handle:
+            config = json.load(handle)
+    except (OSError, ValueError) as exc:
+        raise TrafficRLHFError(f"{path}: not a readable JSON config ({exc}); re-save the checkpoint.") from None
+    options = config.get("options", {}) if isinstance(config, dict) else {}
+    if not isinstance(options, dict):
+        raise TrafficRLHFError(f"{path}: `options` is {options!r}; it must map option names to values, e.g. "
+                               '{"guidance": "no_collision"}.')
+    return options
+
+
+def _apply_card_options(checkpoint: str, folder: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` with the checkpoint's card options filled in where the caller gave none (said in a note)."""
+    from trafficrlhf_sdk.console import note
+
+    applied = {key: value for key, value in checkpoint_options(folder).items() if options.get(key) is None}
+    if applied:
+        shown = ", ".join(f"{key}={value!r}" for key, value in applied.items())
+        note(f"checkpoint {checkpoint!r} runs with the options its card was measured with: {shown} (pass the "
+             "option to change it; guidance 'none' for no guidance).")
+    return {**options, **applied}
+
+
 def build_policy(model: str | None, options: dict[str, Any]) -> Any:
     """Instantiate a traffic model for closed-loop use: ``model`` (registered name) and/or ``options["checkpoint"]``
     (a folder or a bundled checkpoint's name). Without ``model`` the checkpoint's ``config.json`` names it; a
     checkpoint saved by another model is an error. ``seed`` goes to factories that accept it; ``checkpoint``,
-    ``guidance`` and any other option must be accepted, or the error names it."""
+    ``guidance`` and any other option must be accepted, or the error names it.
+
+    A checkpoint whose ``config.json`` records the options its card was measured with (``options``, e.g. the
+    bundled ``ctg-aligned``'s guidance) runs with those the caller leaves None, and a note on stderr says so;
+    ``guidance="none"`` turns a recorded guidance off."""
     options = dict(options)
     checkpoint = options.get("checkpoint")
     if checkpoint is not None:
-        options["checkpoint"] = checkpoint = resolve_checkpoint(str(checkpoint))
+        options["checkpoint"] = folder = resolve_checkpoint(str(checkpoint))
+        options = _apply_card_options(str(checkpoint), folder, options)
+        checkpoint = folder
         saved_by = checkpoint_model(checkpoint)
         if model is None:
             model = saved_by
@@ -180,6 +218,8 @@ def build_policy(model: str | None, options: dict[str, Any]) -> Any:
     if model is None:
         raise TrafficRLHFError("no traffic model given: pass --model NAME (`trafficrlhf plugins` lists them) or "
                                "--checkpoint FOLDER.")
+    if isinstance(options.get("guidance"), str) and options["guidance"].strip().lower() == "none":
+        options["guidance"] = ""  # no guidance, also over a checkpoint's recorded one
     # a --checkpoint given to a model that loads none (a built-in policy) is an error, never silently dropped
     return build_traffic_model(model, options, optional=("seed",))
 

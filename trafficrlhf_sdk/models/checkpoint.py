@@ -3,7 +3,8 @@
 A checkpoint gets the checks a reward model gets (:mod:`trafficrlhf_sdk.reward.serialization`), in this order, so
 that nothing is built or read before what it depends on has been checked:
 
-1. ``config.json`` is a JSON object with exactly the keys ``adapter``, ``config`` and ``weights``; ``weights``
+1. ``config.json`` is a JSON object with the keys ``adapter``, ``config`` and ``weights`` (and optionally
+   ``options``: the adapter options its card was measured with); ``weights``
    names the weights file (inside the folder: no ``..``, no absolute path, no link out of it) and its SHA-256,
    which is required.
 2. ``config`` fits the architecture's config dataclass: no unknown key, every value of the field's type, finite
@@ -85,6 +86,9 @@ class CheckpointConfig(BaseModel):
     adapter: str = Field(..., description="Registered name of the adapter that saved it.")
     config: dict[str, Any] = Field(..., description="The architecture config (the adapter's get_config()).")
     weights: WeightsInfo = Field(..., description="The weights file and its SHA-256.")
+    options: dict[str, Any] = Field(default_factory=dict, description="Adapter options the model card's figures "
+                                    "were measured with, e.g. {'guidance': 'no_collision'}; loading by name or "
+                                    "folder applies those the caller does not give, and says so.")
 
 
 def _record_hint(directory: str) -> str:
