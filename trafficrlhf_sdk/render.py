@@ -32,7 +32,8 @@ from trafficrlhf_sdk.scenario.agents import AgentType
 from trafficrlhf_sdk.scenario.map import MapRaster, PolylineType
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["render_scene", "save_scene_png"]
+__all__ = ["agent_colour", "box_corners", "draw_map", "hex_colour", "render_scene", "save_scene_png", "short_id",
+           "to_world", "valid_runs", "view_box"]
 
 MARGIN_M = 15.0  # view = agents' extent + this margin on every side
 MAX_LABELS = 25  # with more agents on screen, only controlled ones get an id label
@@ -107,7 +108,7 @@ def render_scene(
     controlled = scenario.controlled[b].detach().cpu().numpy()
     sim_xy_states, sim_valid = _sim_arrays(sim_states, scenario, b)
 
-    view = _view_box(states, valid, sim_xy_states, sim_valid, scenario.map, b)
+    view = view_box(states, valid, sim_xy_states, sim_valid, scenario.map, b)
     if ax is None:
         ratio = (view[3] - view[2]) / (view[1] - view[0])
         fig = Figure(figsize=(8.0, max(4.5, 8.0 * ratio) + 0.4), dpi=100, layout="constrained")
@@ -116,11 +117,11 @@ def render_scene(
     else:
         fig = ax.figure  # type: ignore[assignment]
 
-    ax.set_facecolor(_hex(BACKGROUND_RGB))
+    ax.set_facecolor(hex_colour(BACKGROUND_RGB))
     if scenario.map is not None:
-        _draw_map(ax, scenario.map, b, view)
+        draw_map(ax, scenario.map, b, view)
 
-    colours = [_agent_colour(int(agent_type[a]), bool(controlled[a])) for a in range(len(states))]
+    colours = [agent_colour(int(agent_type[a]), bool(controlled[a])) for a in range(len(states))]
     _draw_trails(ax, states, valid, colours, scenario.current_index)
     if sim_xy_states is not None and sim_valid is not None:
         _draw_sim(ax, sim_xy_states, sim_valid, extent, step)
@@ -129,9 +130,9 @@ def render_scene(
     if show_ids:
         ids = scenario.agent_ids[b] if scenario.agent_ids else tuple(str(a) for a in range(len(states)))
         labelled = at_step if len(at_step) <= MAX_LABELS else at_step[controlled[at_step]][:MAX_LABELS]
-        tops = _box_corners(states[labelled, step], extent[labelled])[..., 1].max(-1)  # label above each box
+        tops = box_corners(states[labelled, step], extent[labelled])[..., 1].max(-1)  # label above each box
         for a, top in zip(labelled, tops):
-            ax.annotate(_short_id(ids[a] or str(a)), (states[a, step, 0], top), xytext=(0, 3),
+            ax.annotate(short_id(ids[a] or str(a)), (states[a, step, 0], top), xytext=(0, 3),
                         textcoords="offset points", ha="center", va="bottom", fontsize=7, zorder=8,
                         color="#1a1a1a", bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none",
                                                "alpha": 0.7})
@@ -166,15 +167,18 @@ def _check_index(scenario: ScenarioTensor, index: int) -> int:
     return index % b
 
 
-def _short_id(agent_id: str) -> str:
+def short_id(agent_id: str) -> str:
+    """``agent_id`` cut to :data:`MAX_ID_CHARS` characters (long ids are hashes)."""
     return agent_id if len(agent_id) <= MAX_ID_CHARS else agent_id[: MAX_ID_CHARS - 2] + "…"
 
 
-def _hex(rgb: Sequence[int]) -> str:
+def hex_colour(rgb: Sequence[int]) -> str:
+    """``"#rrggbb"`` of an RGB triple (0-255)."""
     return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
-def _agent_colour(code: int, is_controlled: bool) -> str:
+def agent_colour(code: int, is_controlled: bool) -> str:
+    """The drawing colour of an agent: :data:`CONTROLLED_COLOUR` when a model drives it, else its type's."""
     if is_controlled:
         return CONTROLLED_COLOUR
     try:
@@ -222,7 +226,7 @@ def _sim_arrays(sim: torch.Tensor | np.ndarray | ScenarioTensor | None, scenario
     return arr, keep
 
 
-def _view_box(states: np.ndarray, valid: np.ndarray, sim: np.ndarray | None, sim_valid: np.ndarray | None,
+def view_box(states: np.ndarray, valid: np.ndarray, sim: np.ndarray | None, sim_valid: np.ndarray | None,
               scene_map: MapRaster | None, b: int) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1): every valid position (logged and simulated) plus the margin, widened to a sane aspect."""
     points = [states[valid][:, :2]]
@@ -254,7 +258,7 @@ def _map_world_bounds(scene_map: MapRaster, b: int) -> tuple[float, float, float
     return corners[:, 0].min(), corners[:, 0].max(), corners[:, 1].min(), corners[:, 1].max()
 
 
-def _draw_map(ax: Axes, scene_map: MapRaster, b: int, view: tuple[float, float, float, float]) -> None:
+def draw_map(ax: Axes, scene_map: MapRaster, b: int, view: tuple[float, float, float, float]) -> None:
     """Draw the raster layers (cropped to the view) and any vector polylines."""
     m = scene_map.world_to_pixel[b].detach().to("cpu", torch.float64).numpy()
     raster = scene_map.scene_raster(b)
@@ -311,13 +315,13 @@ def _draw_polylines(ax: Axes, scene_map: MapRaster, b: int) -> None:
     ok = scene_map.polyline_valid[b].detach().cpu().numpy()  # type: ignore[index]
     kinds = scene_map.polyline_type[b].detach().cpu().numpy()  # type: ignore[index]
     for kind, (colour, width, style) in POLYLINE_STYLE.items():
-        segments = [run for p in np.flatnonzero(kinds == kind) for run in _runs(lines[p], ok[p])]
+        segments = [run for p in np.flatnonzero(kinds == kind) for run in valid_runs(lines[p], ok[p])]
         if segments:
             ax.add_collection(LineCollection(segments, colors=colour, linewidths=width, linestyles=style,
                                              zorder=1))
 
 
-def _runs(points: np.ndarray, mask: np.ndarray) -> list[np.ndarray]:
+def valid_runs(points: np.ndarray, mask: np.ndarray) -> list[np.ndarray]:
     """Contiguous stretches (of at least two points) of ``points[mask]``."""
     idx = np.flatnonzero(mask)
     if len(idx) < 2:
@@ -332,7 +336,7 @@ def _draw_trails(ax: Axes, states: np.ndarray, valid: np.ndarray, colours: list[
         window = slice(0, current + 1) if part == "history" else slice(current, None)
         segments, seg_colours = [], []
         for a in range(len(states)):
-            for run in _runs(states[a, window, :2], valid[a, window]):
+            for run in valid_runs(states[a, window, :2], valid[a, window]):
                 segments.append(run)
                 seg_colours.append(colours[a])
         if segments:
@@ -341,26 +345,27 @@ def _draw_trails(ax: Axes, states: np.ndarray, valid: np.ndarray, colours: list[
 
 
 def _draw_sim(ax: Axes, sim: np.ndarray, sim_valid: np.ndarray, extent: np.ndarray, step: int) -> None:
-    segments = [run for a in range(len(sim)) for run in _runs(sim[a, :, :2], sim_valid[a])]
+    segments = [run for a in range(len(sim)) for run in valid_runs(sim[a, :, :2], sim_valid[a])]
     if segments:
         ax.add_collection(LineCollection(segments, colors=SIM_COLOUR, linewidths=1.6, alpha=0.9, zorder=4))
     if step < sim.shape[1] and sim.shape[-1] >= 4:
         at = np.flatnonzero(sim_valid[:, step] & np.isfinite(sim[:, step, 3]))
         if len(at):
-            polys = _box_corners(sim[at, step], extent[at])
+            polys = box_corners(sim[at, step], extent[at])
             ax.add_collection(PolyCollection(polys, facecolors="none", edgecolors=SIM_COLOUR, linewidths=1.3,
                                              zorder=6))
 
 
-def _box_corners(states: np.ndarray, extent: np.ndarray) -> np.ndarray:
+def box_corners(states: np.ndarray, extent: np.ndarray) -> np.ndarray:
     """Corners ``(N, 4, 2)`` of boxes centred at ``states[:, :2]`` with length along ``states[:, 3]`` (yaw)."""
     half = np.nan_to_num(extent, nan=0.0) / 2
     lx = half[:, :1] * np.array([1.0, 1.0, -1.0, -1.0])
     ly = half[:, 1:] * np.array([1.0, -1.0, -1.0, 1.0])
-    return _to_world(states, lx, ly)
+    return to_world(states, lx, ly)
 
 
-def _to_world(states: np.ndarray, lx: np.ndarray, ly: np.ndarray) -> np.ndarray:
+def to_world(states: np.ndarray, lx: np.ndarray, ly: np.ndarray) -> np.ndarray:
+    """Points ``(N, K, 2)`` at offsets ``(lx, ly)`` (``(N, K)``, m) in the frames of ``states`` ``(N, 4)``."""
     c, s = np.cos(states[:, 3])[:, None], np.sin(states[:, 3])[:, None]
     return np.stack([states[:, 0, None] + c * lx - s * ly, states[:, 1, None] + s * lx + c * ly], -1)
 
@@ -369,14 +374,14 @@ def _draw_boxes(ax: Axes, states: np.ndarray, extent: np.ndarray, colours: list[
     """Filled oriented boxes with a white heading triangle at the front."""
     if not len(states):
         return
-    ax.add_collection(PolyCollection(_box_corners(states, extent), facecolors=colours, edgecolors="#202020",
+    ax.add_collection(PolyCollection(box_corners(states, extent), facecolors=colours, edgecolors="#202020",
                                      linewidths=0.7, alpha=0.95, zorder=5))
     half_l = np.nan_to_num(extent[:, 0], nan=0.0) / 2
     half_w = np.nan_to_num(extent[:, 1], nan=0.0) / 2
     back = half_l - np.minimum(0.4 * 2 * half_l, 1.6)
     lx = np.stack([half_l * 0.92, back, back], 1)
     ly = np.stack([np.zeros_like(half_w), 0.6 * half_w, -0.6 * half_w], 1)
-    ax.add_collection(PolyCollection(_to_world(states, lx, ly), facecolors="white", edgecolors="none",
+    ax.add_collection(PolyCollection(to_world(states, lx, ly), facecolors="white", edgecolors="none",
                                      alpha=0.9, zorder=6))
 
 
@@ -393,7 +398,7 @@ def _legend(ax: Axes, agent_type: np.ndarray, controlled: np.ndarray, valid: np.
     if (controlled & present).any():
         handles.append(Patch(facecolor=CONTROLLED_COLOUR, edgecolor="#202020", label="controlled"))
     for code in sorted({int(c) for c in agent_type[present & ~controlled]}):
-        handles.append(Patch(facecolor=_agent_colour(code, False), edgecolor="#202020",
+        handles.append(Patch(facecolor=agent_colour(code, False), edgecolor="#202020",
                              label=f"replayed {_type_name(code)}"))
     handles += [Line2D([], [], color="#444444", lw=1.6, label="history"),
                 Line2D([], [], color="#444444", lw=1.2, linestyle=(0, (4, 3)), label="logged future")]

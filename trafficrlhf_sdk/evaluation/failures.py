@@ -61,7 +61,7 @@ def render_failures(rollout: Rollout, index: int, failures: FirstFailures | None
     """Scene ``index`` of ``rollout``: the log (filled boxes, trails) with the simulated trajectories and boxes
     (outlined) at the scene's first failure step (the last step if nothing fails); every failing agent is marked
     where it first fails (x: collision, o: off-road) and the title says who failed how and when."""
-    from trafficrlhf_sdk.render import _short_id, render_scene
+    from trafficrlhf_sdk.render import short_id, render_scene
 
     failures = failures or first_failures(rollout)
     steps, scene = failures.step[index], rollout.logged
@@ -80,7 +80,7 @@ def render_failures(rollout: Rollout, index: int, failures: FirstFailures | None
         ax.plot([x], [y], marker="x" if "collision" in kinds else "o", markersize=11, markeredgewidth=2.4,
                 color="#d62728", markerfacecolor="none", zorder=9)
         t = (int(steps[a]) - rollout.start_index) * scene.dt
-        lines.append(f"{_short_id(ids[a] or str(a))}: {' + '.join(kinds)} at +{t:.1f} s")
+        lines.append(f"{short_id(ids[a] or str(a))}: {' + '.join(kinds)} at +{t:.1f} s")
     shown = "; ".join(lines[:3]) + (f"; {len(lines) - 3} more" if len(lines) > 3 else "")
     t_step = (step - rollout.start_index) * scene.dt
     ax.set_title(f"{name}: {len(failed)} of {controlled} controlled agents fail"

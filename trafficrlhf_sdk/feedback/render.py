@@ -21,14 +21,14 @@ from trafficrlhf_sdk.feedback.store import ContextRecord
 from trafficrlhf_sdk.render import (
     BACKGROUND_RGB,
     CONTROLLED_COLOUR,
-    _agent_colour,
-    _box_corners,
-    _draw_map,
-    _hex,
-    _runs,
-    _short_id,
-    _to_world,
-    _view_box,
+    agent_colour,
+    box_corners,
+    draw_map,
+    hex_colour,
+    short_id,
+    to_world,
+    valid_runs,
+    view_box,
 )
 
 __all__ = ["candidate_frames", "save_candidate_animation", "save_candidate_strip"]
@@ -57,19 +57,19 @@ class _Strip:
         self.extent = scenario.extent[0].double().numpy()
         self.ids = scenario.agent_ids[0] if scenario.agent_ids else tuple(str(a) for a in range(scenario.num_agents))
         controlled = scenario.controlled[0].numpy()
-        self.colours = [_agent_colour(int(t), bool(c)) for t, c in zip(scenario.agent_type[0].numpy(), controlled)]
+        self.colours = [agent_colour(int(t), bool(c)) for t, c in zip(scenario.agent_type[0].numpy(), controlled)]
         all_states = np.concatenate([p[1] for p in self.panels], 0)
         all_valid = np.concatenate([p[2] for p in self.panels], 0)
-        view = _view_box(all_states, all_valid, None, None, scenario.map, 0)
+        view = view_box(all_states, all_valid, None, None, scenario.map, 0)
         ratio = (view[3] - view[2]) / (view[1] - view[0])
         n = len(self.panels)
         self.fig = Figure(figsize=(panel_inches * n, panel_inches * ratio + 0.5), dpi=100, layout="constrained")
         FigureCanvasAgg(self.fig)
         self.axes = self.fig.subplots(1, n, squeeze=False)[0]
         for ax, (title, _, _) in zip(self.axes, self.panels):
-            ax.set_facecolor(_hex(BACKGROUND_RGB))
+            ax.set_facecolor(hex_colour(BACKGROUND_RGB))
             if scenario.map is not None:
-                _draw_map(ax, scenario.map, 0, view)
+                draw_map(ax, scenario.map, 0, view)
             ax.set_xlim(view[0], view[1])
             ax.set_ylim(view[2], view[3])
             ax.set_aspect("equal", adjustable="box")
@@ -90,7 +90,7 @@ class _Strip:
         for ax, (_, states, valid) in zip(self.axes, self.panels):
             segments, seg_colours = [], []
             for a in range(len(states)):
-                for run in _runs(states[a, t0 : step + 1, :2], valid[a, t0 : step + 1]):
+                for run in valid_runs(states[a, t0 : step + 1, :2], valid[a, t0 : step + 1]):
                     segments.append(run)
                     seg_colours.append(self.colours[a])
             if segments:
@@ -98,19 +98,19 @@ class _Strip:
                                                                       alpha=0.8, zorder=3)))
             at = np.flatnonzero(valid[:, step])
             if len(at):
-                boxes = _box_corners(states[at, step], self.extent[at])
+                boxes = box_corners(states[at, step], self.extent[at])
                 self._artists.append(ax.add_collection(PolyCollection(
                     boxes, facecolors=[self.colours[a] for a in at], edgecolors="#202020", linewidths=0.7, zorder=5)))
                 half_l = self.extent[at, 0] / 2
                 back = half_l - np.minimum(0.8 * half_l, 1.6)
                 lx = np.stack([half_l * 0.92, back, back], 1)
                 ly = np.stack([np.zeros_like(half_l), 0.3 * self.extent[at, 1], -0.3 * self.extent[at, 1]], 1)
-                self._artists.append(ax.add_collection(PolyCollection(_to_world(states[at, step], lx, ly),
+                self._artists.append(ax.add_collection(PolyCollection(to_world(states[at, step], lx, ly),
                                                                       facecolors="white", zorder=6)))
                 tops = boxes[..., 1].max(-1)
                 for a, top in zip(at, tops):
                     self._artists.append(ax.annotate(
-                        _short_id(self.ids[a] or str(a)), (states[a, step, 0], top), xytext=(0, 2),
+                        short_id(self.ids[a] or str(a)), (states[a, step, 0], top), xytext=(0, 2),
                         textcoords="offset points", ha="center", va="bottom", fontsize=6.5, zorder=8,
                         bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7}))
             self._artists.append(ax.text(0.02, 0.02, f"t = {(step - now) * dt:+.1f} s", transform=ax.transAxes,
