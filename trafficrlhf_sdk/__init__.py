@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.hookspecs import hookimpl
 from trafficrlhf_sdk.plugins import (

@@ -10,7 +10,7 @@ and drawings of failures.
   seed (:func:`evaluate_seeds` -> :class:`SeedRuns`, their mean) and the files written (``runs``).
 """
 
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 
 _EXPORTS = {
     "EvaluationConfig": "protocol",

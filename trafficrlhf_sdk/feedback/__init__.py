@@ -12,7 +12,7 @@ Campaign quality (:mod:`~trafficrlhf_sdk.feedback.settings`): guidelines, gold i
 (:mod:`~trafficrlhf_sdk.feedback.selection`, e.g. by reward-model disagreement).
 """
 
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 
 _EXPORTS = {
     "Annotator": "store",

@@ -5,7 +5,7 @@ Names are imported on first use, so ``trafficrlhf_sdk.simulation.dynamics`` can 
 without loading the simulator.
 """
 
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 
 _EXPORTS = {
     "ClosedLoopPolicy": "policies",

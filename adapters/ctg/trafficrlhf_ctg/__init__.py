@@ -6,7 +6,7 @@ trained on nuScenes (CC BY-NC-SA 4.0, non-commercial)."""
 from __future__ import annotations
 
 from trafficrlhf_sdk import hookimpl
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 from trafficrlhf_sdk.registry import Lazy, register_folders
 
 _EXPORTS = {

@@ -5,7 +5,7 @@ described in shared/data/README.md. nuScenes data is licensed CC BY-NC-SA 4.0 (n
 """
 
 from trafficrlhf_sdk import hookimpl
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 from trafficrlhf_sdk.registry import Lazy
 
 _EXPORTS = {

@@ -8,7 +8,7 @@ datasets keep their own terms.
 """
 
 from trafficrlhf_sdk import hookimpl
-from trafficrlhf_sdk._lazy import lazy_exports
+from trafficrlhf_sdk.lazy import lazy_exports
 from trafficrlhf_sdk.registry import Lazy
 
 _EXPORTS = {
