@@ -75,30 +75,30 @@ def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: s
                    extend: bool, workers: int, ray_address: str | None) -> None:
     """Generate N candidates for each of K contexts with a traffic model and store them (with the log)."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign, extend_campaign
+    from trafficrlhf_sdk.feedback.store import open_store
     from trafficrlhf_sdk.parallel import ExecutionConfig
 
     execution = ExecutionConfig(workers=workers, ray_address=ray_address)
-
-    store = _store(db_path, must_exist=extend)
     report_line = lambda scene: click.echo(f"  + {scene}")  # noqa: E731
-    if extend:
-        report = extend_campaign(store, name, scene_ids=list(scene_ids) or None, num_contexts=num_contexts,
-                                 root=root, on_context=report_line, execution=execution)
-    else:
-        if not models:
-            raise click.UsageError("--model is required for a new campaign (or pass --extend).")
-        slots = [models[k % len(models)] for k in range(num_candidates)] if len(models) > 1 else None
-        config = CampaignConfig(
-            name=name, model=models[0], candidate_models=slots, guidance=guidance,
-            model_options=_parse_options(model_options), source=source,
-            split=split, root=root, scene_ids=list(scene_ids) or None, num_contexts=num_contexts or 10,
-            num_candidates=num_candidates, candidate_seconds=candidate_seconds, seed=seed,
-            labels_per_item=labels_per_item)
-        shown = ", ".join(slots) if slots else config.model
-        click.echo(f"campaign {name!r}: {shown} ({config.guidance or 'no guidance'}), N = {num_candidates}, "
-                   f"{candidate_seconds:g} s candidates")
-        report = create_campaign(store, config, on_context=report_line, execution=execution)
-    items = store.counts(report.campaign)["items"]
+    if not extend and not models:
+        raise click.UsageError("--model is required for a new campaign (or pass --extend).")
+    with open_store(db_path, must_exist=extend) as store:  # a failure removes a database it created
+        if extend:
+            report = extend_campaign(store, name, scene_ids=list(scene_ids) or None, num_contexts=num_contexts,
+                                     root=root, on_context=report_line, execution=execution)
+        else:
+            slots = [models[k % len(models)] for k in range(num_candidates)] if len(models) > 1 else None
+            config = CampaignConfig(
+                name=name, model=models[0], candidate_models=slots, guidance=guidance,
+                model_options=_parse_options(model_options), source=source,
+                split=split, root=root, scene_ids=list(scene_ids) or None, num_contexts=num_contexts or 10,
+                num_candidates=num_candidates, candidate_seconds=candidate_seconds, seed=seed,
+                labels_per_item=labels_per_item)
+            click.echo(f"campaign {name!r}: {', '.join(slots) if slots else config.model} "
+                       f"({config.guidance or 'no guidance'}), N = {num_candidates}, "
+                       f"{candidate_seconds:g} s candidates")
+            report = create_campaign(store, config, on_context=report_line, execution=execution)
+        items = store.counts(report.campaign)["items"]
     skipped = f", {len(report.skipped)} already present" if report.skipped else ""
     click.echo(f"added {len(report.added)} contexts{skipped}; campaign {name!r} now has {items} items in {db_path}")
 

@@ -67,6 +67,7 @@ __all__ = [
     "ContextRecord",
     "FeedbackStore",
     "Label",
+    "open_store",
 ]
 
 MAX_REASON_CHARS = 500
@@ -751,3 +752,29 @@ def _check_id(value: object, what: str) -> None:
     """Refuse ids that are not integers in SQLite's range (an item id ``2**63`` would overflow the driver)."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SQLITE_MAX_INT:
         raise UnknownItemError(f"{what} ids are integers from 0 to 2^63 - 1; got {value!r}.")
+
+
+@contextlib.contextmanager
+def open_store(path: str | os.PathLike[str], must_exist: bool = False) -> Iterator[FeedbackStore]:
+    """The feedback database at ``path`` for one command: a failure inside the block leaves nothing behind.
+
+    When the block raises and the database did not exist before, the store is closed and the file removed (with
+    SQLite's ``-wal``/``-shm`` files), so a mistyped option never leaves an empty database. ``must_exist``
+    refuses a missing database, naming the command that creates one."""
+    from trafficrlhf_sdk.errors import DataNotFoundError
+
+    path = os.fspath(path)
+    existed = os.path.exists(path)
+    if must_exist and not existed:
+        raise DataNotFoundError(f"feedback database {path!r} does not exist; create it with `trafficrlhf feedback "
+                                "create --db ...`.")
+    store = FeedbackStore(path)
+    try:
+        yield store
+    except BaseException:
+        if not existed:
+            store.close()
+            for leftover in (path, f"{path}-wal", f"{path}-shm", f"{path}-journal"):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(leftover)
+        raise
