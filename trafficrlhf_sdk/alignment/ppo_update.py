@@ -20,14 +20,14 @@ from trafficrlhf_sdk.alignment.config import MAX_GRAD_NORM
 from trafficrlhf_sdk.models.adapter import PolicyTrace, TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["PPOUpdate", "Rollout", "derived_generator", "derived_seed", "mean_over_sampled"]
+__all__ = ["PPOUpdate", "SampledEpoch", "derived_generator", "derived_seed", "mean_over_sampled"]
 
 MAX_LOG_RATIO = 20.0  # |log pi_ref - log pi| kept below this inside exp() (KL term)
 
 
 @dataclass
-class Rollout:
-    """One epoch's sampled contexts, their traces, rewards and advantages."""
+class SampledEpoch:
+    """One epoch's sampled contexts, their traces, rewards and advantages (what the PPO passes optimize on)."""
 
     contexts: ScenarioTensor
     logged: ScenarioTensor  # the same windows of the log (imitation loss)
@@ -110,7 +110,7 @@ class PPOUpdate:
         assert result is not None
         return result
 
-    def _optimize(self, epoch: int, rollout: Rollout) -> dict[str, float]:
+    def _optimize(self, epoch: int, rollout: SampledEpoch) -> dict[str, float]:
         cfg = self.config
         n = rollout.contexts.num_scenes
         first = self._minibatches(epoch, 0, n)

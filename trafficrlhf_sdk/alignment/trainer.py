@@ -43,7 +43,7 @@ from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
-from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, Rollout, derived_generator, mean_over_sampled
+from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.alignment.sample_scenarios import SampleScenarios
@@ -166,7 +166,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
 
     def _load_scenes(self) -> list[ScenarioTensor]:
         if self.scenes is None:
-            from trafficrlhf_sdk import get_scenario_source
+            from trafficrlhf_sdk.plugins import get_scenario_source
 
             cfg = self.config
             source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
@@ -196,7 +196,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         with torch.no_grad():
             return self.model.sample(contexts, samples, None, generator)
 
-    def _rollout(self, epoch: int) -> Rollout:
+    def _rollout(self, epoch: int) -> SampledEpoch:
         contexts, logged = self._contexts(epoch)
         gen = derived_generator(self.config.seed, epoch, "sample")
         out = self._sample(contexts, gen)
@@ -223,7 +223,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
         self.last_heldout = self._monitor_scores()
-        return Rollout(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
+        return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
     def _monitor_scores(self) -> dict[str, float]:
         """The held-out judgments of the current policy on a fixed set of contexts (drawn once, see
@@ -243,7 +243,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         cfg = self.config
         scenes = self._load_scenes
         if self.scenes_given is None and cfg.holdout_every is not None:
-            from trafficrlhf_sdk import get_scenario_source
+            from trafficrlhf_sdk.plugins import get_scenario_source
 
             source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
             ids = held_out_scene_ids(source.scene_ids("train"), cfg.holdout_every)[: 2 * cfg.failure_scenes]
