@@ -88,7 +88,8 @@ class PlainProgress:
             return
         count = f"{self.n}/{self.total}" if self.total else str(self.n)
         extra = ", ".join(f"{key} {value}" for key, value in self.postfix.items())
-        self.write(f"{self.desc}: {count} {self.unit}{'s' if self.n != 1 else ''} in "
+        plural = "" if self.n == 1 else ("es" if self.unit.endswith(("s", "x", "ch", "sh")) else "s")
+        self.write(f"{self.desc}: {count} {self.unit}{plural} in "
                    f"{time.perf_counter() - self.began:.1f} s" + (f" ({extra})" if extra else ""))
 
 

@@ -42,11 +42,13 @@ import torch
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
+from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
 from trafficrlhf_sdk.alignment.sample_scenarios import SampleScenarios
+from trafficrlhf_sdk.console import warn
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
@@ -329,6 +331,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 stop_early = self.monitor.update(epoch, stats["heldout_realism"], scored)
                 self.history.append(stats)
                 self._log(stats)
+                for line in health_warnings(stats):
+                    warn(line)
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(reward=f"{stats['reward_mean']:.3f}", kl=f"{stats['approx_kl']:.2g}")
