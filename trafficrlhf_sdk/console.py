@@ -88,7 +88,7 @@ class PlainProgress:
             return
         count = f"{self.n}/{self.total}" if self.total else str(self.n)
         extra = ", ".join(f"{key} {value}" for key, value in self.postfix.items())
-        plural = "" if self.n == 1 else ("es" if self.unit.endswith(("s", "x", "ch", "sh")) else "s")
+        plural = "" if self.n == 1 else ("es" if self.unit.endswith(("s", "x", "sh", "tch")) else "s")
         self.write(f"{self.desc}: {count} {self.unit}{plural} in "
                    f"{time.perf_counter() - self.began:.1f} s" + (f" ({extra})" if extra else ""))
 
