@@ -38,8 +38,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
-from trafficrlhf_sdk.metrics.geometry import colliding_pairs, pair_step_flags, path_gaps
-from trafficrlhf_sdk.scenario.map import PolylineType
+from trafficrlhf_sdk.metrics.geometry import colliding_pairs, lane_direction, pair_step_flags, path_gaps
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["FAILURE_TERMS", "STYLE_TERMS", "JudgmentConfig", "RealismJudgment", "agent_penalties",
@@ -309,44 +308,7 @@ def _wrong_way(window: ScenarioTensor, future: torch.Tensor, yaw0: torch.Tensor,
     yaw = window.yaw.double()
     driving = (window.states[..., 2] > cfg.stall_speed) & future
     against = torch.cos(yaw - yaw0[:, :, None]) < 0
-    lane_yaw, has_lane = _lane_direction(window)
+    lane_yaw, has_lane = lane_direction(window)
     if has_lane is not None:
         against |= has_lane & (torch.cos(yaw - lane_yaw) < 0)
     return _share(against, driving)
-
-
-def _lane_direction(window: ScenarioTensor, reach_m: float = 2.0, chunk: int = 1 << 21
-                    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Direction ``(K, A, T)`` of the nearest lane-centerline segment within ``reach_m`` of each agent, and where
-    there is one (None when the map has no centerlines). Points are compared with segments ``chunk`` pairs at a
-    time, so memory stays bounded whatever the size of the map."""
-    m = window.map
-    k, a, t = window.valid.shape
-    lane_yaw = torch.zeros(k, a * t, dtype=torch.float64)
-    if m is None or m.polylines is None or m.polyline_type is None or m.polyline_valid is None:
-        return lane_yaw.reshape(k, a, t), None
-    lanes = m.polyline_type == PolylineType.LANE_CENTER  # (K, P)
-    if not bool(lanes.any()):
-        return lane_yaw.reshape(k, a, t), None
-    found = torch.zeros(k, a * t, dtype=torch.bool)
-    pts = m.polylines.double()
-    seg_ok = m.polyline_valid[:, :, :-1] & m.polyline_valid[:, :, 1:] & lanes[:, :, None]
-    xy = window.xy.double().reshape(k, a * t, 2)
-    wanted = window.valid.reshape(k, a * t)
-    for scene in range(k):
-        seg_a, seg_b = pts[scene, :, :-1][seg_ok[scene]], pts[scene, :, 1:][seg_ok[scene]]  # (S, 2)
-        points = wanted[scene].nonzero().flatten()
-        if len(seg_a) == 0 or len(points) == 0:
-            continue
-        d = seg_b - seg_a
-        length2 = (d * d).sum(-1).clamp_min(1e-9)
-        step = max(1, chunk // len(seg_a))
-        for lo in range(0, len(points), step):
-            idx = points[lo:lo + step]
-            rel = xy[scene, idx, None] - seg_a[None]  # (n, S, 2)
-            u = ((rel * d[None]).sum(-1) / length2).clamp(0, 1)
-            dist = torch.linalg.vector_norm(rel - u[..., None] * d[None], dim=-1)
-            best, index = dist.min(-1)
-            lane_yaw[scene, idx] = torch.atan2(d[index, 1], d[index, 0])
-            found[scene, idx] = best <= reach_m
-    return lane_yaw.reshape(k, a, t), found.reshape(k, a, t)

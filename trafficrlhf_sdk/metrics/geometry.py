@@ -1,13 +1,19 @@
 """Oriented-box geometry, batched: corners and separating-axis overlap tests, and the agents in each agent's path
-ahead (gaps, closing speeds)."""
+ahead (gaps, closing speeds), and the direction of the nearest lane centerline."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 
-__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "following_gaps", "pair_step_flags",
+from trafficrlhf_sdk.scenario.map import PolylineType
+
+if TYPE_CHECKING:
+    from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+
+__all__ = ["box_corners", "boxes_overlap", "colliding_pairs", "following_gaps", "lane_direction", "pair_step_flags",
            "pairwise_collisions", "path_gaps"]
 
 
@@ -133,3 +139,40 @@ def following_gaps(xy: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, ext
     gap, _, in_path = path_gaps(xy, yaw, speed, extent, valid, lane_margin_m)
     gap = torch.where(in_path, gap, torch.full_like(gap, math.inf))
     return gap.amin(2) if gap.shape[2] else torch.full_like(speed, math.inf)
+
+
+def lane_direction(window: ScenarioTensor, reach_m: float = 2.0, chunk: int = 1 << 21
+                    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Direction ``(K, A, T)`` of the nearest lane-centerline segment within ``reach_m`` of each agent, and where
+    there is one (None when the map has no centerlines). Points are compared with segments ``chunk`` pairs at a
+    time, so memory stays bounded whatever the size of the map."""
+    m = window.map
+    k, a, t = window.valid.shape
+    lane_yaw = torch.zeros(k, a * t, dtype=torch.float64)
+    if m is None or m.polylines is None or m.polyline_type is None or m.polyline_valid is None:
+        return lane_yaw.reshape(k, a, t), None
+    lanes = m.polyline_type == PolylineType.LANE_CENTER  # (K, P)
+    if not bool(lanes.any()):
+        return lane_yaw.reshape(k, a, t), None
+    found = torch.zeros(k, a * t, dtype=torch.bool)
+    pts = m.polylines.double()
+    seg_ok = m.polyline_valid[:, :, :-1] & m.polyline_valid[:, :, 1:] & lanes[:, :, None]
+    xy = window.xy.double().reshape(k, a * t, 2)
+    wanted = window.valid.reshape(k, a * t)
+    for scene in range(k):
+        seg_a, seg_b = pts[scene, :, :-1][seg_ok[scene]], pts[scene, :, 1:][seg_ok[scene]]  # (S, 2)
+        points = wanted[scene].nonzero().flatten()
+        if len(seg_a) == 0 or len(points) == 0:
+            continue
+        d = seg_b - seg_a
+        length2 = (d * d).sum(-1).clamp_min(1e-9)
+        step = max(1, chunk // len(seg_a))
+        for lo in range(0, len(points), step):
+            idx = points[lo:lo + step]
+            rel = xy[scene, idx, None] - seg_a[None]  # (n, S, 2)
+            u = ((rel * d[None]).sum(-1) / length2).clamp(0, 1)
+            dist = torch.linalg.vector_norm(rel - u[..., None] * d[None], dim=-1)
+            best, index = dist.min(-1)
+            lane_yaw[scene, idx] = torch.atan2(d[index, 1], d[index, 0])
+            found[scene, idx] = best <= reach_m
+    return lane_yaw.reshape(k, a, t), found.reshape(k, a, t)

@@ -44,6 +44,9 @@ class StepFeatureOptions(BaseModel):
                                         description="Map layers of the crop, by name (missing ones are empty).")
     agents: str = Field("controlled", pattern="^(controlled|all)$",
                         description="Agents averaged: 'controlled' (those a model drove, else all) or 'all'.")
+    scene_context: bool = Field(True, description="Also see what an annotator sees around each agent since the "
+                                "candidates started: events between 2 Hz samples, pace against its own history, "
+                                "its lead and its neighbours' flow, weaving (see `reward.scene_context`).")
 
     def feature_spec(self) -> FeatureSpec:
         """The feature extraction settings."""
@@ -51,7 +54,7 @@ class StepFeatureOptions(BaseModel):
                            neighbour_radius_m=self.neighbour_radius_m, crop_size=self.crop_size,
                            crop_resolution_m=self.crop_resolution_m, crop_supersample=self.crop_supersample,
                            crop_behind_fraction=self.crop_behind_fraction, map_layers=self.map_layers,
-                           agents=self.agents)
+                           agents=self.agents, scene_context=self.scene_context)
 
 
 class CTGMLPConfig(StepFeatureOptions):

@@ -15,6 +15,9 @@ the agent's own frame at ``t`` (origin at its position, x along its heading):
   gaps, closing speeds) differ between any two candidates, so they let the model memorise the random labels of
   equally good candidates: with them, held-out accuracy against a noise-free annotator dropped by 5-10 points;
 - whether its centre and its four box corners lie on the drivable layer, and whether a map is present;
+- with ``scene_context``, what an annotator sees around it since the candidates started: events between the 2 Hz
+  samples, pace against its own history, its lead and its neighbours' flow, and lateral and longitudinal
+  reversals (:mod:`~trafficrlhf_sdk.reward.scene_context`);
 - a map crop ``(C, S, S)`` around it (``S = crop_size``), sampled on a grid ``crop_supersample`` times finer
   and stored as the count of "on" sub-cells per cell (uint8), so the crop costs one byte per cell.
 
@@ -33,6 +36,7 @@ import torch
 from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
 from trafficrlhf_sdk.metrics.geometry import box_corners, boxes_overlap
+from trafficrlhf_sdk.reward.scene_context import NUM_SCENE_CONTEXT_FEATURES, scene_context_features
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["FeatureSpec", "StepInputs", "compute_step_inputs", "scored_steps", "selected_agents"]
@@ -57,11 +61,13 @@ class FeatureSpec:
     crop_behind_fraction: float = 0.25
     map_layers: tuple[str, ...] = ("drivable", "road_divider", "lane_divider")
     agents: str = "controlled"
+    scene_context: bool = False
 
     @property
     def num_features(self) -> int:
         """Length of the flat feature vector (crops excluded)."""
-        return 6 * self.history_steps + 3 + 5 + 2 + 2 * self.num_neighbours + 6 + 2
+        extra = NUM_SCENE_CONTEXT_FEATURES if self.scene_context else 0
+        return 6 * self.history_steps + 3 + 5 + 2 + 2 * self.num_neighbours + 6 + 2 + extra
 
 
 @dataclass(frozen=True)
@@ -287,5 +293,7 @@ def compute_step_inputs(scenario: ScenarioTensor, spec: FeatureSpec, steps: torc
         lo = (step - stride + 1).clamp_min(0)
         recent.append(((counts[scene, agent, step + 1] - counts[scene, agent, lo]) > 0).float())
     features = torch.cat([torch.stack(parts + recent, -1), neighbour.flatten(1), lookups], -1).float()
+    if spec.scene_context:
+        features = torch.cat([features, scene_context_features(scenario, scene, agent, step, stride)], -1)
     crops = _crops(scenario, spec, scene, torch.stack([x, y, yaw], -1))
     return StepInputs(features.contiguous(), crops, scene, step, b_, t_, spec.crop_supersample ** 2)
