@@ -142,6 +142,18 @@ def annotator_deactivate(db_path: str, name: str) -> None:
     click.echo(f"{name}: deactivated")
 
 
+@annotator_group.command("requalify")
+@db_option
+@campaign_option
+@click.argument("name")
+def annotator_requalify(db_path: str, campaign: str, name: str) -> None:
+    """Let NAME take CAMPAIGN's qualification again (e.g. after missing a gold item): their gold answers there are
+    removed and the gold items served again; their other labels stay."""
+    store = _store(db_path)
+    removed = store.reset_qualification(name, store.campaign(campaign))
+    click.echo(f"{name}: qualification for {campaign!r} starts again ({removed['labels']} gold answers removed)")
+
+
 @feedback.command("admin")
 @db_option
 @click.argument("name")

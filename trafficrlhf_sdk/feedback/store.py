@@ -375,6 +375,24 @@ class FeedbackStore(StoreStatistics):
                            "lease_expires_at IS NOT NULL", (row["id"],))
         return self.annotator(name)
 
+    def reset_qualification(self, name: str, campaign: Campaign) -> dict[str, int]:
+        """Let annotator ``name`` take ``campaign``'s qualification again, e.g. after missing a gold item.
+
+        Their gold answers (with their revisions), gold skips and gold-item assignments in ``campaign`` are
+        removed, so the gold items are served again from the start and the status is ``"pending"``; labels of
+        regular items are kept. Returns how many ``labels``, ``skips`` and ``assignments`` were removed."""
+        with self.transaction() as tx:
+            row = tx.execute("SELECT id FROM annotators WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                raise UnknownItemError(f"no annotator {name!r}; add one with `trafficrlhf feedback annotator add`.")
+            gold = ("SELECT id FROM contexts WHERE campaign_id = ? AND gold_answer IS NOT NULL")
+            where = f"annotator_id = ? AND campaign_id = ? AND context_id IN ({gold})"
+            args = (row["id"], campaign.id, campaign.id)
+            tx.execute(f"DELETE FROM label_history WHERE label_id IN (SELECT id FROM labels WHERE {where})", args)
+            counts = {table: tx.execute(f"DELETE FROM {table} WHERE {where}", args).rowcount
+                      for table in ("labels", "skips", "assignments")}
+        return counts
+
     def annotator(self, name: str) -> Annotator:
         """The annotator called ``name``."""
         row = self._conn().execute("SELECT * FROM annotators WHERE name = ?", (name,)).fetchone()

@@ -385,6 +385,15 @@ def create_app(db_path: str, default_campaign: str | None = None, synchronous: s
             "Content-Disposition": f'attachment; filename="{filename}-preferences.zip"',
             "X-Pairs": str(len(dataset)), "X-Choices": str(dataset.num_choices)})
 
+    @app.post("/api/admin/campaigns/{name}/annotators/{annotator_name}/requalify")
+    def admin_requalify(name: CampaignName, annotator_name: AnnotatorName,
+                        owner: str = Depends(admin)) -> dict[str, Any]:
+        """Let an annotator take the campaign's qualification again (their gold answers there are removed)."""
+        campaign = store.campaign(name)
+        removed = store.reset_qualification(annotator_name, campaign)
+        return {"annotator": annotator_name, "removed": removed,
+                "quality": store.quality(store.annotator(annotator_name), campaign)}
+
     @app.get("/api/admin/annotators")
     def admin_annotators(owner: str = Depends(admin)) -> dict[str, Any]:
         return {"annotators": annotator_rows()}

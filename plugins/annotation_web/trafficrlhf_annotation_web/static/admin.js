@@ -4,7 +4,9 @@
 (() => {
   const $ = (id) => document.getElementById(id);
   const KEY = "trafficrlhf.admin";
-  const state = { token: localStorage.getItem(KEY), campaign: null, data: null };
+  // `/admin?token=...` signs in as the annotator page's `?token=` does (the token leaves the address bar)
+  const state = { token: TrafficRLHFShared.takeTokenFromUrl(location, localStorage, KEY, history), campaign: null,
+                  data: null };
   const pct = (v) => (v === null || v === undefined ? "n/a" : (100 * v).toFixed(1) + " %");
   const num = (v, d = 3) => (v === null || v === undefined ? "n/a" : Number(v).toFixed(d));
 
@@ -92,6 +94,14 @@
       toggle.textContent = a.active ? "deactivate" : "activate";
       toggle.onclick = () => act(() => api("PUT", `/api/admin/annotators/${encodeURIComponent(a.annotator)}/active`, { active: !a.active }));
       cell(tr, "").appendChild(toggle);
+      const retake = cell(tr, "");
+      if (a.status === "failed" || a.status === "passed") {  // the team lead lets them take the qualification again
+        const button = document.createElement("button");
+        button.textContent = "retake qualification";
+        button.title = "Remove their answers to this campaign's gold items, so they qualify again from the start";
+        button.onclick = () => act(() => api("POST", `/api/admin/campaigns/${encodeURIComponent(state.campaign)}/annotators/${encodeURIComponent(a.annotator)}/requalify`));
+        retake.appendChild(button);
+      }
       body.appendChild(tr);
     }
     const ag = d.agreement;

@@ -72,15 +72,9 @@
 
   async function boot() {
     const params = new URLSearchParams(location.search);
-    const fromUrl = params.get("token");
-    if (fromUrl) {  // keep the token out of the address bar and the history
-      localStorage.setItem(TOKEN_KEY, fromUrl);
-      state.freshSignIn = true;
-      params.delete("token");
-      const rest = params.toString();
-      history.replaceState(null, "", location.pathname + (rest ? "?" + rest : ""));
-    }
-    state.token = localStorage.getItem(TOKEN_KEY);
+    if (params.get("token")) state.freshSignIn = true;
+    // keep the token out of the address bar and the history
+    state.token = TrafficRLHFShared.takeTokenFromUrl(location, localStorage, TOKEN_KEY, history);
     if (!state.token) { show("login"); return; }
     let me;
     try { me = await api("GET", "/api/me"); } catch (err) { if (err.status !== 401) $("login-error").textContent = err.message; return; }
@@ -229,6 +223,18 @@
     $("grid").classList.toggle("locked", locked);
     $("watch-note").classList.toggle("hidden", !locked);
     for (const b of document.querySelectorAll(".choice")) b.disabled = locked;
+    updateWatchNote();
+  }
+
+  // the playback still needed before a choice counts, also while Space has paused the autoplay
+  function playbackLeft() {
+    return state.item ? TrafficRLHFShared.playbackLeft(state.clock, totalFrames(), state.item.dt) : 0;
+  }
+
+  function updateWatchNote() {
+    if (state.played || !state.item) return;
+    const text = TrafficRLHFShared.watchNote(playbackLeft(), state.playing);
+    if ($("watch-note").textContent !== text) $("watch-note").textContent = text;
   }
 
   function markAnswer(slot) {
@@ -243,7 +249,7 @@
     if (state.busy || !item) return;
     if (slot === "tie" ? !item.allow_tie : (slot < 0 || slot > item.candidates.length)) return;
     if (!state.played) {
-      toast("Watch the futures play through once before choosing.", true);
+      toast(`Watch the futures play through once before choosing: ${playbackLeft().toFixed(1)} s more.`, true);
       if (!state.playing) play(true);
       return;
     }
@@ -313,6 +319,7 @@
     state.lastTick = null;
     $("play").innerHTML = on ? ICON_PAUSE : ICON_PLAY;
     if (on && state.frame >= totalFrames() - 1) { state.clock = 0; setFrame(0); }
+    updateWatchNote();
   }
 
   function setFrame(f) {
@@ -325,6 +332,7 @@
     play(false);
     setFrame(state.frame + delta);
     state.clock = state.frame * state.item.dt;
+    updateWatchNote();
   }
 
   function tick(ts) {
@@ -335,6 +343,7 @@
       const last = totalFrames() - 1;
       let f = Math.floor(state.clock / dt + 1e-6);
       if (f >= last && !state.played) { state.played = true; updateGate(); }
+      updateWatchNote();
       if (f > last) {
         if (!state.loop) { f = last; play(false); }
         else if (state.clock > last * dt + HOLD_S) { state.clock = 0; f = 0; }
