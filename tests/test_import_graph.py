@@ -229,3 +229,13 @@ def test_lower_stages_import_nothing_above_them(name: str) -> None:
              "trafficrlhf_sdk.parallel": "trafficrlhf_sdk.feedback.campaign",
              "ctg_reference.networks": "ctg_reference.model"}[name]
     assert above not in graph[name] and name in graph[above]
+
+
+def test_no_module_inside_the_sdk_imports_the_package_root() -> None:
+    """Inside the SDK, names come from the module that defines them (``trafficrlhf_sdk.plugins``, ``.version``),
+    never from ``trafficrlhf_sdk`` itself, whose face imports the stages: that edge would be a hidden cycle."""
+    modules = find_modules(ROOT, ("trafficrlhf_sdk",))
+    found = [f"{name}:{line} imports {target}{'.' + imported if imported else ''}"
+             for name in modules if name != "trafficrlhf_sdk"
+             for target, imported, line in imported_names(name, modules) if target == "trafficrlhf_sdk"]
+    assert not found, "import these from their own module:\n" + "\n".join(sorted(found))

@@ -24,7 +24,7 @@ from typing import NoReturn
 import click
 import pydantic
 
-from trafficrlhf_sdk import __version__
+from trafficrlhf_sdk.version import __version__
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
 __all__ = ["EXIT_INTERNAL", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "cli", "format_error", "get_cli", "main",

@@ -50,7 +50,7 @@ def _error_text(exc: BaseException) -> str:
 
 def open_source(name: str, root: str | None) -> ScenarioSource:
     """The registered source ``name``, with ``root`` only when the user gave one."""
-    from trafficrlhf_sdk import get_scenario_source
+    from trafficrlhf_sdk.plugins import get_scenario_source
 
     return get_scenario_source(name, root=root) if root is not None else get_scenario_source(name)
 
