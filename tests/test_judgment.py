@@ -9,6 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.feedback import (FeedbackStore, JudgmentConfig, SyntheticAnnotator, SyntheticAnnotatorConfig,
                                       agent_penalties, judge_realism, judge_scenarios)
 from trafficrlhf_sdk.feedback.records import ContextRecord
@@ -121,3 +122,21 @@ def test_wrong_way_follows_the_lane_direction_where_the_map_has_one() -> None:
         batch = scenario.replace_unchecked(map=with_lane(direction))
         judgment = judge_scenarios(batch, batch.controlled, JudgmentConfig())
         assert (judgment.components["wrong_way"][0] > 0) == expected, direction
+
+
+def test_the_judgment_as_a_reward_scores_each_agent() -> None:
+    """builtin:judgment (ladder row b): the crashing cars score lowest, the faithful future scores 1 everywhere."""
+    from trafficrlhf_sdk.reward.loading import load_reward
+    from trafficrlhf_sdk.reward.scoring import agent_scores, scenario_scores
+
+    scenario, candidates, _, logged, logged_valid = tiny_context(["faithful", "collision"])
+    record = _record(candidates, scenario, logged, logged_valid)
+    batch = type(scenario).concat([record.candidate_scenario(k) for k in range(2)])
+    reward = load_reward("builtin:judgment")
+    scores = agent_scores(reward, batch)
+    assert scores.shape == (2, 3) and torch.allclose(scores[0], torch.ones(3))
+    assert scores[1, 0] < 0 and scores[1, 1] < 0 and scores[1, 2] == pytest.approx(1.0)  # cars 0 and 1 collide
+    scene = scenario_scores(reward, batch)
+    assert scene[0] == pytest.approx(1.0) and scene[1] < scene[0]
+    with pytest.raises(TrafficRLHFError, match="profile"):
+        load_reward("builtin:judgment", {"profile": "nobody"})

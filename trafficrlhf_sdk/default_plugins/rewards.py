@@ -24,7 +24,8 @@ def _factory(class_name: str, **defaults: Any) -> Any:
 
 @hookimpl
 def register_rewards(register: Register) -> None:
-    """failure, collision, failure-margins, realism, realism-margins, realism-speed, realism-kinematics, random."""
+    """failure, collision, failure-margins, realism, realism-margins, realism-speed, realism-kinematics, random,
+    judgment."""
     register("failure", _factory("FailureReward"))
     register("collision", _factory("FailureReward", offroad=False))
     register("failure-margins", _factory("FailureReward", margins=True))
@@ -33,3 +34,11 @@ def register_rewards(register: Register) -> None:
     register("realism-speed", _factory("RealismReward", margins=True, speed_weight=1.0))
     register("realism-kinematics", _factory("RealismReward", margins=True, kinematics_weight=0.5))
     register("random", _factory("RandomReward"))
+    register("judgment", _judgment)
+
+
+def _judgment(**options: Any) -> Any:
+    """``JudgmentReward(profile='attentive')``: the stand-in annotator's judgment used directly as the reward."""
+    from trafficrlhf_sdk.reward.oracle import JudgmentReward
+
+    return JudgmentReward(**options)

@@ -1,10 +1,14 @@
-"""The synthetic annotator's hidden judgment, for scoring a reward model against a noise-free annotator.
+"""The stand-in annotator's judgment, for scoring a reward model against a noise-free annotator and as a reward.
 
 A noise-free :class:`~trafficrlhf_sdk.feedback.SyntheticAnnotator` (``beta=None``, ``epsilon=0``) picks the
 candidate of highest hidden realism. When several candidates are equally realistic (often: CTG candidates
 without any collision, off-road or kinematic excess all score exactly 1) it still has to pick one, and the
 pairs "pick ≻ equally good candidate" carry no preference. :func:`strict_pairs` marks the pairs whose winner
 is strictly more realistic than the loser (by more than ``tolerance``), as B-Pref's "equal" teacher would.
+
+:class:`JudgmentReward` (``builtin:judgment``) uses the judgment itself as the reward, per agent: the ceiling that
+feedback from this annotator can give a fine-tuner, against which a reward model learned from its labels is
+measured (the alignment ladder).
 """
 
 from __future__ import annotations
@@ -13,9 +17,12 @@ import torch
 
 from trafficrlhf_sdk.feedback.preference import PreferenceDataset
 from trafficrlhf_sdk.feedback.store import FeedbackStore
-from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotatorConfig, judge_realism
+from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.feedback.judgment import FAILURE_TERMS, STYLE_TERMS, agent_penalties
+from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotatorConfig, judge_realism
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["hidden_realism", "strict_pairs"]
+__all__ = ["JudgmentReward", "hidden_realism", "strict_pairs"]
 
 
 def hidden_realism(store: FeedbackStore, dataset: PreferenceDataset,
@@ -41,3 +48,37 @@ def strict_pairs(dataset: PreferenceDataset, realism: torch.Tensor, tolerance: f
     """Whether each pair's winner is more realistic than its loser by more than ``tolerance``, bool ``(P,)``."""
     c, w, lo = dataset.pairs.unbind(1)
     return (realism[c, w] - realism[c, lo]) > tolerance
+
+
+class JudgmentReward:
+    """The stand-in's judgment as a reward (``builtin:judgment``), with the reward-model protocol.
+
+    Each judged agent scores ``2 * exp(-penalty) - 1`` in (-1, 1], its penalty the judgment's weighted terms for
+    that agent alone (its own failures at full weight, its own style terms); the scene's reward is the mean over
+    the agents. It reads what an annotation item shows: the scenario's history up to ``current_index``, its map
+    and its futures (see :mod:`~trafficrlhf_sdk.feedback.judgment`).
+
+    Args:
+        profile: the stand-in profile whose weights are used (:data:`~trafficrlhf_sdk.feedback.synthetic.PROFILES`).
+    """
+
+    def __init__(self, profile: str = "attentive") -> None:
+        if profile not in PROFILES:
+            raise TrafficRLHFError(f"`profile` is {profile!r}; use one of {', '.join(sorted(PROFILES))}.")
+        self.config = PROFILES[profile]
+
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, A)`` per-agent rewards in (-1, 1]; 0 for agents not judged."""
+        terms, agents = agent_penalties(scenario, scenario.controlled, self.config)
+        penalty = sum(self.config.weight(name) * terms[name] for name in (*FAILURE_TERMS, *STYLE_TERMS))
+        return torch.where(agents, 2 * torch.exp(-penalty) - 1, torch.zeros_like(penalty)).float()
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B, T)``: the scene's mean agent reward at every step after ``current_index`` (the judgment scores a
+        whole window, not single steps)."""
+        scores = self.agent_scores(scenario)
+        agents = scenario.controlled & scenario.valid[:, :, scenario.current_index + 1:].any(-1)
+        scene = (scores * agents).sum(-1) / agents.sum(-1).clamp_min(1)
+        out = torch.zeros(scenario.valid.shape[0], scenario.num_steps)
+        out[:, scenario.current_index + 1:] = scene[:, None]
+        return out
