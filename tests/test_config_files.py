@@ -9,7 +9,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from trafficrlhf_sdk.alignment.recipe import AlignRecipe
 from trafficrlhf_sdk.cli.app import EXIT_USER_ERROR, main
@@ -74,7 +74,7 @@ CASES = [  # (command, shipped file or None for a written one, text, misspelled 
     ("rlhf", "scripts/main.toml", "\nlearning_rate =", "\nlearnig_rate =", "align.learnig_rate"),
     ("rlhf", "docs/recipes/ctg-rlhf.toml", "\nmax_epochs =", "\nmax_epoch =", "reward.max_epoch"),
     ("align", "reference_models/baselines/bits/recipe.toml", "\nepochs =", "\nepochz =", "align.epochz"),
-    ("experiment paper", None, "", '[align_bits]\nlearnig_rate = 1e-4\n', "align_bits.learnig_rate"),
+    ("experiment paper", None, "", 'align_bits = "docs/recipes/bits-rm.tom"\n', "align_bits"),
     ("experiment paper", None, "", '[backbones."CTG encoder"]\narchitecure = "ctg_mlp"\n',
      "backbones.CTG encoder.architecure"),
     ("experiment paper", None, "", "scenes = 4\n[align_overrides]\nepoch = 1\n", "align_overrides.epoch"),
@@ -118,3 +118,11 @@ def test_load_config_names_the_file_and_every_problem(tmp_path: Path) -> None:
     message = str(caught.value)
     assert str(path) in message and "rounds" in message and "align.learnig_rate" in message
     assert "reward.ensemble_size" in message
+
+
+def test_an_experiment_fails_at_load_on_a_misspelled_key_in_a_recipe_it_reads(tmp_path: Path) -> None:
+    recipe = _misspelled(tmp_path, "docs/recipes/bits-rm.toml", "\nepochs =", "\nepochz =")
+    with pytest.raises(ValidationError) as caught:
+        PaperConfig(align_bits=recipe)
+    assert "align_bits" in str(caught.value) and "align.epochz" in str(caught.value)
+    assert PaperConfig(align_bits="docs/recipes/bits-rm.toml").align_bits == "docs/recipes/bits-rm.toml"

@@ -18,15 +18,16 @@ preferences where the newest policy drives):
 5. **align**: the base model (every round starts from it, which is robust to a reward model's errors) is aligned
    against the new reward model with the alignment recipe.
 
-Every step writes its outputs under ``DIR/round_<r>/`` and records itself in ``DIR/state.json``; a rerun skips
-the steps already done, so an interrupted loop resumes where it stopped.
+Each stage is a step of :mod:`trafficrlhf_sdk.pipeline` with its folder under ``DIR/round_<r>/`` (``campaigns/<name>``,
+``rank``, ``labels/<name>``, ``reward_model``, ``aligned``) and its ``step.json``; a rerun returns the finished steps
+at once, so an interrupted loop resumes where it stopped, and a rerun with other settings is refused naming the
+setting that differs (``overwrite=True``, ``--overwrite``: run those steps again). The campaigns of every round
+live in ``DIR/feedback.sqlite``.
 """
 
 from __future__ import annotations
 
-import json
 import os
-import time
 from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
@@ -35,11 +36,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from trafficrlhf_sdk.alignment.config import AlignConfig
 from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS, set_fields
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.pipeline.step import StepResult
 from trafficrlhf_sdk.reward.config import RewardConfig
 
 __all__ = ["RLHFConfig", "rlhf"]
 
-STATE_FILE = "state.json"
 PROBE_PASS = 0.9  # a reward model should rank the log above each perturbation at least this often
 
 
@@ -89,209 +90,156 @@ class RLHFConfig(BaseModel):
     seed: int = Field(0, description="Seed of campaigns, annotators, reward models and alignment.")
 
 
-def _load_state(out_dir: str) -> dict[str, Any]:
-    path = os.path.join(out_dir, STATE_FILE)
-    if not os.path.isfile(path):
-        return {"done": []}
-    with open(path, encoding="utf-8") as handle:
-        return json.load(handle)
+def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print, poll_s: float = 10.0,
+         overwrite: bool = False) -> dict[str, Any]:
+    """Run (or resume) the loop of ``config`` in ``out_dir``; see the module docstring.
 
-
-def _save_state(out_dir: str, state: dict[str, Any]) -> None:
-    tmp = os.path.join(out_dir, STATE_FILE + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as handle:
-        json.dump(state, handle, indent=1)
-    os.replace(tmp, os.path.join(out_dir, STATE_FILE))
-
-
-def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print,
-         poll_s: float = 10.0) -> dict[str, Any]:
-    """Run (or resume) the loop of ``config`` in ``out_dir``; returns the state (each round's reward model,
-    aligned model and figures). See the module docstring."""
+    Returns ``{"rounds": [...]}``, one entry per round: ``campaigns``, ``reward_model`` (folder), ``probes``,
+    ``reward_metrics``, ``aligned`` (folder) and ``align`` (the alignment summary)."""
     from trafficrlhf_sdk.plugins import get_scenario_source
-    from trafficrlhf_sdk.feedback.store import FeedbackStore
 
     os.makedirs(out_dir, exist_ok=True)
-    state = _load_state(out_dir)
-    saved = state.get("config")
-    if saved is not None and saved != config.model_dump(mode="json"):
-        raise TrafficRLHFError(f"{out_dir!r} holds a loop run with another configuration; use a new --out folder "
-                               "or the same configuration to resume.")
-    state["config"] = config.model_dump(mode="json")
-    _save_state(out_dir, state)
-    store = FeedbackStore(os.path.join(out_dir, "feedback.sqlite"))
+    db = os.path.join(out_dir, "feedback.sqlite")
     source = get_scenario_source(config.source, **({"root": config.root} if config.root else {}))
     train = source.scene_ids("train")
     if config.contrast_scenes:
         train = train[: max(0, len(train) - config.contrast_scenes)]  # the contrast logs stay out of campaigns
+    rounds: list[dict[str, Any]] = []
+    labels: list[StepResult] = []  # every round's labelling so far: the reward model reads them all
+    reward: StepResult | None = None
     used = 0
     for r in range(config.rounds):
         folder = os.path.join(out_dir, f"round_{r}")
-        os.makedirs(folder, exist_ok=True)
-        policy = config.checkpoint if r == 0 else os.path.join(out_dir, f"round_{r - 1}", "aligned")
+        policy = config.checkpoint if r == 0 else rounds[-1]["aligned"]
         pool = config.contexts_per_round * (1 if r == 0 else config.candidate_pool)
         scenes = train[used: used + pool]
         used += pool
         if len(scenes) < pool:
             raise TrafficRLHFError(f"round {r} needs {pool} new train scenes but only {len(scenes)} are left; lower "
                                    "`contexts_per_round`, `candidate_pool` or `rounds`.")
-        campaigns = _generate(config, store, r, policy, scenes, state, out_dir, log)
-        if r > 0 and config.candidate_pool > 1:
-            _select(config, store, campaigns, os.path.join(out_dir, f"round_{r - 1}", "reward_model"), r, state,
-                    out_dir, log)
-        _label(config, store, campaigns, r, state, out_dir, log, poll_s)
-        every = [c for k in range(r + 1) for c in state.get(f"campaigns_{k}", [])]
-        _reward_model(config, out_dir, every, folder, r, state, log)
-        _align(config, folder, r, state, out_dir, log)
-    store.close()
-    return state
+        steps = {"overwrite": overwrite, "log": log}
+        campaigns = _generate(config, db, r, policy, scenes, folder, steps)
+        if r > 0 and config.candidate_pool > 1 and reward is not None:
+            from trafficrlhf_sdk.pipeline.stages import rank_step
+
+            ranked = rank_step(os.path.join(folder, "rank"), db, [c["campaign"] for c in campaigns], reward["folder"],
+                               after=[*campaigns, reward], **steps)
+            _log_ranking(log, r, ranked)
+            campaigns = [*campaigns, ranked]
+        labels += _label(config, db, r, campaigns, folder, poll_s, steps)
+        reward = _reward_model(config, db, r, labels, folder, steps)
+        aligned = _align(config, r, reward, folder, steps)
+        rounds.append({"campaigns": [c["campaign"] for c in campaigns if c.name == "generate"],
+                       "reward_model": reward["folder"], "probes": reward["probes"],
+                       "reward_metrics": reward["metrics"], "aligned": aligned["folder"], "align": aligned.outputs})
+    return {"rounds": rounds}
 
 
-def _done(state: dict[str, Any], step: str) -> bool:
-    return step in state["done"]
+def _generate(config: RLHFConfig, db: str, r: int, policy: str | None, scenes: list[str], folder: str,
+              steps: dict[str, Any]) -> list[StepResult]:
+    """Campaigns ``round<r>`` (guided) and ``round<r>_unguided`` over ``scenes`` (split by ``unguided_share``)."""
+    from trafficrlhf_sdk.feedback.campaign import CampaignConfig
+    from trafficrlhf_sdk.pipeline.stages import generate_step
 
-
-def _mark(state: dict[str, Any], out_dir: str, step: str, **info: Any) -> None:
-    state["done"].append(step)
-    state.update(info)
-    _save_state(out_dir, state)
-
-
-def _generate(config: RLHFConfig, store: Any, r: int, policy: str | None, scenes: list[str], state: dict[str, Any],
-              out_dir: str, log: Callable[[str], None]) -> list[str]:
-    from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign
-
-    step = f"round_{r}/generate"
-    names = [f"round{r}", f"round{r}_unguided"]
-    if _done(state, step):
-        return state[f"campaigns_{r}"]
     split = round(len(scenes) * (1 - config.unguided_share)) if config.guidance else len(scenes)
-    made = []
-    for name, part, guidance in ((names[0], scenes[:split], config.guidance), (names[1], scenes[split:], None)):
+    made: list[StepResult] = []
+    for name, part, guidance in ((f"round{r}", scenes[:split], config.guidance),
+                                 (f"round{r}_unguided", scenes[split:], None)):
         if not part:
             continue
-        if name in {c.name for c in store.campaigns()}:  # a generation interrupted midway: start it again
-            raise TrafficRLHFError(f"campaign {name!r} exists but round {r}'s generation was not finished; delete "
-                                   f"{os.path.join(out_dir, 'feedback.sqlite')} or use a new --out folder.")
         # round 0 samples the base as it is (a head added by `model_options` starts with zero effect); later
         # rounds load the previous round's aligned model, whose config.json carries its options
-        options: dict[str, Any] = {}
-        if policy is not None:
-            options["checkpoint"] = policy
-        log(f"round {r}: {len(part)} contexts of {name} ({config.model}, "
-            f"{'guidance ' + guidance if guidance else 'no guidance'}, {policy or 'bundled weights'})")
-        create_campaign(store, CampaignConfig(
-            name=name, model=config.model, guidance=guidance, model_options=options, source=config.source,
-            split="train", root=config.root, scene_ids=part, num_candidates=config.candidates, contexts=config.contexts,
-            candidate_seconds=config.seconds, seed=config.seed + 1000 * r + len(made)))
-        made.append(name)
-    _mark(state, out_dir, step, **{f"campaigns_{r}": made})
+        options: dict[str, Any] = {"checkpoint": policy} if policy is not None else {}
+        campaign = CampaignConfig(name=name, model=config.model, guidance=guidance, model_options=options,
+                                  source=config.source, split="train", root=config.root, scene_ids=part,
+                                  num_candidates=config.candidates, contexts=config.contexts,
+                                  candidate_seconds=config.seconds, seed=config.seed + 1000 * r + len(made))
+        done = generate_step(os.path.join(folder, "campaigns", name), db, campaign, **steps)
+        if not done.cached:
+            steps["log"](f"round {r}: {done['contexts']} contexts of {name} ({config.model}, "
+                         f"{'guidance ' + guidance if guidance else 'no guidance'}, {policy or 'bundled weights'})")
+        made.append(done)
     return made
 
 
-def _select(config: RLHFConfig, store: Any, campaigns: list[str], reward_dir: str, r: int, state: dict[str, Any],
-            out_dir: str, log: Callable[[str], None]) -> None:
-    from trafficrlhf_sdk.feedback.selection import rank_by_disagreement
-    from trafficrlhf_sdk.reward.model import RewardModel
-
-    step = f"round_{r}/select"
-    if _done(state, step):
+def _log_ranking(log: Callable[[str], None], r: int, ranked: StepResult) -> None:
+    if ranked.cached:
         return
-    model = RewardModel.from_pretrained(reward_dir).eval()
-    members = list(getattr(model, "members", [])) or [model]
-    if len(members) < 2:
+    if ranked["members"] < 2:
         log(f"round {r}: the reward model has one member; items are served in campaign order")
-    else:
-        for name in campaigns:
-            scores = rank_by_disagreement(store, name, [m.score for m in members])
-            log(f"round {r}: {name}: disagreement ranked {len(scores)} items (max {max(scores.values()):.3f})")
-    _mark(state, out_dir, step)
+    for name, count in ranked["ranked"].items():
+        log(f"round {r}: {name}: disagreement ranked {count} items (max {ranked['max_disagreement'][name]:.3f})")
 
 
-def _label(config: RLHFConfig, store: Any, campaigns: list[str], r: int, state: dict[str, Any], out_dir: str,
-           log: Callable[[str], None], poll_s: float) -> None:
-    from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotator
+def _label(config: RLHFConfig, db: str, r: int, campaigns: list[StepResult], folder: str, poll_s: float,
+           steps: dict[str, Any]) -> list[StepResult]:
+    """``contexts_per_round`` items labelled, shared among the round's campaigns by their sizes."""
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES
+    from trafficrlhf_sdk.pipeline.stages import label_step
 
-    step = f"round_{r}/label"
-    if _done(state, step):
-        return
-    total = sum(len(store.context_keys(store.campaign(c))) for c in campaigns)
-    share = config.contexts_per_round / max(total, 1)
-    for name in campaigns:
-        campaign = store.campaign(name)
-        wanted = max(1, round(share * len(store.context_keys(campaign))))
-        if config.people:
-            log(f"round {r}: waiting for people to label {wanted} items of {name} (`trafficrlhf feedback serve "
-                f"--db {os.path.join(out_dir, 'feedback.sqlite')}`); stop and rerun to resume")
-            while len({lab.context_id for lab in store.labels(campaign)}) < wanted:
-                time.sleep(poll_s)
-            continue
-        for profile in config.annotators:
-            if profile not in PROFILES:
-                raise TrafficRLHFError(f"annotator profile {profile!r} is unknown; use one of {sorted(PROFILES)}.")
-            settings = PROFILES[profile].model_copy(update={"seed": config.seed + r})
-            counts = SyntheticAnnotator(store, profile, settings).label(campaign, limit=wanted)
-            log(f"round {r}: {profile} labelled {counts['labeled']} items of {name} ({counts['none_realistic']} "
-                f"'none realistic', {counts['ties']} ties)")
-    _mark(state, out_dir, step)
+    unknown = [p for p in config.annotators if p not in PROFILES]
+    if unknown and not config.people:
+        raise TrafficRLHFError(f"annotator profiles {unknown} are unknown; use some of {sorted(PROFILES)}.")
+    annotators = {p: PROFILES[p].model_copy(update={"seed": config.seed + r}) for p in config.annotators
+                  if p in PROFILES}
+    generated = [c for c in campaigns if c.name == "generate"]
+    share = config.contexts_per_round / max(sum(c["contexts"] for c in generated), 1)
+    done = []
+    for campaign in generated:
+        name = campaign["campaign"]
+        wanted = max(1, round(share * campaign["contexts"]))
+        labelled = label_step(os.path.join(folder, "labels", name), db, name, annotators, limit=wanted,
+                              people=config.people, poll_s=poll_s, after=campaigns, **steps)
+        for profile, counts in labelled.get("counts", {}).items():
+            if not labelled.cached:
+                steps["log"](f"round {r}: {profile} labelled {counts['labeled']} items of {name} "
+                             f"({counts.get('none_realistic', 0)} 'none realistic', {counts.get('ties', 0)} ties)")
+        done.append(labelled)
+    return done
 
 
-def _reward_model(config: RLHFConfig, out_dir: str, campaigns: list[str], folder: str, r: int,
-                  state: dict[str, Any], log: Callable[[str], None]) -> None:
-    from trafficrlhf_sdk.reward import RewardTrainer
-    from trafficrlhf_sdk.reward.contrast import contrast_dataset, probe_reward_model, recorded_windows
-    from trafficrlhf_sdk.reward.evaluation import load_preferences
+def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult], folder: str,
+                  steps: dict[str, Any]) -> StepResult:
+    """The round's reward model, trained on every round's labels so far plus contrast pairs, probed."""
+    from trafficrlhf_sdk.pipeline.stages import reward_model_step
 
-    step = f"round_{r}/reward_model"
-    if _done(state, step):
-        return
-    dataset, _ = load_preferences(os.path.join(out_dir, "feedback.sqlite"), campaigns, val_fraction=0.15,
-                                  seed=config.seed)
-    contrast = None
-    if config.contrast_scenes:
-        contrast = contrast_dataset(recorded_windows(config.source, "train", config.contrast_scenes, config.root,
-                                                     from_end=True, future_steps=round(config.seconds * 10)))
     settings = RewardConfig(**{"seed": config.seed + r, "progress": False, **set_fields(config.reward)})
-    trainer = RewardTrainer(settings, train_dataset=dataset, contrast_dataset=contrast)
-    result = trainer.train()
-    card: dict[str, Any] = {"metrics": dict(result.metrics),
-                            "title": f"Reward model of RLHF round {r} ({config.model})",
-                            "data": {**result.model.card_info.get("data", {}), "campaigns": campaigns,
-                                     "annotators": config.annotators if not config.people else "people",
-                                     "contrast_pairs": trainer.dataset_info.get("contrast_pairs", 0)}}
-    probes = None
-    if config.probe_scenes:
-        probes = probe_reward_model(result.model.eval(), recorded_windows(config.source, "val",
-                                                                          config.probe_scenes, config.root))
-        card["metrics"].update({f"probe_{kind}": entry["pass_rate"] for kind, entry in probes.items()})
-    path = os.path.join(folder, "reward_model")
-    result.model.save_pretrained(path, card)
-    log(f"round {r}: reward model on {trainer.dataset_info['train_pairs']} pairs (+ "
-        f"{trainer.dataset_info.get('contrast_pairs', 0)} contrast): val accuracy "
-        f"{result.metrics.get('val_accuracy', float('nan')):.3f}"
-        + ("; probes " + ", ".join(f"{k} {v['pass_rate']:.2f}" for k, v in probes.items()) if probes else ""))
-    weak = {k: v["pass_rate"] for k, v in (probes or {}).items() if v["pass_rate"] < PROBE_PASS}
+    campaigns = [step["campaign"] for step in labels]
+    reward = reward_model_step(
+        os.path.join(folder, "reward_model"), settings, db, campaigns, val_fraction=0.15, split_seed=config.seed,
+        contrast_scenes=config.contrast_scenes, probe_scenes=config.probe_scenes, source=config.source,
+        root=config.root, candidate_seconds=config.seconds, title=f"Reward model of RLHF round {r} ({config.model})",
+        after=labels, **steps)
+    if reward.cached:
+        return reward
+    probes = reward["probes"] or {}
+    info = reward["dataset"]
+    steps["log"](f"round {r}: reward model on {info['train_pairs']} pairs (+ {info.get('contrast_pairs', 0)} "
+                 f"contrast): val accuracy {reward['metrics'].get('val_accuracy', float('nan')):.3f}"
+                 + ("; probes " + ", ".join(f"{k} {v['pass_rate']:.2f}" for k, v in probes.items()) if probes else ""))
+    weak = {k: v["pass_rate"] for k, v in probes.items() if v["pass_rate"] < PROBE_PASS}
     if weak:
-        log(f"round {r}: warning: the reward model ranks the log below its perturbation in more than "
-            f"{1 - PROBE_PASS:.0%} of the probes for " + ", ".join(f"{k} ({v:.2f})" for k, v in weak.items())
-            + "; PPO is likely to exploit that (more contrast scenes or a higher reward.contrast_weight help)")
-    _mark(state, out_dir, step, **{f"reward_model_{r}": path, f"probes_{r}": probes,
-                                   f"reward_metrics_{r}": result.metrics})
+        steps["log"](f"round {r}: warning: the reward model ranks the log below its perturbation in more than "
+                     f"{1 - PROBE_PASS:.0%} of the probes for " + ", ".join(f"{k} ({v:.2f})" for k, v in weak.items())
+                     + "; PPO is likely to exploit that (more contrast scenes or a higher reward.contrast_weight "
+                     "help)")
+    return reward
 
 
-def _align(config: RLHFConfig, folder: str, r: int, state: dict[str, Any], out_dir: str,
-           log: Callable[[str], None]) -> None:
-    from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
+def _align(config: RLHFConfig, r: int, reward: StepResult, folder: str, steps: dict[str, Any]) -> StepResult:
+    """The base model aligned against the round's reward model with the loop's alignment recipe."""
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+    from trafficrlhf_sdk.pipeline.stages import align_step
 
-    step = f"round_{r}/align"
-    if _done(state, step):
-        return
     fields = {"guidance": config.guidance, "seed": config.seed + r, **set_fields(config.align)}
     recipe = AlignRecipe(model=config.model, checkpoint=config.checkpoint, model_options=config.model_options,
-                         reward_model=os.path.join(folder, "reward_model"), align=fields,
-                         reward_aggregation=config.reward_aggregation, reward_pessimism=config.reward_pessimism)
-    summary = run_recipe(recipe, os.path.join(folder, "aligned"))
-    log(f"round {r}: aligned {summary['model']} for {summary['epochs']} epochs in {summary['wall_time_s']:.0f} s; "
-        f"proxy reward {summary['reward_first']:.3f} -> {summary['reward_last']:.3f}, held-out realism "
-        f"{summary['heldout_realism_first']:.3f} -> {summary['heldout_realism_last']:.3f}")
-    _mark(state, out_dir, step, **{f"aligned_{r}": os.path.join(folder, "aligned"), f"align_{r}": summary})
+                         reward_model=reward["folder"], align=fields, reward_aggregation=config.reward_aggregation,
+                         reward_pessimism=config.reward_pessimism)
+    aligned = align_step(os.path.join(folder, "aligned"), recipe, after=[reward], **steps)
+    if not aligned.cached:
+        summary = aligned.outputs
+        steps["log"](f"round {r}: aligned {summary['model']} for {summary['epochs']} epochs in "
+                     f"{summary['wall_time_s']:.0f} s; proxy reward {summary['reward_first']:.3f} -> "
+                     f"{summary['reward_last']:.3f}, held-out realism {summary['heldout_realism_first']:.3f} -> "
+                     f"{summary['heldout_realism_last']:.3f}")
+    return aligned

@@ -11,10 +11,12 @@ from trafficrlhf_sdk.cli.app import cli
 @click.option("--config", "config_path", default=None, type=click.Path(dir_okay=False, path_type=str),
               help="TOML file of RLHFConfig fields (model, checkpoint, rounds, annotators, reward, align, ...).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
-              help="Folder of the run: feedback.sqlite, state.json and round_<r>/{reward_model,aligned}; rerun with "
-                   "the same --out to resume.")
+              help="Folder of the run: feedback.sqlite and round_<r>/{campaigns,labels,reward_model,aligned}, each "
+                   "step with its step.json; rerun with the same --out to resume.")
 @click.option("--rounds", type=click.IntRange(min=1), default=None, help="Rounds [default: the config's, 2].")
-def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None) -> None:
+@click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
+                                                "of refusing them).")
+def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None, overwrite: bool) -> None:
     """Rounds of: candidates from the current policy, labels (stand-in annotators or people), a reward model
     retrained on every round's labels, and alignment of the base model against it."""
     from trafficrlhf_sdk.config_files import read_toml
@@ -34,7 +36,6 @@ def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None) -> N
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise DataFormatError(f"--config {config_path!r}: {problems}") from None
-    state = rlhf(config, out_dir, log=lambda line: click.echo(line))
-    last = config.rounds - 1
-    click.echo(f"done: round {last}'s reward model {state.get(f'reward_model_{last}')}, aligned model "
-               f"{state.get(f'aligned_{last}')}")
+    last = rlhf(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite)["rounds"][-1]
+    click.echo(f"done: round {config.rounds - 1}'s reward model {last['reward_model']}, aligned model "
+               f"{last['aligned']}")

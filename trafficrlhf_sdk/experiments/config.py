@@ -1,40 +1,58 @@
 """``PaperConfig``: everything ``trafficrlhf experiment paper`` runs, every nested section typed.
 
-The alignment recipes are :class:`~trafficrlhf_sdk.alignment.AlignConfig` fields and the reward-model settings
-:class:`~trafficrlhf_sdk.reward.RewardConfig` fields, so a misspelled key in an experiment file fails when it is
-loaded, naming its path (``align_bits.learnig_rate``).
+The alignment recipes are the shipped TOML recipes (``docs/recipes/*.toml``, read when the configuration is
+loaded, so a misspelled key in one fails then, naming the field and the key: ``align_bits``,
+``align.learnig_rate``); the overrides are :class:`~trafficrlhf_sdk.alignment.AlignConfig` fields and the
+reward-model settings :class:`~trafficrlhf_sdk.reward.RewardConfig` fields, so a misspelled key in an experiment
+file fails when it is loaded, naming its path (``align_overrides.learnig_rate``).
 """
 
 from __future__ import annotations
 
+import os
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.alignment.config import AlignConfig
 from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS
+from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.reward.config import RewardConfig
 
-__all__ = ["GUIDANCES", "TABLES", "PaperConfig"]
+__all__ = ["GUIDANCES", "TABLES", "PaperConfig", "resolve_path"]
 
 TABLES = ("table1", "table2", "table3", "table4", "figure3")
 GUIDANCES = ("speed_limit", "target_speed", "no_collision", "no_offroad", "goal_waypoint")
 
+
+def resolve_path(path: str) -> str:
+    """``path`` as given when it exists, else relative to the folder above the installed SDK (the repository
+    root of a source checkout, where the bundled reward models and the recipes live); an error naming both
+    otherwise."""
+    if os.path.exists(path):
+        return os.path.abspath(path)
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # trafficrlhf_sdk/
+    beside = os.path.join(os.path.dirname(package), path)
+    if os.path.exists(beside):
+        return beside
+    raise DataNotFoundError(f"{path!r} does not exist here nor at {beside!r}; give the file's or folder's path.")
+
+
+def _readable_recipe(path: str) -> str:
+    """``path`` when it is a valid alignment recipe; a ValueError naming the file and the problem otherwise."""
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+
+    try:
+        AlignRecipe.load(resolve_path(path))
+    except TrafficRLHFError as exc:
+        raise ValueError(str(exc)) from None
+    return path
+
+
 AlignSection = Annotated[AlignConfig, ONLY_SET_FIELDS]
 RewardSection = Annotated[RewardConfig, ONLY_SET_FIELDS]
+RecipeFile = Annotated[str, AfterValidator(_readable_recipe)]
 
-# the [align] sections of the loop recipes (BITS, TrafficGen) and of docs/recipes/ctg-rlhf.toml without the
-# steering head (CTG); see PaperConfig.align_ctg for the one setting that differs
-ALIGN_BITS = {"alpha": 3.0, "kl_coef": 0.05, "learning_rate": 2e-4, "ppo_epochs": 4, "minibatch_contexts": 4,
-              "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8, "failure_fraction": 0.75,
-              "failure_scenes": 24, "credit": "agent", "holdout_every": 10, "early_stopping_patience": 6}
-ALIGN_TRAFFICGEN = {"alpha": 6.0, "kl_coef": 0.05, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
-                    "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
-                    "early_stopping_patience": 6}
-ALIGN_CTG = {"alpha": 3.0, "imitation_coef": 0.0, "passing_anchor_coef": 1.0, "denoising_steps": 4,
-             "learning_rate": 1e-4, "epochs": 20, "contexts_per_epoch": 16, "samples_per_context": 8,
-             "failure_fraction": 0.75, "failure_scenes": 24, "credit": "agent", "holdout_every": 10,
-             "early_stopping_patience": 6}
 QUICK_ALIGN = {"epochs": 1, "contexts_per_epoch": 2, "samples_per_context": 2, "ppo_epochs": 1,
                "minibatch_contexts": 2, "failure_fraction": 0.5, "failure_scenes": 4, "num_scenes": 4,
                "holdout_every": None, "early_stopping_patience": None}
@@ -75,15 +93,14 @@ class PaperConfig(BaseModel):
                               "repository.")
     reward_aggregation: Literal["mean", "worst", "lcb"] = Field("lcb", description="How the fine-tuner reads an "
                                                                 "ensemble reward model (one member: 'mean').")
-    # > alignment recipes (AlignConfig fields)
-    align_bits: AlignSection = Field(default_factory=lambda: AlignConfig(**ALIGN_BITS), description="BITS + RM "
-                                     "recipe (the loop recipe's [align]).")
-    align_trafficgen: AlignSection = Field(default_factory=lambda: AlignConfig(**ALIGN_TRAFFICGEN),
-                                           description="TrafficGen + RM recipe (the loop recipe's [align]).")
-    align_ctg: AlignSection = Field(default_factory=lambda: AlignConfig(**ALIGN_CTG), description="Table 3's recipe: "
-                                      "docs/recipes/ctg-rlhf.toml's [align] without the steering head, at the "
-                                      "AlignConfig default learning rate 1e-4 (the recipe's 1e-3 is for a fresh "
-                                      "zero-effect head, too large a step for pretrained networks).")
+    # > alignment recipes (TOML files of `trafficrlhf align --config`; their [align] tables are used, with this
+    #   experiment's reward model, aggregation, guidance and seed in place of the recipe's)
+    align_bits: RecipeFile = Field("docs/recipes/bits-rm.toml", description="BITS + RM recipe file (relative to "
+                                   "the working directory or the repository).")
+    align_trafficgen: RecipeFile = Field("docs/recipes/trafficgen-rm.toml", description="TrafficGen + RM recipe "
+                                         "file.")
+    align_ctg: RecipeFile = Field("docs/recipes/ctg-rm.toml", description="Table 3's recipe file (CTG's own "
+                                  "networks; each variant sets the groups it trains).")
     table3_groups: dict[str, list[str] | None] = Field(
         default_factory=lambda: {"encoder": ["encoder"], "decoder": ["decoder"], "full": None},
         description="Table 3's variants: name -> CTG parameter groups trained (None: all).")

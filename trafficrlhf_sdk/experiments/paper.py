@@ -13,9 +13,10 @@ only:
   and TrafficGen;
 - **figure3**: reward-model accuracy against the number of labelled contexts, over seeds.
 
-Each writes ``DIR/<name>/result.json``, ``result.md`` and ``result.png`` and is skipped on a rerun when its
-``result.json`` exists; evaluations, alignments, campaigns and reward models are cached under ``DIR`` as well, so
-an interrupted run resumes. ``DIR/summary.md`` gathers the tables.
+Each writes ``DIR/<name>/result.json``, ``result.md`` and ``result.png``; ``DIR/summary.md`` gathers the tables.
+The alignment recipes are the shipped ``docs/recipes/*.toml``. Every evaluation, alignment, campaign, labelling,
+reward model and Figure 3 training run is a step of :mod:`trafficrlhf_sdk.pipeline` with its ``step.json`` under
+``DIR``, so a rerun only redraws the tables from the recorded outputs, and an interrupted run resumes.
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from trafficrlhf_sdk.alignment.config import AlignConfig
 from trafficrlhf_sdk.config_files import set_fields
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import TABLES, PaperConfig
@@ -38,9 +38,11 @@ from trafficrlhf_sdk.experiments.steps import (
     align,
     evaluate,
     labelled_campaign,
+    read_recipe,
     resolve_path,
     train_reward_model,
 )
+from trafficrlhf_sdk.pipeline.step import run_step
 
 __all__ = ["run_paper"]
 
@@ -62,8 +64,11 @@ def _flat(evaluation: dict[str, Any], reward: str = "rm") -> dict[str, Any]:
     return {**evaluation["metrics"], "reward_cost": evaluation["reward_cost"].get(reward)}
 
 
-def _recipe(config: PaperConfig, recipe: AlignConfig, **extra: Any) -> dict[str, Any]:
-    return {**set_fields(recipe), **extra, **set_fields(config.align_overrides)}
+def _recipe(config: PaperConfig, path: str, **extra: Any) -> dict[str, Any]:
+    """The [align] fields of recipe file ``path`` (the experiment's guidance and seed in place of the recipe's),
+    then ``extra``, then the experiment's ``align_overrides``."""
+    fields = {k: v for k, v in set_fields(read_recipe(path).align).items() if k not in ("guidance", "seed")}
+    return {**fields, **extra, **set_fields(config.align_overrides)}
 
 
 # --------------------------------------------------------------------------------------------------------- tables
@@ -95,7 +100,7 @@ def table1(run: ExperimentRun) -> dict[str, Any]:
                       "distance m)."]}
 
 
-def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: AlignConfig,
+def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: str,
                 ensemble: bool) -> str:
     summary = align(run, name, model, checkpoint, reward, _recipe(run.config, recipe),
                     _aggregation(run.config, ensemble))
@@ -132,8 +137,8 @@ def table2(run: ExperimentRun) -> dict[str, Any]:
             "plot": ([r["model"] for r in rows], {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate",
                                                                                     "reward_cost")}),
             "notes": [f"RM = `{cfg.reward_model}`; CTG + RM = `{cfg.ctg_aligned}`; BITS + RM and TrafficGen + RM "
-                      f"aligned here from `{cfg.bits}` and `{cfg.trafficgen}` with the loop recipes' settings; "
-                      f"guidance `{cfg.guidance}`."]}
+                      f"aligned here from `{cfg.bits}` and `{cfg.trafficgen}` with the recipes `{cfg.align_bits}` and "
+                      f"`{cfg.align_trafficgen}`; guidance `{cfg.guidance}`."]}
 
 
 def table3(run: ExperimentRun) -> dict[str, Any]:
@@ -162,45 +167,34 @@ def table3(run: ExperimentRun) -> dict[str, Any]:
             "markdown": markdown_table(headers, body), "comparisons": direction_rows(pairs, METRICS),
             "plot": ([r["variant"] for r in rows], {m: [r[m] for r in rows] for m in ("realism_ctg", "failure_rate",
                                                                                       "reward_cost")}),
-            "notes": [f"Recipe: `docs/recipes/ctg-rlhf.toml`'s [align] without the steering head, learning rate "
-                      f"{cfg.align_ctg.learning_rate}; RM = `{cfg.reward_model}`; guidance `{cfg.guidance}`."]}
+            "notes": [f"Recipe: `{cfg.align_ctg}` (CTG's own networks, learning rate "
+                      f"{read_recipe(cfg.align_ctg).align.learning_rate}); RM = `{cfg.reward_model}`; guidance "
+                      f"`{cfg.guidance}`."]}
 
 
 def table4(run: ExperimentRun) -> dict[str, Any]:
     """Reward models with the CTG and the TrafficGen encoder on one feedback set over CTG, BITS and TrafficGen
     candidates, each aligning BITS and TrafficGen."""
-    from trafficrlhf_sdk.feedback.preference import export_preferences
-    from trafficrlhf_sdk.feedback.store import FeedbackStore
     from trafficrlhf_sdk.feedback.synthetic import PROFILES
 
     cfg = run.config
     folder = run.folder("table4")
-    store = FeedbackStore(os.path.join(folder, "feedback.sqlite"))
-    try:
-        unknown = [p for p in cfg.annotators if p not in PROFILES]
-        if unknown:
-            raise TrafficRLHFError(f"annotator profiles {unknown} are unknown; use some of {sorted(PROFILES)}.")
-        annotators = {p: PROFILES[p].model_copy(update={"seed": cfg.seed}) for p in cfg.annotators}
-        labelled_campaign(run, store, "mixed", cfg.feedback_models[0], cfg.feedback_contexts, "train", annotators,
-                          cfg.guidance, candidate_models=list(cfg.feedback_models),
-                          candidates=len(cfg.feedback_models), seconds=cfg.feedback_seconds)
-        dataset = export_preferences(store, "mixed", val_fraction=0.15, seed=cfg.seed)
-    finally:
-        store.close()
-    contrast = None
-    if cfg.contrast_scenes:
-        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
-
-        contrast = contrast_dataset(recorded_windows(cfg.source, "train", cfg.contrast_scenes, cfg.root,
-                                                     from_end=True, future_steps=round(cfg.feedback_seconds * 10)))
+    unknown = [p for p in cfg.annotators if p not in PROFILES]
+    if unknown:
+        raise TrafficRLHFError(f"annotator profiles {unknown} are unknown; use some of {sorted(PROFILES)}.")
+    annotators = {p: PROFILES[p].model_copy(update={"seed": cfg.seed}) for p in cfg.annotators}
+    labels = labelled_campaign(run, folder, "mixed", cfg.feedback_models[0], cfg.feedback_contexts, "train",
+                               annotators, cfg.guidance, candidate_models=list(cfg.feedback_models),
+                               candidates=len(cfg.feedback_models), seconds=cfg.feedback_seconds)
     ensemble = cfg.reward.ensemble_size > 1
-    reward_models, accuracy = {}, {}
+    reward_models, accuracy, feedback = {}, {}, {}
     for index, (backbone, spec) in enumerate(cfg.backbones.items()):
-        card = train_reward_model(run, os.path.join(folder, f"reward_model_{index}"), dataset,
-                                  {**set_fields(cfg.reward), **set_fields(spec)}, contrast,
+        card = train_reward_model(run, os.path.join(folder, f"reward_model_{index}"), labels,
+                                  {**set_fields(cfg.reward), **set_fields(spec)},
                                   title=f"Table 4 reward model: {backbone}")
         reward_models[backbone] = card["folder"]
         accuracy[backbone] = card["metrics"].get("val_accuracy")
+        feedback = card["preferences"]
     costs = {f"rm{i}": path for i, path in enumerate(reward_models.values())}
     bases = {"BITS": ("bits", cfg.bits, cfg.align_bits), "TrafficGen": ("trafficgen", cfg.trafficgen,
                                                                         cfg.align_trafficgen)}
@@ -226,9 +220,8 @@ def table4(run: ExperimentRun) -> dict[str, Any]:
             "rows": rows, "markdown": markdown_table(headers, body), "comparisons": direction_rows(pairs, METRICS),
             "plot": ([f"{r['model']}\n{r['backbone']}" for r in rows],
                      {m: [r.get(m) for r in rows] for m in ("realism_ctg", "failure_rate")}),
-            "reward_models": reward_models, "feedback": {"contexts": dataset.num_contexts,
-                                                         "pairs": int(dataset.pairs.shape[0])},
-            "notes": [f"Feedback: {dataset.num_contexts} train contexts, candidates from "
+            "reward_models": reward_models, "feedback": feedback,
+            "notes": [f"Feedback: {feedback['contexts']} train contexts, candidates from "
                       f"{', '.join(cfg.feedback_models)} (bundled weights), labelled by "
                       f"{', '.join(cfg.annotators)}; {cfg.contrast_scenes} contrast scenes; the same data trains "
                       "both reward models. Reward cost of a row under each reward model; the direction check uses "
@@ -242,67 +235,56 @@ def figure3(run: ExperimentRun) -> dict[str, Any]:
     from trafficrlhf_sdk.feedback.preference import export_preferences
     from trafficrlhf_sdk.feedback.store import FeedbackStore
     from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotatorConfig
-    from trafficrlhf_sdk.reward import RewardConfig, RewardTrainer, build_pair_data, evaluate_pairs, filter_pairs
-    from trafficrlhf_sdk.reward.model import get_reward_model_architecture
+    from trafficrlhf_sdk.reward import RewardConfig, filter_pairs
     from trafficrlhf_sdk.reward.oracle import hidden_realism, strict_pairs
 
     cfg = run.config
     folder = run.folder("figure3")
+    options = {"checkpoint": cfg.ctg_base}
+    noisy = {"noisy": SyntheticAnnotatorConfig(beta=20.0, epsilon=0.1, seed=cfg.seed)}
+    oracle = {"oracle": SyntheticAnnotatorConfig(beta=None, epsilon=0.0, seed=cfg.seed)}
+    labels = [labelled_campaign(run, folder, "train", "ctg", cfg.figure3_contexts, "train", noisy, cfg.guidance,
+                                options),
+              labelled_campaign(run, folder, "test", "ctg", cfg.scenes, "val", oracle, cfg.guidance, options)]
     store = FeedbackStore(os.path.join(folder, "feedback.sqlite"))
     try:
-        options = {"checkpoint": cfg.ctg_base}
-        noisy = {"noisy": SyntheticAnnotatorConfig(beta=20.0, epsilon=0.1, seed=cfg.seed)}
-        oracle = {"oracle": SyntheticAnnotatorConfig(beta=None, epsilon=0.0, seed=cfg.seed)}
-        labelled_campaign(run, store, "train", "ctg", cfg.figure3_contexts, "train", noisy, cfg.guidance, options)
-        labelled_campaign(run, store, "test", "ctg", cfg.scenes, "val", oracle, cfg.guidance, options)
-        base = RewardConfig(progress=False, seed=cfg.seed, **set_fields(cfg.figure3_reward))
-        template = get_reward_model_architecture(base.architecture)(base.architecture_config)
         train_all = filter_pairs(export_preferences(store, "train", val_fraction=cfg.figure3_dev_fraction,
                                                     seed=cfg.seed), ["noisy"])
         test = filter_pairs(export_preferences(store, "test", val_fraction=0.0), ["oracle"])
         strict = strict_pairs(test, hidden_realism(store, test))
     finally:
         store.close()
-    data = build_pair_data(template.prepare, train_all)
-    test_all = build_pair_data(template.prepare, test)
-    test_strict = build_pair_data(template.prepare, filter_pairs(test, mask=strict)) if bool(strict.any()) else None
-    train_ids = [i for i, s in enumerate(data.split) if s == "train"]
-    dev_ids = [i for i, s in enumerate(data.split) if s == "val"]
+    base = RewardConfig(progress=False, seed=cfg.seed, **set_fields(cfg.figure3_reward))
+    train_ids = [i for i, s in enumerate(train_all.context_split) if s == "train"]
+    dev_ids = [i for i, s in enumerate(train_all.context_split) if s == "val"]
     sizes = [s for s in cfg.figure3_sizes if s <= len(train_ids)] or [len(train_ids)]
-    runs_path = os.path.join(folder, "runs.json")
+    features = _Figure3Features(base, train_all, test, strict)
     runs: list[dict[str, Any]] = []
-    if os.path.isfile(runs_path):
-        with open(runs_path, encoding="utf-8") as handle:
-            runs = json.load(handle)
-    done = {(r["seed"], r["contexts"]) for r in runs}
     for seed in cfg.figure3_seeds:
         order = torch.randperm(len(train_ids), generator=torch.Generator().manual_seed(seed)).tolist()
         for size in sizes:
-            if (seed, size) in done:
-                continue
-            subset = data.subset([train_ids[i] for i in order[:size]] + dev_ids)
             batch = 4 if size <= 50 else 8 if size <= 100 else base.batch_size  # small sets: more, smaller steps
             epochs = max(1, min(40, math.ceil(cfg.figure3_steps * batch / size)))
             if "max_epochs" in cfg.figure3_reward.model_fields_set:
                 epochs = min(epochs, cfg.figure3_reward.max_epochs)
-            began = time.perf_counter()
-            result = RewardTrainer(base.model_copy(update={"seed": seed, "max_epochs": epochs, "batch_size": batch,
-                                                           "num_threads": cfg.threads}),
-                                   train_dataset=subset).train()
-            runs.append({"seed": seed, "contexts": size, "pairs": len(subset.split_subset("train")),
-                         "accuracy": None if test_strict is None else
-                         evaluate_pairs(result.model, test_strict)["accuracy"],
-                         "accuracy_all_pairs": evaluate_pairs(result.model, test_all)["accuracy"],
-                         "dev_accuracy": result.metrics.get("val_accuracy"), "epochs_run": len(result.history),
-                         "seconds": time.perf_counter() - began})
-            run.log(f"figure 3: seed {seed}, {size} contexts: strict accuracy {fmt(runs[-1]['accuracy'], 3)}, all "
-                    f"pairs {fmt(runs[-1]['accuracy_all_pairs'], 3)}")
-            with open(runs_path, "w", encoding="utf-8") as handle:
-                json.dump(runs, handle, indent=1)
+            config = base.model_copy(update={"seed": seed, "max_epochs": epochs, "batch_size": batch,
+                                             "num_threads": cfg.threads})
+            chosen = [train_ids[i] for i in order[:size]] + dev_ids
+            where = os.path.join(folder, "runs", f"seed_{seed}_contexts_{size}")
+            inputs = {"config": config.model_dump(mode="json", exclude={"num_threads", "progress"}),
+                      "contexts": chosen}
+            done = run.count(run_step("figure3_run", where, inputs,
+                                      lambda c=config, ids=chosen, n=size, at=where: features.run(c, ids, n, at),
+                                      after=labels, log=run.log))
+            runs.append({"seed": seed, **done.outputs})
+            if not done.cached:
+                run.log(f"figure 3: seed {seed}, {size} contexts: strict accuracy {fmt(runs[-1]['accuracy'], 3)}, "
+                        f"all pairs {fmt(runs[-1]['accuracy_all_pairs'], 3)}")
+    test_all, test_strict = len(test.pairs), int(strict.sum())
     summary = [_accuracy_summary(size, [r for r in runs if r["contexts"] == size]) for size in sizes]
     return {"title": "Figure 3: reward-model accuracy against the number of labelled contexts", "runs": runs,
-            "rows": summary, "test_pairs": len(test_all), "test_strict_pairs": 0 if test_strict is None else
-            len(test_strict), "train_contexts": len(train_ids), "dev_contexts": len(dev_ids),
+            "rows": summary, "test_pairs": test_all, "test_strict_pairs": test_strict,
+            "train_contexts": len(train_ids), "dev_contexts": len(dev_ids),
             "markdown": markdown_table(["training contexts", "pairs (mean)", "strict accuracy mean", "std", "min",
                                         "max", "all pairs, mean"],
                                        [[str(s["contexts"]), f"{s['pairs']:.0f}", s["mean"], s["std"], s["min"],
@@ -311,9 +293,44 @@ def figure3(run: ExperimentRun) -> dict[str, Any]:
             "notes": [f"CTG (`{cfg.ctg_base}`, guidance `{cfg.guidance}`) candidates on {len(train_ids)} + "
                       f"{len(dev_ids)} (early stopping) train contexts labelled by a noisy stand-in annotator "
                       f"(β = 20, 10 % mistakes); accuracy on {cfg.scenes} val contexts against a noise-free one: "
-                      f"{0 if test_strict is None else len(test_strict)} pairs whose winner is strictly more "
-                      f"realistic (ties carry no preference), and all {len(test_all)} pairs. Seeds "
+                      f"{test_strict} pairs whose winner is strictly more "
+                      f"realistic (ties carry no preference), and all {test_all} pairs. Seeds "
                       f"{', '.join(map(str, cfg.figure3_seeds))}; one single `ctg_mlp` model per run."]}
+
+
+class _Figure3Features:
+    """Figure 3's featurized pairs, built when a training run first needs them (not when every run is done)."""
+
+    def __init__(self, base: Any, train_all: Any, test: Any, strict: Any) -> None:
+        self.base, self.train_all, self.test, self.strict = base, train_all, test, strict
+        self._built: tuple[Any, Any, Any] | None = None
+
+    def _data(self) -> tuple[Any, Any, Any]:
+        if self._built is None:
+            from trafficrlhf_sdk.reward import build_pair_data, filter_pairs
+            from trafficrlhf_sdk.reward.model import get_reward_model_architecture
+
+            prepare = get_reward_model_architecture(self.base.architecture)(self.base.architecture_config).prepare
+            strict = (build_pair_data(prepare, filter_pairs(self.test, mask=self.strict))
+                      if bool(self.strict.any()) else None)
+            self._built = (build_pair_data(prepare, self.train_all), build_pair_data(prepare, self.test), strict)
+        return self._built
+
+    def run(self, config: Any, contexts: list[int], size: int, folder: str) -> dict[str, Any]:
+        """A reward model trained on ``contexts`` (training ones, then the dev ones), saved in ``folder``, and its
+        test accuracies."""
+        from trafficrlhf_sdk.reward import evaluate_pairs
+        from trafficrlhf_sdk.reward.card import train_and_save
+
+        data, test_all, test_strict = self._data()
+        subset = data.subset(contexts)
+        began = time.perf_counter()
+        result = train_and_save(config, subset, folder, title=f"Figure 3 reward model: {size} contexts").result
+        return {"contexts": size, "pairs": len(subset.split_subset("train")),
+                "accuracy": None if test_strict is None else evaluate_pairs(result.model, test_strict)["accuracy"],
+                "accuracy_all_pairs": evaluate_pairs(result.model, test_all)["accuracy"],
+                "dev_accuracy": result.metrics.get("val_accuracy"), "epochs_run": len(result.history),
+                "seconds": time.perf_counter() - began}
 
 
 def _accuracy_summary(size: int, runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -371,9 +388,11 @@ STEPS: dict[str, Callable[[ExperimentRun], dict[str, Any]]] = {
 
 # --------------------------------------------------------------------------------------------------------- runner
 def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Produce ``config.only`` in ``out_dir`` (each table skipped when its ``result.json`` exists) and write
-    ``out_dir/summary.md``; returns ``{name: result}`` for every table of ``config.only`` with the total wall
-    time of this call."""
+    """Produce ``config.only`` in ``out_dir`` and write ``out_dir/summary.md``; returns ``{name: result}`` for every
+    table of ``config.only`` with the total wall time of this call.
+
+    A table's steps that are done return their recorded outputs; a table none of whose steps had work left keeps
+    the ``result.json`` it has (and its wall time)."""
     import torch
 
     os.makedirs(out_dir, exist_ok=True)
@@ -385,14 +404,14 @@ def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = pr
     for name in config.only:
         folder = os.path.join(out_dir, name)
         path = os.path.join(folder, "result.json")
-        if os.path.isfile(path):
-            log(f"{name}: done before ({path}); skipped")
+        log(f"{name}: starting")
+        tic, ran = time.perf_counter(), run.ran
+        produced = STEPS[name](run)
+        if run.ran == ran and os.path.isfile(path):
+            log(f"{name}: every step done before ({path}); skipped")
             with open(path, encoding="utf-8") as handle:
                 results[name] = json.load(handle)
             continue
-        log(f"{name}: starting")
-        tic = time.perf_counter()
-        produced = STEPS[name](run)
         produced.update(command=_command(config, name), seed=config.seed, rollouts=config.rollouts,
                         scenes=config.scenes, wall_time_s=time.perf_counter() - tic, threads=torch.get_num_threads(),
                         machine=platform.machine(), cpus=os.cpu_count(), config=config.model_dump(mode="json"),

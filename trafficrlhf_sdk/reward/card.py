@@ -64,6 +64,7 @@ class TrainedRewardModel:
     card: dict[str, Any]
     out_dir: str
     dataset_info: dict[str, Any] = field(default_factory=dict)
+    probes: dict[str, Any] | None = None
 
 
 def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None, campaigns: Sequence[str] = (),
@@ -71,7 +72,8 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
                    test_campaign: str | None = None, test_annotators: Sequence[str] = (), tie_tolerance: float = 0.0,
                    title: str | None = None, notes: Sequence[str] = (), commands: Sequence[str] = (),
                    log: Callable[[dict[str, float]], None] | None = None,
-                   on_start: Callable[[dict[str, Any]], None] | None = None) -> TrainedRewardModel:
+                   on_start: Callable[[dict[str, Any]], None] | None = None, source: str | None = None,
+                   root: str | None = None, future_steps: int = 40, probe_scenes: int = 0) -> TrainedRewardModel:
     """Train a reward model on ``dataset`` with ``config`` (a :class:`RewardConfig`), test it on a held-out
     campaign, and write ``out_dir``: ``config.json`` + ``model.safetensors`` + ``README.md`` (the card) and
     ``training_log.json``.
@@ -81,6 +83,11 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     float16 weights, rounded before testing so the card's test metrics are those of the saved weights.
     ``on_start`` hears the trainer's ``dataset_info`` (pairs, contexts, featurizing time) before training;
     ``log`` hears each epoch's row.
+
+    The recorded driving comes from scenario source ``source`` (default: the dataset's) in data directory
+    ``root``: contrast windows of ``future_steps`` steps, and with ``probe_scenes`` N the probes on N val scenes
+    (:func:`~trafficrlhf_sdk.reward.contrast.probe_reward_model`), recorded in the card as ``probe_<kind>`` (the
+    pass rate) and returned as ``probes``.
     """
     import torch
 
@@ -90,12 +97,14 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     if test_campaign is not None and store is None:
         raise TrafficRLHFError(f"--test-campaign {test_campaign!r} needs --db (the campaign is read from the same "
                                "database); pass the database the training campaigns come from.")
-    contrast = None
-    if contrast_scenes is not None:
-        from trafficrlhf_sdk.reward.contrast import contrast_dataset, recorded_windows
+    from trafficrlhf_sdk.reward.contrast import contrast_dataset, probe_reward_model, recorded_windows
 
+    if source is None and (contrast_scenes or probe_scenes):
         source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
-        contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, from_end=True))
+    contrast = None
+    if contrast_scenes:
+        contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
+                                                     future_steps=future_steps))
     trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast)
     info = {**trainer.dataset_info, "featurize_seconds": trainer.featurize_seconds}
     if on_start is not None:
@@ -111,12 +120,16 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     card = model_card(result.metrics, model, dataset=dataset if campaigns else None, campaigns=campaigns,
                       annotators=annotators, test_metrics=test_metrics, test_campaign=test_campaign,
                       test_annotators=test_annotators, title=title, notes=notes, commands=commands)
+    probes = None
+    if probe_scenes:
+        probes = probe_reward_model(model.eval(), recorded_windows(source, "val", probe_scenes, root))
+        card["metrics"].update({f"probe_{kind}": entry["pass_rate"] for kind, entry in probes.items()})
     model.save_pretrained(out_dir, card, dtype=torch.float16 if half else None)
     with open(os.path.join(out_dir, "training_log.json"), "w", encoding="utf-8") as handle:
         json.dump({"history": result.history, "best_epochs": result.best_epochs,
                    "train_seconds": result.train_seconds, "featurize_seconds": result.featurize_seconds}, handle,
                   indent=2)
-    return TrainedRewardModel(model, result, card, out_dir, info)
+    return TrainedRewardModel(model, result, card, out_dir, info, probes)
 
 
 def describe_reward_model(model_dir: str) -> dict[str, Any]:
