@@ -169,7 +169,7 @@ def test_conservative_ensembles_read_the_worst_member_or_a_lower_confidence_boun
 
 class _Broken:
     """A reward broken in one way: it pays for driving faster, slower, jerkier, sideways off the path the agent
-    was on, or closer to its lead."""
+    was on, closer to its lead, or swerving."""
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
@@ -184,6 +184,11 @@ class _Broken:
         if self.kind == "jerky":
             speed = torch.diff(scenario.xy[:, :, now:], dim=2).norm(dim=-1) / scenario.dt
             return torch.diff(speed, n=2, dim=2).abs().mean((1, 2))
+        if self.kind == "weave":  # pays for sideways speed changing sign
+            rel = scenario.xy[:, :, now:] - scenario.xy[:, :, now, None]
+            yaw = scenario.yaw[:, :, now, None]
+            side = -torch.sin(yaw) * rel[..., 0] + torch.cos(yaw) * rel[..., 1]
+            return torch.diff(side, n=2, dim=2).abs().mean((1, 2))
         if self.kind == "off_lane":  # lateral offset from the line the agent was heading along at "now"
             yaw = scenario.yaw[:, :, now, None]
             rel = scenario.xy[:, :, now:] - scenario.xy[:, :, now, None]

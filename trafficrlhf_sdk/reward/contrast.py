@@ -43,10 +43,11 @@ __all__ = ["CONTRAST_ANNOTATOR", "PERTURBATIONS", "contrast_dataset", "log_windo
            "probe_reward_model", "recorded_windows"]
 
 CONTRAST_ANNOTATOR = "contrast:log"
-PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate")
+PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate", "weave")
 MOVING_SPEED = 1.0  # m/s at "now": only agents that drive are perturbed
 DEFAULT_STRENGTH = 0.5
 JERK_PERIOD_S = 3.0  # s, the period of the stop-and-go clock
+WEAVE_PERIOD_S = 2.5  # s, the period of a weave within the lane
 
 
 def _warp(states: torch.Tensor, valid: torch.Tensor, now: int, clock: torch.Tensor, dt: float) -> torch.Tensor:
@@ -85,7 +86,11 @@ def perturb_future(scenario: ScenarioTensor, kind: str,
                    strength: float = DEFAULT_STRENGTH) -> tuple[ScenarioTensor, torch.Tensor]:
     """``(perturbed, changed)``: ``scenario`` with the future (after ``current_index``) of its moving controlled
     agents made unrealistic as ``kind`` (one of :data:`PERTURBATIONS`) says, ``strength`` in (0, 1], and the bool
-    ``(B, A)`` mask of the agents it changed. The history and every other agent keep the log."""
+    ``(B, A)`` mask of the agents it changed. The history and every other agent keep the log.
+
+    ``faster`` / ``slower``: re-timed at 1 + strength / 1 - strength / 2 times the pace; ``jerky``: a stop-and-go
+    clock; ``off_lane``: drifting up to 4 x strength metres sideways; ``tailgate``: closing in on the lead;
+    ``weave``: swerving side to side by strength metres every 2.5 s."""
     if kind not in PERTURBATIONS:
         raise TrafficRLHFError(f"unknown perturbation {kind!r}; use one of {', '.join(PERTURBATIONS)}.")
     if not 0 < strength <= 1:
@@ -108,11 +113,17 @@ def perturb_future(scenario: ScenarioTensor, kind: str,
             amplitude = strength / dt  # steps
             clock = k + amplitude * torch.sin(2 * math.pi * k * dt / JERK_PERIOD_S)
         new = _warp(states, valid, now, clock, dt)
-    elif kind == "off_lane":
-        ramp = (k * dt / 1.5).clamp(max=1.0) * 4 * strength  # metres to the left
+    elif kind in ("off_lane", "weave"):
+        if kind == "off_lane":
+            offset = (k * dt / 1.5).clamp(max=1.0) * 4 * strength  # metres to the left
+        else:  # a side-to-side swerve of strength x 2 m peak to peak, starting smoothly
+            offset = strength * torch.sin(2 * math.pi * k * dt / WEAVE_PERIOD_S)
         yaw = states[:, :, now + 1:, 3]
         normal = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)
-        new[:, :, now + 1:, :2] = states[:, :, now + 1:, :2] + normal * ramp[..., None]
+        new[:, :, now + 1:, :2] = states[:, :, now + 1:, :2] + normal * offset[..., None]
+        if kind == "weave":  # the heading follows the swerve
+            drift = torch.diff(offset, dim=-1, prepend=torch.zeros_like(offset[..., :1])) / dt
+            new[:, :, now + 1:, 3] = wrap_angle(yaw + torch.atan2(drift, states[:, :, now + 1:, 2].clamp_min(0.5)))
     else:  # tailgate
         gap = following_gaps(scenario.xy, scenario.yaw, states[..., 2], scenario.extent, valid)[:, :, now]  # (B, A)
         has_lead = torch.isfinite(gap) & (gap > 2.0) & (gap < 40.0)
