@@ -23,7 +23,6 @@ fix it. ``trafficrlhf checkpoint-digest DIR`` records the SHA-256 of a folder sa
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -34,7 +33,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
-from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.io import safe_load_file, sha256_file
 
 __all__ = [
     "CONFIG_FILE",
@@ -57,15 +56,6 @@ CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 MAX_PARAMETERS = 200_000_000  # 800 MB of float32: far above every bundled model (under 2 M parameters)
 MAX_CONFIG_INT = 100_000  # no architecture size, step count or horizon of these models comes near it
-
-
-def sha256_file(path: str) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 class WeightsInfo(BaseModel):

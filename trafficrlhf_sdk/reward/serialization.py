@@ -10,7 +10,6 @@ fails with one clear error instead of a half-loaded model.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from typing import Any
@@ -20,26 +19,17 @@ from safetensors.torch import save_file
 from torch import nn
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
-from trafficrlhf_sdk.scenario.io import safe_load_file
+from trafficrlhf_sdk.scenario.io import safe_load_file, sha256_file
 from trafficrlhf_sdk.version import __version__
 
 __all__ = ["CARD_FILE", "CONFIG_FILE", "WEIGHTS_FILE", "load_weights", "read_config", "read_weights",
-           "render_model_card", "save_reward_model", "sha256_file"]
+           "render_model_card", "save_reward_model"]
 
 FORMAT_VERSION = "1"
 CARD_KEYS = ("title", "summary", "notes", "commands", "intended_use", "license", "license_text")
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 CARD_FILE = "README.md"
-
-
-def sha256_file(path: str) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def save_reward_model(model: Any, directory: str | os.PathLike[str], info: dict[str, Any],

@@ -1,7 +1,9 @@
-"""Reading safetensors files (scenarios, checkpoints, reward models) with one clear error."""
+"""Reading safetensors files (scenarios, checkpoints, reward models) with one clear error, and the SHA-256 their
+``config.json`` records."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 
 import torch
@@ -10,7 +12,16 @@ from safetensors.torch import load_file
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["safe_load_file"]
+__all__ = ["safe_load_file", "sha256_file"]
+
+
+def sha256_file(path: str) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def safe_load_file(path: str | os.PathLike[str],

@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
+from reference_common.layers import mlp
 from torch import nn
 
 __all__ = [
@@ -113,15 +114,6 @@ def yaw_rate_estimate(history: torch.Tensor, history_valid: torch.Tensor, dt: fl
     return torch.where(history_valid[:, idx], -past / max(steps * dt, dt), torch.zeros_like(past))
 
 
-def _mlp(sizes: list[int]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2:
-            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
-    return nn.Sequential(*layers)
-
-
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(4, cout), nn.Mish())
 
@@ -136,9 +128,9 @@ class AgentEncoder(nn.Module):
 
     def __init__(self, history_steps: int, out_dim: int) -> None:
         super().__init__()
-        self.history = _mlp([history_steps * 6 + 2, 128, out_dim])
-        self.neighbour = _mlp([8, 64, out_dim])
-        self.fuse = _mlp([2 * out_dim, 128, out_dim])
+        self.history = mlp([history_steps * 6 + 2, 128, out_dim])
+        self.neighbour = mlp([8, 64, out_dim])
+        self.fuse = mlp([2 * out_dim, 128, out_dim])
         self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
         self.register_buffer("neighbour_scale", torch.tensor([20.0, 20.0, 1.0, 1.0, 10.0, 5.0, 2.0]),
                              persistent=False)
@@ -175,7 +167,7 @@ class SpatialGoalNet(nn.Module):
         d0, d1, d2, d3 = cfg.unet_dims
         cin = cfg.map_channels + 3  # + coordinate channels (2) + motion prior (1)
         self.agent = AgentEncoder(cfg.history_steps, cfg.cond_dim)
-        self.state = _mlp([3, 32, cfg.cond_dim])  # speed, yaw-rate estimate, speed * horizon time
+        self.state = mlp([3, 32, cfg.cond_dim])  # speed, yaw-rate estimate, speed * horizon time
         self.enc0 = _conv(cin, d0)
         self.enc1 = nn.Sequential(_conv(d0, d1, 2), _conv(d1, d1))
         self.enc2 = nn.Sequential(_conv(d1, d2, 2), _conv(d2, d2))
@@ -287,9 +279,9 @@ class GoalConditionedPolicy(nn.Module):
             nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.Mish(),
             nn.AdaptiveAvgPool2d(3), nn.Flatten(), nn.Linear(32 * 9, 64), nn.Mish(),
         )
-        self.goal = _mlp([5, 32, 32])
+        self.goal = mlp([5, 32, 32])
         h = cfg.policy_hidden
-        self.decoder = _mlp([64 + 64 + 32 + 1, h, h, cfg.horizon * 2])
+        self.decoder = mlp([64 + 64 + 32 + 1, h, h, cfg.horizon * 2])
         self.register_buffer("action_std", torch.tensor(cfg.action_std, dtype=torch.float32))
         self.register_buffer("state_std", torch.tensor(cfg.state_std, dtype=torch.float32))
 

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
 import time
 
 import torch
+from reference_common.training import fit, take_rows
 from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import save_file
 
@@ -46,13 +46,6 @@ def build_windows(source, split: str, scene_ids: list[str], cfg: BITSConfig, str
     return {k: torch.cat(v) for k, v in parts.items()}
 
 
-def rows(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Rows ``idx`` of the stored windows, map crops as float."""
-    out = {k: v[idx] for k, v in data.items()}
-    out["map"] = out["map"].float()
-    return out
-
-
 def losses(model: BITSModel, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
     """Goal-network loss + policy loss on one batch, and their parts."""
     goal = torch.stack([batch["states"][:, -1, 0], batch["states"][:, -1, 1], batch["states"][:, -1, 3]], -1)
@@ -70,7 +63,7 @@ def validate(model: BITSModel, data: dict[str, torch.Tensor], num_samples: int =
     """Losses, plus min/mean final displacement (m) of the policy driven to ``num_samples`` goals sampled from
     the drivable-masked goal distribution, and the final displacement with the most likely goal."""
     model.eval()
-    batch = rows(data, torch.arange(data["v0"].shape[0]))
+    batch = take_rows(data, torch.arange(data["v0"].shape[0]))
     _, parts = losses(model, batch)
     out = model.goal_net(batch)
     mask = batch["map"][:, 0].flatten(1) > 0
@@ -162,42 +155,31 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"parameters: {counts}", flush=True)
 
     train_budget = budget - prep_time - 30.0  # keep time for the final validation and writing
-    warmup = 50
     curve: dict[str, list] = {k: [] for k in ("step", "train_goal", "train_policy", "val_step", "val_goal",
                                               "val_policy", "val_min_fde", "val_mean_fde", "val_mode_fde")}
-    running: dict[str, list[float]] = {"goal": [], "policy": []}
-    step = 0
     loop_began = time.perf_counter()
-    while True:
-        elapsed = time.perf_counter() - loop_began
-        frac = step / args.steps if args.steps else elapsed / max(train_budget, 1.0)
-        if frac >= 1.0:
-            break
-        lr = args.lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        batch = rows(train, torch.randint(0, n_train, (args.batch_size,), generator=gen))
-        loss, parts = losses(model, batch)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        optimizer.step()
-        step += 1
-        running["goal"].append(parts["goal"])
-        running["policy"].append(parts["policy"])
-        if step % 20 == 0:
-            curve["step"].append(step)
-            curve["train_goal"].append(sum(running["goal"]) / len(running["goal"]))
-            curve["train_policy"].append(sum(running["policy"]) / len(running["policy"]))
-            running = {"goal": [], "policy": []}
-        if step % args.val_every == 0:
-            v = validate(model, val)
-            for key in ("goal", "policy", "min_fde", "mean_fde", "mode_fde"):
-                curve[f"val_{key}"].append(v[key])
-            curve["val_step"].append(step)
-            print(f"step {step} ({time.perf_counter() - loop_began:.0f} s, lr {lr:.1e}): val goal {v['goal']:.3f} "
-                  f"(CE {v['goal_pixel']:.3f}), policy {v['policy']:.4f} (ADE {v['policy_ade']:.3f} m), "
-                  f"FDE min/mode {v['min_fde']:.2f}/{v['mode_fde']:.2f} m", flush=True)
+
+    def train_step() -> tuple[torch.Tensor, dict[str, float]]:
+        loss, parts = losses(model, take_rows(train, torch.randint(0, n_train, (args.batch_size,), generator=gen)))
+        return loss, {"goal": parts["goal"], "policy": parts["policy"]}
+
+    def log(step: int, means: dict[str, float], lr: float) -> None:
+        curve["step"].append(step)
+        curve["train_goal"].append(means["goal"])
+        curve["train_policy"].append(means["policy"])
+
+    def validate_now(step: int, lr: float) -> None:
+        v = validate(model, val)
+        for key in ("goal", "policy", "min_fde", "mean_fde", "mode_fde"):
+            curve[f"val_{key}"].append(v[key])
+        curve["val_step"].append(step)
+        print(f"step {step} ({time.perf_counter() - loop_began:.0f} s, lr {lr:.1e}): val goal {v['goal']:.3f} "
+              f"(CE {v['goal_pixel']:.3f}), policy {v['policy']:.4f} (ADE {v['policy_ade']:.3f} m), "
+              f"FDE min/mode {v['min_fde']:.2f}/{v['mode_fde']:.2f} m", flush=True)
+
+    step = fit(optimizer, model.parameters(), train_step, lr=args.lr, warmup=50, steps=args.steps,
+               seconds=train_budget, log_every=20, val_every=args.val_every, on_log=log, validate=validate_now,
+               progress=False)
     train_time = time.perf_counter() - loop_began
     model.eval()
     final = validate(model, val)

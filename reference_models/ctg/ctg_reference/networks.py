@@ -11,22 +11,13 @@ from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
+from reference_common.layers import mlp
 from torch import nn
 
 if TYPE_CHECKING:
     from ctg_reference.config import CTGConfig
 
 __all__ = ["CoDenoiseMixer", "ContextEncoder", "ResBlock1d", "SinusoidalEmbedding", "TemporalUNet", "mlp"]
-
-
-def mlp(sizes: list[int]) -> nn.Sequential:
-    """Linear layers with LayerNorm + Mish between them (none after the last): ``sizes[0]`` in, ``sizes[-1]`` out."""
-    layers: list[nn.Module] = []
-    for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2:
-            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
-    return nn.Sequential(*layers)
 
 
 # --------------------------------------------------------------------------------------------- encoder

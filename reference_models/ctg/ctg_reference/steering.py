@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
+from reference_common.layers import mlp
 from torch import nn
 
-from ctg_reference.networks import SinusoidalEmbedding, mlp
+from ctg_reference.networks import SinusoidalEmbedding
 
 if TYPE_CHECKING:
     from ctg_reference.config import CTGConfig

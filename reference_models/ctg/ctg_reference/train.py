@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
 import time
 
 import torch
+from reference_common.training import fit, take_rows
 from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import save_file
 from tqdm.auto import tqdm
@@ -154,13 +154,6 @@ def whole_windows(data: dict[str, torch.Tensor], seeds: torch.Tensor) -> torch.T
     return chosen[window].nonzero()[:, 0]
 
 
-def batch_of(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Rows ``idx`` of the stored samples, map crops as float."""
-    out = {k: v[idx] for k, v in data.items()}
-    out["map"] = out["map"].float()
-    return out
-
-
 @torch.no_grad()
 def validate(model: CTGModel, data: dict[str, torch.Tensor], num_samples: int = 5, seed: int = 123
              ) -> dict[str, float]:
@@ -168,7 +161,7 @@ def validate(model: CTGModel, data: dict[str, torch.Tensor], num_samples: int = 
     model.eval()
     gen = torch.Generator().manual_seed(seed)
     everything = torch.arange(data["v0"].shape[0])
-    b = scene_batch(data, everything) if model.mixer is not None else batch_of(data, everything)
+    b = scene_batch(data, everything) if model.mixer is not None else take_rows(data, everything)
     cond, scene = model.encode(b), model.scene_rows(b)
     loss, parts = model.loss(cond, b["actions"], b["v0"], b["states"], generator=gen, scene=scene,
                              group=b.get("group"))
@@ -294,49 +287,40 @@ def main(argv: list[str] | None = None) -> None:
     train_budget = budget - prep_time - 45.0  # keep time for the final validation and writing
     warmup = 100
     curve: dict[str, list] = {"step": [], "train_loss": [], "val_step": [], "val_loss": [], "val_min_ade": []}
-    running, step = [], 0
     loop_began = time.perf_counter()
-    bar = tqdm(total=args.steps, desc="training", unit="step")
-    while True:
-        elapsed = time.perf_counter() - loop_began
-        frac = step / args.steps if args.steps else elapsed / max(train_budget, 1.0)
-        if frac >= 1.0:
-            break
-        lr = args.lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
-        for group in optimizer.param_groups:
-            group["lr"] = lr
+
+    def train_step() -> tuple[torch.Tensor, dict[str, float]]:
         if cfg.scene_denoising:  # whole windows, about batch_size rows
             idx = whole_windows(train, torch.randint(0, n_train, (scene_seeds,), generator=gen))
             b = scene_batch(train, idx, cfg.scene_dropout, gen)
         else:
-            b = batch_of(train, torch.randint(0, n_train, (args.batch_size,), generator=gen))
+            b = take_rows(train, torch.randint(0, n_train, (args.batch_size,), generator=gen))
         if cfg.neighbour_plan_steps:
             b["neighbour_plan_valid"] = drop_neighbour_plans(b["neighbour_plan_valid"], cfg, gen)
         loss, _ = model.loss(model.encode(b), b["actions"], b["v0"], b["states"], generator=gen,
                              scene=model.scene_rows(b), group=b.get("group"))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        optimizer.step()
-        step += 1
-        with torch.no_grad():
-            decay = 0.0 if step < warmup else args.ema
-            for pe, pm in zip(ema.parameters(), model.parameters()):
-                pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
-        running.append(float(loss.detach()))
-        if step % 10 == 0:
-            curve["step"].append(step)
-            curve["train_loss"].append(sum(running) / len(running))
-            bar.set_postfix(loss=f"{curve['train_loss'][-1]:.3f}", lr=f"{lr:.1e}")
-            running = []
-        if step % args.val_every == 0:
-            v = validate(ema, val)
-            curve["val_step"].append(step)
-            curve["val_loss"].append(v["loss"])
-            curve["val_min_ade"].append(v["min_ade"])
-            tqdm.write(f"step {step}: val loss {v['loss']:.4f} minADE@5 {v['min_ade']:.3f} m")
-        bar.update(1)
-    bar.close()
+        return loss, {}
+
+    @torch.no_grad()
+    def update_ema(step: int) -> None:  # the EMA copy starts once the warm-up is over
+        decay = 0.0 if step < warmup else args.ema
+        for pe, pm in zip(ema.parameters(), model.parameters()):
+            pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+
+    def log(step: int, means: dict[str, float], lr: float) -> None:
+        curve["step"].append(step)
+        curve["train_loss"].append(means["loss"])
+
+    def validate_ema(step: int, lr: float) -> None:
+        v = validate(ema, val)
+        curve["val_step"].append(step)
+        curve["val_loss"].append(v["loss"])
+        curve["val_min_ade"].append(v["min_ade"])
+        tqdm.write(f"step {step}: val loss {v['loss']:.4f} minADE@5 {v['min_ade']:.3f} m")
+
+    step = fit(optimizer, model.parameters(), train_step, lr=args.lr, warmup=warmup, steps=args.steps,
+               seconds=train_budget, val_every=args.val_every, after_step=update_ema, on_log=log,
+               validate=validate_ema, desc="training")
     train_time = time.perf_counter() - loop_began
     final = validate(ema, val)
     curve["val_step"].append(step)

@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
+from reference_common.layers import mlp
 from torch import nn
 
 __all__ = [
@@ -145,15 +146,6 @@ def boxes_overlap(box: torch.Tensor, others: torch.Tensor) -> torch.Tensor:
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(8, cout), nn.Mish())
-
-
-def _mlp(sizes: list[int]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2:
-            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
-    return nn.Sequential(*layers)
 
 
 # --------------------------------------------------------------------------------------------- initializer
@@ -335,11 +327,11 @@ class Forecaster(nn.Module):
         with torch.no_grad():
             flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
         self.map_head = nn.Sequential(nn.Linear(flat, 128), nn.Mish())
-        self.history = _mlp([cfg.history_steps * 6 + 2, 128, 64])
-        self.neighbour = _mlp([8, 64, 64])
-        self.fuse = _mlp([128 + 64 + 64, h, h])
+        self.history = mlp([cfg.history_steps * 6 + 2, 128, 64])
+        self.neighbour = mlp([8, 64, 64])
+        self.fuse = mlp([128 + 64 + 64, h, h])
         self.mode_query = nn.Parameter(torch.randn(cfg.modes, h) * 0.5)
-        self.decoder = _mlp([h, h, h, cfg.horizon * 4 + 1])
+        self.decoder = mlp([h, h, h, cfg.horizon * 4 + 1])
         self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
         self.register_buffer("neighbour_scale", torch.tensor([20.0, 20.0, 1.0, 1.0, 10.0, 5.0, 2.0]),
                              persistent=False)

@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
 import time
 
 import torch
+from reference_common.training import fit, take_rows
 from trafficrlhf_sdk.models.checkpoint import record_weights_digest
 from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
@@ -120,21 +120,12 @@ def build(source, split: str, scene_ids: list[str], cfg: TrafficGenConfig, strid
     return {k: torch.cat(v) for k, v in fparts.items()}, {k: torch.cat(v) for k, v in iparts.items()}
 
 
-def rows_of(data: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Rows ``idx`` of stored samples, crops as float."""
-    out = {k: v[idx] for k, v in data.items()}
-    for key in ("map", "crop"):
-        if key in out:
-            out[key] = out[key].float()
-    return out
-
-
 # --------------------------------------------------------------------------------------------- training
 @torch.no_grad()
 def validate_forecaster(model: TrafficGenModel, data: dict[str, torch.Tensor]) -> dict[str, float]:
     """WTA loss parts, minADE and most-likely-mode ADE (m) over the horizon on ``data``."""
     model.eval()
-    b = rows_of(data, torch.arange(data["actions"].shape[0]))
+    b = take_rows(data, torch.arange(data["actions"].shape[0]))
     loss, parts = model.forecaster.loss(b, b["actions"], b["future_xy"])
     model.train()
     return {"loss": float(loss), **parts}
@@ -144,7 +135,7 @@ def validate_forecaster(model: TrafficGenModel, data: dict[str, torch.Tensor]) -
 def validate_initializer(model: TrafficGenModel, data: dict[str, torch.Tensor]) -> dict[str, float]:
     """Initializer loss parts on ``data``."""
     model.eval()
-    b = rows_of(data, torch.arange(data["crop"].shape[0]))
+    b = take_rows(data, torch.arange(data["crop"].shape[0]))
     loss, parts = model.initializer.loss(b["crop"], b["context"], b["agents"], b["agent_valid"])
     model.train()
     return {"loss": float(loss), **parts}
@@ -169,38 +160,22 @@ def load_initializer(folder: str) -> tuple[dict, dict[str, torch.Tensor]] | None
 
 def train_part(name: str, params: list[torch.nn.Parameter], step_fn, validate_fn, seconds: float,
                fixed_steps: int | None, lr: float, val_every: int, curve: dict[str, list]) -> int:
-    """Adam with warm-up and cosine decay over ``seconds`` (or ``fixed_steps``); returns the steps taken."""
+    """AdamW with warm-up and cosine decay over ``seconds`` (or ``fixed_steps``), the running train loss every
+    10 steps and the validation loss every ``val_every`` steps in ``curve``; returns the steps taken."""
+
+    def log(step: int, means: dict[str, float], rate: float) -> None:
+        curve[f"{name}_step"].append(step)
+        curve[f"{name}_train"].append(means["loss"])
+
+    def validate(step: int, rate: float) -> None:
+        v = validate_fn()
+        curve[f"{name}_val_step"].append(step)
+        curve[f"{name}_val"].append(v["loss"])
+        tqdm.write(f"{name} step {step}: " + ", ".join(f"{k} {x:.4f}" for k, x in v.items()))
+
     optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
-    warmup, step, running = 50, 0, []
-    began = time.perf_counter()
-    bar = tqdm(total=fixed_steps, desc=f"training {name}", unit="step")
-    while True:
-        frac = step / fixed_steps if fixed_steps else (time.perf_counter() - began) / max(seconds, 1.0)
-        if frac >= 1.0:
-            break
-        rate = lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
-        for group in optimizer.param_groups:
-            group["lr"] = rate
-        loss = step_fn()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        optimizer.step()
-        step += 1
-        running.append(float(loss.detach()))
-        if step % 10 == 0:
-            curve[f"{name}_step"].append(step)
-            curve[f"{name}_train"].append(sum(running) / len(running))
-            bar.set_postfix(loss=f"{curve[f'{name}_train'][-1]:.3f}", lr=f"{rate:.1e}")
-            running = []
-        if step % val_every == 0:
-            v = validate_fn()
-            curve[f"{name}_val_step"].append(step)
-            curve[f"{name}_val"].append(v["loss"])
-            tqdm.write(f"{name} step {step}: " + ", ".join(f"{k} {x:.4f}" for k, x in v.items()))
-        bar.update(1)
-    bar.close()
-    return step
+    return fit(optimizer, params, lambda: (step_fn(), {}), lr=lr, warmup=50, steps=fixed_steps, seconds=seconds,
+               val_every=val_every, on_log=log, validate=validate, desc=f"training {name}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -279,11 +254,11 @@ def main(argv: list[str] | None = None) -> None:
     train_seconds = budget - prep_time - 30.0  # keep time for the final validation and writing
 
     def init_step() -> torch.Tensor:
-        b = rows_of(itrain, torch.randint(0, n_i, (args.init_batch_size,), generator=gen))
+        b = take_rows(itrain, torch.randint(0, n_i, (args.init_batch_size,), generator=gen))
         return model.initializer.loss(b["crop"], b["context"], b["agents"], b["agent_valid"])[0]
 
     def forecaster_step() -> torch.Tensor:
-        b = rows_of(ftrain, torch.randint(0, n_f, (args.batch_size,), generator=gen))
+        b = take_rows(ftrain, torch.randint(0, n_f, (args.batch_size,), generator=gen))
         return model.forecaster.loss(b, b["actions"], b["future_xy"])[0]
 
     model.train()
