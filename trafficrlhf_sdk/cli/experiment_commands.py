@@ -14,8 +14,8 @@ def experiment_group() -> None:
 
 @experiment_group.command("paper")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
-              help="Folder of the run: <table>/result.{json,md,png}, summary.md, and the cached evaluations, models, "
-                   "campaigns and reward models; rerun with the same --out to resume (finished tables are skipped).")
+              help="Folder of the run: <table>/result.{json,md,png}, summary.md, and the evaluations, models, "
+                   "campaigns and reward models as pipeline steps; rerun with the same --out to resume.")
 @click.option("--quick", is_flag=True, help="The small form CI runs: 4 scenes, one-epoch alignments, tiny feedback "
                                             "and reward models (about 5 min on 2 cores).")
 @click.option("--only", default=None, help="Comma-separated subset of table1,table2,table3,table4,figure3 [default: "
@@ -25,8 +25,10 @@ def experiment_group() -> None:
                    "from the small form.")
 @click.option("--scenes", type=click.IntRange(min=1), default=None, help="Val scenes [default: 100; --quick: 4].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads [default: torch's].")
+@click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
+                                                "of refusing them).")
 def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str | None, scenes: int | None,
-                  threads: int | None) -> None:
+                  threads: int | None, overwrite: bool) -> None:
     """Tables 1-4 and Figure 3 of the paper (arXiv 2309.00709) on nuScenes val scenes, with stand-in annotators
     and learned reward models: markdown, JSON and PNG per table, with commands, seeds and wall times."""
     from trafficrlhf_sdk.config_files import read_toml
@@ -54,5 +56,5 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise DataFormatError(f"experiment paper: {problems}") from None
-    outcome = run_paper(config, out_dir, log=lambda line: click.echo(line))
+    outcome = run_paper(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite)
     click.echo(f"wrote {len(outcome['results'])} result(s) under {out_dir} in {outcome['wall_time_s']:.0f} s")

@@ -275,7 +275,7 @@ def figure3(run: ExperimentRun) -> dict[str, Any]:
                       "contexts": chosen}
             done = run.count(run_step("figure3_run", where, inputs,
                                       lambda c=config, ids=chosen, n=size, at=where: features.run(c, ids, n, at),
-                                      after=labels, log=run.log))
+                                      after=labels, **run.steps))
             runs.append({"seed": seed, **done.outputs})
             if not done.cached:
                 run.log(f"figure 3: seed {seed}, {size} contexts: strict accuracy {fmt(runs[-1]['accuracy'], 3)}, "
@@ -387,18 +387,20 @@ STEPS: dict[str, Callable[[ExperimentRun], dict[str, Any]]] = {
 
 
 # --------------------------------------------------------------------------------------------------------- runner
-def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = print,
+              overwrite: bool = False) -> dict[str, Any]:
     """Produce ``config.only`` in ``out_dir`` and write ``out_dir/summary.md``; returns ``{name: result}`` for every
     table of ``config.only`` with the total wall time of this call.
 
     A table's steps that are done return their recorded outputs; a table none of whose steps had work left keeps
-    the ``result.json`` it has (and its wall time)."""
+    the ``result.json`` it has (and its wall time). A step finished with other settings is refused, naming them,
+    unless ``overwrite``."""
     import torch
 
     os.makedirs(out_dir, exist_ok=True)
     if config.threads is not None:
         torch.set_num_threads(config.threads)
-    run = ExperimentRun(config, out_dir, log)
+    run = ExperimentRun(config, out_dir, log, overwrite)
     began = time.perf_counter()
     results: dict[str, Any] = {}
     for name in config.only:

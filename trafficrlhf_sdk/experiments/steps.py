@@ -43,11 +43,13 @@ def read_recipe(path: str) -> Any:
 @dataclass
 class ExperimentRun:
     """What every table of one experiment shares: its configuration, folder, log and the evaluation scenes (loaded
-    once, when an evaluation first needs them); ``ran`` counts the steps that did work (were not cached)."""
+    once, when an evaluation first needs them); ``overwrite`` redoes steps finished with other settings instead of
+    refusing them; ``ran`` counts the steps that did work (were not cached)."""
 
     config: PaperConfig
     out_dir: str
     log: Callable[[str], None] = print
+    overwrite: bool = False
     ran: int = 0
     _scenes: Any = None
 
@@ -74,8 +76,8 @@ class ExperimentRun:
 
     @property
     def steps(self) -> dict[str, Any]:
-        """The keywords every step of the run takes (its log)."""
-        return {"log": self.log}
+        """The keywords every step of the run takes (its log, overwrite)."""
+        return {"log": self.log, "overwrite": self.overwrite}
 
     def count(self, step: StepResult) -> StepResult:
         """``step``, counted in ``ran`` when it did work."""
