@@ -157,6 +157,16 @@ def test_quick_form_writes_every_table_with_finite_numbers(data_root: str, tmp_p
         assert 0 <= run["accuracy_all_pairs"] <= 1
     summary = (out / "summary.md").read_text()
     assert all(f"Table {i}" in summary for i in range(1, 5)) and "Figure 3" in summary
-    # a rerun skips every finished table
+    # a rerun finds every step done: nothing is evaluated, aligned, generated or trained, no table rewritten
+    written = {name: (out / name / "result.json").read_text() for name in TABLES}
     again = CliRunner().invoke(get_cli(), ["experiment", "paper", "--out", str(out), "--quick"])
-    assert again.exit_code == 0 and again.output.count("skipped") == len(TABLES)
+    assert again.exit_code == 0, again.output
+    steps = [line for line in again.output.splitlines() if line.endswith("skipped")]
+    assert sum("every step done before" in line for line in steps) == len(TABLES)
+    assert not [line for line in again.output.splitlines()
+                if line.startswith(("evaluating", "aligned", "campaign", "trained", "figure 3:"))]
+    assert {name: (out / name / "result.json").read_text() for name in TABLES} == written
+    # other settings for the same folder are refused, naming the setting, before anything is redone
+    other = CliRunner().invoke(get_cli(), ["experiment", "paper", "--out", str(out), "--quick", "--scenes", "3",
+                                           "--only", "table1"])
+    assert other.exit_code != 0 and "num_scenes: 4 -> 3" in str(other.exception)
