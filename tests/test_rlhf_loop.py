@@ -11,6 +11,7 @@ import pytest
 
 from trafficrlhf_sdk.loop import RLHFConfig, rlhf
 from trafficrlhf_sdk.pipeline import read_manifest
+from trafficrlhf_sdk.reward.contrast import PERTURBATIONS
 
 pytest.importorskip("trafficrlhf_example_gru")
 pytestmark = pytest.mark.data
@@ -29,7 +30,7 @@ def test_two_rounds_with_active_selection_then_a_rerun_does_nothing(data_root: s
     for r, entry in enumerate(result["rounds"]):
         assert os.path.isfile(os.path.join(entry["reward_model"], "model.safetensors"))
         assert os.path.isfile(os.path.join(entry["aligned"], "model.safetensors"))
-        assert set(entry["probes"]) == {"faster", "slower", "jerky", "off_lane", "tailgate"}
+        assert set(entry["probes"]) == set(PERTURBATIONS)
         assert entry["campaigns"] == [f"round{r}"]  # no guidance: one campaign per round
     assert read_manifest(os.path.join(out, "round_1", "rank"))["outputs"]["ranked"] == {"round1": 4}  # type: ignore
     # round 1's candidates come from round 0's aligned model, and its reward model saw both rounds' labels
