@@ -58,3 +58,31 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
         raise DataFormatError(f"experiment paper: {problems}") from None
     outcome = run_paper(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite)
     click.echo(f"wrote {len(outcome['results'])} result(s) under {out_dir} in {outcome['wall_time_s']:.0f} s")
+
+
+@experiment_group.command("ladder")
+@click.option("--model", default="ctg", show_default=True,
+              help="The model whose shipped ladder recipe (docs/recipes/<model>-ladder.toml) every row runs.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
+              help="Folder of the run: ladder.{md,json,png} and every step (feedback, reward model, rows, "
+                   "evaluations); rerun with the same --out to resume.")
+@click.option("--config", "config_path", default=None, type=click.Path(dir_okay=False, path_type=str),
+              help="TOML file of LadderConfig fields (recipe, feedback sizes, reward settings, scenes, seeds).")
+@click.option("--reward-model", default=None, help="A learned reward-model folder for rows (c) and (d) instead of "
+                                                   "training one on stand-in labels.")
+@click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings.")
+def ladder_command(model: str, out_dir: str, config_path: str | None, reward_model: str | None,
+                   overwrite: bool) -> None:
+    """The alignment ladder: one model and fine-tuning recipe, rewarded by (a) the built-in failure reward, (b) the
+    stand-in's judgment, (c) a reward model learned from its labels, (d) (c) with alpha = 0; each row evaluated in
+    closed loop, so the gap each link of the feedback chain loses is measured."""
+    from trafficrlhf_sdk.config_files import load_config
+    from trafficrlhf_sdk.experiments.ladder import LadderConfig, run_ladder
+
+    fields: dict[str, object] = {"recipe": f"docs/recipes/{model}-ladder.toml"}
+    if reward_model is not None:
+        fields["reward_model"] = reward_model
+    config = (load_config(LadderConfig, config_path, **fields) if config_path is not None
+              else LadderConfig(**fields))  # type: ignore[arg-type]
+    rows = run_ladder(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite)
+    click.echo(f"wrote {out_dir}/ladder.md ({len(rows) - ('agreement' in rows)} rows)")

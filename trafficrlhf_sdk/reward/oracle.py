@@ -13,6 +13,8 @@ measured (the alignment ladder).
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from trafficrlhf_sdk.feedback.preference import PreferenceDataset
@@ -22,7 +24,7 @@ from trafficrlhf_sdk.feedback.judgment import FAILURE_TERMS, STYLE_TERMS, agent_
 from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotatorConfig, judge_realism
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["JudgmentReward", "hidden_realism", "strict_pairs"]
+__all__ = ["JudgmentReward", "hidden_realism", "judgment_agreement", "strict_pairs"]
 
 
 def hidden_realism(store: FeedbackStore, dataset: PreferenceDataset,
@@ -82,3 +84,26 @@ class JudgmentReward:
         out = torch.zeros(scenario.valid.shape[0], scenario.num_steps)
         out[:, scenario.current_index + 1:] = scene[:, None]
         return out
+
+
+def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
+                       config: SyntheticAnnotatorConfig | None = None, tolerance: float = 0.0) -> dict[str, float]:
+    """How often ``reward`` (anything with ``score(scenario) -> (B,)``, or ``step_rewards``) orders two candidates
+    of the same context as the noise-free stand-in does, over every pair of candidates of every context of
+    ``campaign`` whose realism differs by more than ``tolerance`` (no labels needed). Returns ``agreement`` and the
+    number of ``pairs`` and ``contexts``."""
+    from trafficrlhf_sdk.reward.scoring import scenario_scores
+
+    record_campaign = store.campaign(campaign)
+    agree = pairs = contexts = 0
+    for key in store.context_keys(record_campaign):
+        record = store.load_context(int(key["id"]), record_campaign)
+        realism = judge_realism(record, config, include_logged=False).realism
+        batch = ScenarioTensor.concat([record.candidate_scenario(k) for k in range(record.num_candidates)])
+        scores = scenario_scores(reward, batch).double()
+        better = (realism[:, None] - realism[None, :]) > tolerance  # (N, N): row more realistic than column
+        if better.any():
+            contexts += 1
+            pairs += int(better.sum())
+            agree += int((better & (scores[:, None] > scores[None, :])).sum())
+    return {"agreement": agree / pairs if pairs else float("nan"), "pairs": pairs, "contexts": contexts}

@@ -1,0 +1,98 @@
+"""The alignment ladder: rows that differ only in their reward, written as a table, a plot and JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from trafficrlhf_sdk.experiments.ladder import LADDER_ROWS, LadderConfig, run_ladder
+from trafficrlhf_sdk.pipeline.step import StepResult
+
+TINY_RECIPE = """
+model = "ctg"
+checkpoint = "ctg-4s"
+reward_model = "builtin:failure"
+model_options = { steer_road = true, steer_gate = true }
+
+[align]
+guidance = "no_collision"
+epochs = 1
+contexts_per_epoch = 2
+samples_per_context = 2
+ppo_epochs = 1
+minibatch_contexts = 2
+failure_fraction = 0.5
+failure_scenes = 2
+num_scenes = 4
+credit = "agent"
+groups = ["steer"]
+learning_rate = 0.001
+"""
+
+
+def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.pipeline as pipeline
+
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE)
+    aligned: dict[str, object] = {}
+
+    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
+        aligned[folder.rsplit("/", 1)[-1]] = row
+        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+
+    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
+        failure = 0.1 if folder.endswith("base") else 0.05
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
+
+    (tmp_path / "rm").mkdir()
+    monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
+    config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0)
+    rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
+    assert sorted(aligned) == sorted(LADDER_ROWS) and set(rows) == {"base", *LADDER_ROWS}
+    base = aligned["a"].model_dump()  # type: ignore[attr-defined]
+    for key, row in aligned.items():
+        dumped = row.model_dump()  # type: ignore[attr-defined]
+        assert dumped["reward_model"] == (LADDER_ROWS[key][1] or str(tmp_path / "rm"))
+        expected_align = {**base["align"], "alpha": 0.0} if key == "d" else base["align"]
+        assert dumped["align"] == expected_align, key
+        assert {k: v for k, v in dumped.items() if k not in ("reward_model", "align")} == \
+            {k: v for k, v in base.items() if k not in ("reward_model", "align")}
+    table = (tmp_path / "out" / "ladder.md").read_text()
+    assert "(a) built-in failure reward | 0.0500 (-50.0 %)" in table
+    assert (tmp_path / "out" / "ladder.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import main
+
+    config = tmp_path / "ladder.toml"
+    config.write_text('contexts = 4\n[reward]\nmax_epoch = 2\n')
+    with pytest.raises(SystemExit) as exit_info:
+        main(["experiment", "ladder", "--config", str(config), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2 and "reward.max_epoch" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.data
+def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE)
+    config = LadderConfig(recipe=str(recipe), contexts=3, scenes=2, seeds=(0,), agreement_contexts=2,
+                          contrast_scenes=2, probe_scenes=2,
+                          reward={"max_epochs": 1, "batch_size": 2, "ensemble_size": 1, "progress": False})
+    out = tmp_path / "ladder"
+    rows = run_ladder(config, str(out), log=lambda _: None)
+    saved = json.loads((out / "ladder.json").read_text())
+    assert set(saved) == {"base", *LADDER_ROWS, "agreement"}
+    for key in ("base", *LADDER_ROWS):
+        failure = saved[key]["evaluation"]["metrics"]["failure_rate"]
+        assert 0 <= failure <= 1 and math.isfinite(failure)
+    assert 0 <= saved["agreement"]["start"]["agreement"] <= 1 or saved["agreement"]["start"]["pairs"] == 0
+    again = run_ladder(config, str(out), log=lambda _: None)
+    assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
+    assert rows["c"]["reward"] == again["c"]["reward"]

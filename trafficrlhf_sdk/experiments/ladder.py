@@ -1,0 +1,224 @@
+"""The alignment ladder: one model, one fine-tuning recipe, four rewards, so each link of the feedback chain is
+measured on its own.
+
+=====  ==========================================================  ==============================================
+row    reward                                                      what the gap to the row above measures
+=====  ==========================================================  ==============================================
+(a)    ``builtin:failure``: the failure reward, no prior            (the reference: what the fine-tuner reaches with
+                                                                    a reward known to be right)
+(b)    ``builtin:judgment``: the stand-in's judgment, per agent     the annotator: what its judgment gives at best
+(c)    a reward model learned from the stand-ins' labels            the reward model: what learning the judgment
+                                                                    from noisy choices loses
+(d)    (c) with ``alpha = 0``                                       the control: what the reward adds at all
+=====  ==========================================================  ==============================================
+
+Every row starts from the recipe's checkpoint and runs the recipe's :class:`~trafficrlhf_sdk.alignment.AlignConfig`
+unchanged (only the reward differs, and ``alpha`` in row (d)); each is evaluated in closed loop over the same
+scenes and seeds as the base. For the reward model the ladder also measures its agreement with the noise-free
+stand-in on candidates of the policy itself, at the start (the base) and at the end (row (c)'s model): the share of
+candidate pairs of the same context it orders as the judgment does.
+
+Everything runs as steps of :mod:`trafficrlhf_sdk.pipeline` under the output folder, so an interrupted ladder
+resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` and ``ladder.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from trafficrlhf_sdk.experiments.config import resolve_path
+from trafficrlhf_sdk.reward.config import RewardConfig
+
+__all__ = ["LADDER_ROWS", "LadderConfig", "run_ladder"]
+
+LADDER_ROWS = {
+    "a": ("built-in failure reward", "builtin:failure"),
+    "b": ("stand-in judgment as reward", "builtin:judgment"),
+    "c": ("learned reward model", None),
+    "d": ("learned reward model, alpha = 0", None),
+}
+"""Row key -> (label, reward spec; None: the learned reward model)."""
+
+METRICS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_meta",
+           "speed_ratio", "stopped_share")
+
+
+class LadderConfig(BaseModel):
+    """What the ladder runs (``trafficrlhf experiment ladder --model M``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    recipe: str = Field(description="The fine-tuning recipe every row shares (a TOML `AlignRecipe`; its reward is "
+                                    "replaced row by row), relative to the working directory or the repository.")
+    reward_model: str | None = Field(None, description="A learned reward-model folder for rows (c) and (d); None: "
+                                     "train one on stand-in labels of the base model's candidates (below).")
+    contexts: int = Field(600, ge=1, description="Train contexts labelled for the learned reward model.")
+    candidates: int = Field(5, ge=2, le=9, description="Candidates per context (N).")
+    seconds: float = Field(4.0, gt=0, description="Length of each candidate (s).")
+    annotators: tuple[str, ...] = Field(("attentive", "safety", "flow"), min_length=1,
+                                        description="Stand-in profiles that label every context.")
+    feedback_seed: int = Field(0, ge=0, description="Campaign seed of the labelled contexts.")
+    reward: RewardConfig = Field(default_factory=lambda: RewardConfig(learning_rate=1e-3, weight_decay=0.0,
+                                                                      max_epochs=60, contrast_weight=1.0),
+                                 description="How the learned reward model trains.")
+    contrast_scenes: int = Field(120, ge=0, description="Contrast pairs from the logs of the last N train scenes.")
+    probe_scenes: int = Field(40, ge=0, description="Val scenes the reward model's probes run on.")
+    scenes: int = Field(100, ge=1, description="Val scenes of the closed-loop evaluation.")
+    seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Evaluation seeds.")
+    rollouts: int = Field(1, ge=1, description="Rollouts per scene (2 or more add the realism meta-metric).")
+    agreement_contexts: int = Field(60, ge=0, description="Val contexts of the policy's own candidates on which "
+                                    "the reward model's agreement with the stand-in is measured (0: skip).")
+
+
+def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = print,
+               overwrite: bool = False) -> dict[str, Any]:
+    """Run (or resume) the ladder into ``out_dir``; returns the rows as written to ``ladder.json``."""
+    from trafficrlhf_sdk.experiments.steps import read_recipe
+    from trafficrlhf_sdk.evaluation.runs import EvaluationRequest
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES
+    from trafficrlhf_sdk.pipeline import align_step, evaluate_step, generate_step, label_step, reward_model_step
+
+    steps = {"overwrite": overwrite, "log": log}
+    recipe = read_recipe(config.recipe)
+    guidance = recipe.align.guidance
+    os.makedirs(out_dir, exist_ok=True)
+    db = os.path.join(out_dir, "feedback.sqlite")
+
+    def evaluate(label: str, checkpoint: str | None, after: list[Any]) -> Any:
+        request = EvaluationRequest(model=recipe.model, checkpoint=checkpoint, guidance=guidance or "none",
+                                    model_options=recipe.model_options, num_scenes=config.scenes,
+                                    seeds=config.seeds, rollouts=config.rollouts)
+        return evaluate_step(os.path.join(out_dir, "evaluations", label), request, metrics=METRICS, after=after,
+                             **steps)
+
+    rows: dict[str, Any] = {"base": {"label": "base", "evaluation": evaluate("base", recipe.checkpoint, [])}}
+    reward_model = config.reward_model
+    learned: list[Any] = []
+    if reward_model is None:
+        reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
+                                                    reward_model_step, PROFILES)
+    else:
+        reward_model = resolve_path(reward_model)
+    for key, (label, spec) in LADDER_ROWS.items():
+        fields = {"alpha": 0.0} if key == "d" else {}
+        row = recipe.model_copy(update={"reward_model": spec or reward_model,
+                                        "align": recipe.align.model_copy(update=fields)})
+        aligned = align_step(os.path.join(out_dir, "rows", key), row, after=learned, **steps)
+        rows[key] = {"label": label, "reward": spec or reward_model, "align": _summary(aligned),
+                     "evaluation": evaluate(f"row_{key}", aligned["folder"], [aligned])}
+    if config.agreement_contexts:
+        rows["agreement"] = {
+            moment: _agreement(config, recipe, checkpoint, reward_model, db, out_dir, moment, steps, generate_step)
+            for moment, checkpoint in (("start", recipe.checkpoint), ("end", rows["c"]["align"]["folder"]))}
+    _write(rows, config, out_dir)
+    return rows
+
+
+def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str, steps: dict[str, Any],
+                        generate_step: Any, label_step: Any, reward_model_step: Any,
+                        profiles: dict[str, Any]) -> tuple[str, list[Any]]:
+    """The product path: the base model's candidates on train contexts, stand-in labels, a reward model."""
+    from trafficrlhf_sdk.feedback.campaign import CampaignConfig
+
+    campaign = CampaignConfig(name="ladder-train", model=recipe.model, guidance=recipe.align.guidance,
+                              model_options={**recipe.model_options, "checkpoint": recipe.checkpoint},
+                              split="train", num_contexts=config.contexts, num_candidates=config.candidates,
+                              candidate_seconds=config.seconds, seed=config.feedback_seed)
+    generated = generate_step(os.path.join(out_dir, "feedback", "generate"), db, campaign, **steps)
+    labelled = label_step(os.path.join(out_dir, "feedback", "label"), db, campaign.name,
+                          {name: profiles[name] for name in config.annotators}, after=[generated], **steps)
+    trained = reward_model_step(os.path.join(out_dir, "reward_model"), config.reward, db, [campaign.name],
+                                contrast_scenes=config.contrast_scenes, probe_scenes=config.probe_scenes,
+                                candidate_seconds=config.seconds, after=[labelled],
+                                title=f"{recipe.model} reward model of the alignment ladder", **steps)
+    return trained["folder"], [trained]
+
+
+def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward_model: str, db: str, out_dir: str,
+               moment: str, steps: dict[str, Any], generate_step: Any) -> dict[str, Any]:
+    """The reward model's agreement with the noise-free stand-in on val candidates of ``checkpoint``."""
+    from trafficrlhf_sdk.feedback.campaign import CampaignConfig
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+    from trafficrlhf_sdk.pipeline.step import run_step
+    from trafficrlhf_sdk.reward.loading import load_reward
+    from trafficrlhf_sdk.reward.oracle import judgment_agreement
+
+    campaign = CampaignConfig(name=f"ladder-agreement-{moment}", model=recipe.model, guidance=recipe.align.guidance,
+                              model_options={**recipe.model_options, "checkpoint": checkpoint}, split="val",
+                              num_contexts=config.agreement_contexts, num_candidates=config.candidates,
+                              candidate_seconds=config.seconds, seed=config.feedback_seed)
+    folder = os.path.join(out_dir, "agreement", moment)
+    generated = generate_step(os.path.join(folder, "generate"), db, campaign, **steps)
+
+    def work() -> dict[str, Any]:
+        store = FeedbackStore(db)
+        try:
+            return judgment_agreement(load_reward(reward_model), store, campaign.name)
+        finally:
+            store.close()
+
+    return dict(run_step("agreement", folder, {"campaign": campaign.name, "reward_model": reward_model}, work,
+                         after=[generated], **steps).outputs)
+
+
+def _summary(aligned: Any) -> dict[str, Any]:
+    outputs = dict(aligned.outputs)
+    return {k: outputs[k] for k in ("folder", "epochs", "wall_time_s", "reward_first", "reward_last",
+                                    "heldout_realism_first", "heldout_realism_last") if k in outputs}
+
+
+def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
+    """``ladder.json``, ``ladder.md`` and ``ladder.png``."""
+    plain = {k: (v if k == "agreement" else {**v, "evaluation": dict(v["evaluation"].outputs)})
+             for k, v in rows.items()}
+    with open(os.path.join(out_dir, "ladder.json"), "w") as fh:
+        json.dump(plain, fh, indent=2, default=str)
+    base = plain["base"]["evaluation"]["metrics"]
+    lines = [f"# Alignment ladder ({config.recipe})", "",
+             f"{config.scenes} val scenes, seeds {', '.join(map(str, config.seeds))}; every row runs the same "
+             "fine-tuning recipe from the same start, only the reward differs.", "",
+             "| row | failure (change) | collision | off-road | realism ctg / body | speed / log | stopped |",
+             "|---|---|---|---|---|---|---|"]
+    for key, row in plain.items():
+        if key == "agreement":
+            continue
+        m = row["evaluation"]["metrics"]
+        change = "" if key == "base" else f" ({100 * (m['failure_rate'] / max(base['failure_rate'], 1e-9) - 1):+.1f} %)"
+        lines.append(f"| {'' if key == 'base' else f'({key}) '}{row['label']} | {m['failure_rate']:.4f}{change} | "
+                     f"{m.get('collision_rate', float('nan')):.4f} | {m.get('offroad_rate', float('nan')):.4f} | "
+                     f"{m.get('realism_ctg', float('nan')):.4f} / {m.get('realism_body', float('nan')):.4f} | "
+                     f"{m.get('speed_ratio', float('nan')):.3f} | {m.get('stopped_share', float('nan')):.3f} |")
+    if "agreement" in plain:
+        a = plain["agreement"]
+        lines += ["", "Reward model against the noise-free stand-in on the policy's own val candidates: "
+                  f"{a['start']['agreement']:.3f} at the start ({a['start']['pairs']} pairs), "
+                  f"{a['end']['agreement']:.3f} at the end ({a['end']['pairs']} pairs)."]
+    with open(os.path.join(out_dir, "ladder.md"), "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    _plot(plain, os.path.join(out_dir, "ladder.png"))
+
+
+def _plot(rows: dict[str, Any], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in rows if k != "agreement"]
+    names = ["base" if k == "base" else f"({k}) {rows[k]['label']}" for k in keys]
+    failure = [rows[k]["evaluation"]["metrics"]["failure_rate"] for k in keys]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    ax.barh(range(len(keys)), failure, color=["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2"][: len(keys)])
+    ax.set_yticks(range(len(keys)), names)
+    ax.invert_yaxis()
+    ax.set_xlabel("failure rate (closed loop, mean over seeds)")
+    for i, value in enumerate(failure):
+        ax.text(value, i, f" {value:.3f}", va="center", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
