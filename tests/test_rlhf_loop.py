@@ -16,7 +16,7 @@ from trafficrlhf_sdk.reward.contrast import PERTURBATIONS
 pytest.importorskip("trafficrlhf_example_gru")
 pytestmark = pytest.mark.data
 
-SMALL = dict(model="example_gru", guidance=None, rounds=2, seed=1, contexts_per_round=2, candidate_pool=2, candidates=3,
+SMALL = dict(model="example_gru", guidance=None, rounds=2, seed=0, contexts_per_round=2, candidate_pool=2, candidates=3,
              seconds=2.0, annotators=["attentive", "hurried"], contrast_scenes=3, probe_scenes=2,
              reward={"ensemble_size": 2, "max_epochs": 1, "batch_size": 2,
                      "architecture_config": {"hidden_sizes": [16, 8], "crop_size": 8}},

@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.feedback.preference import PreferenceDataset, export_preferences
 from trafficrlhf_sdk.feedback.store import FeedbackStore
 from trafficrlhf_sdk.reward.data import build_pair_data, filter_pairs
@@ -45,8 +45,17 @@ def load_preferences(db: str | None = None, campaign: str | Sequence[str] | None
                                     "create --db ...`.")
         store = FeedbackStore(db)  # type: ignore[arg-type]
         names = [campaign] if isinstance(campaign, str) else list(campaign)
-        dataset = PreferenceDataset.concat([export_preferences(store, name, val_fraction=val_fraction, seed=seed)
-                                            for name in names])
+        parts = []
+        for name in names:  # in a pool (e.g. one campaign per RLHF round), a round of only ties adds no pairs
+            try:
+                parts.append(export_preferences(store, name, val_fraction=val_fraction, seed=seed))
+            except DataFormatError:
+                if len(names) == 1:
+                    raise
+        if not parts:
+            raise DataFormatError(f"campaigns {names} hold no preference pairs (only ties, or no labels); label "
+                                  "them first.")
+        dataset = PreferenceDataset.concat(parts)
     return filter_pairs(dataset, list(annotators)), store
 
 
