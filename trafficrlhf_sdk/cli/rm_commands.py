@@ -69,7 +69,7 @@ def rm() -> None:
               help="Test pairs whose hidden realism differs by at most this count as ties (strict accuracy).")
 @click.option("--contrast-scenes", type=click.IntRange(min=1), default=None, metavar="N",
               help="Add automatic contrast pairs from the last N train scenes' logs (the log preferred to it made "
-                   "faster, slower, jerky, off its lane or tailgating), weighed by RewardConfig.contrast_weight.")
+                   "faster, slower, jerky, off its lane, tailgating or weaving), weighed by RewardConfig.contrast_weight.")
 @click.option("--title", default=None, help="Title of the model card.")
 @click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
@@ -132,8 +132,8 @@ def _echo_epoch(row: dict[str, float]) -> None:
               help="With --db: pairs whose hidden realism differs by at most this are ties (strict accuracy).")
 @click.option("--probes", "probe_scenes", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also probe the model on N held-out val scenes (two windows from each scene long enough): the "
-                   "logged future must score above the same future made faster, slower, jerky, off its lane or "
-                   "tailgating (pass rate per probe and member, over the windows the perturbation changes).")
+                   "logged future must score above the same future made faster, slower, jerky, off its lane, "
+                   "tailgating or weaving (pass rate per probe and member, over the windows the perturbation changes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
                  annotators: tuple[str, ...], subset: str, val_fraction: float, split_seed: int,
