@@ -47,6 +47,7 @@ def rm() -> None:
 @click.option("--split-seed", type=int, default=0, show_default=True, help="Seed of the train/val split.")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Maximum epochs [default: RewardConfig].")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Learning rate.")
+@click.option("--weight-decay", type=click.FloatRange(min=0), default=None, help="AdamW weight decay.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Contexts per optimiser step.")
 @click.option("--margin", type=click.FloatRange(min=0), default=None, help="Bradley–Terry margin.")
 @click.option("--center-coef", type=click.FloatRange(min=0), default=None, help="Reward-centring coefficient.")
@@ -69,25 +70,30 @@ def rm() -> None:
               help="Test pairs whose hidden realism differs by at most this count as ties (strict accuracy).")
 @click.option("--contrast-scenes", type=click.IntRange(min=1), default=None, metavar="N",
               help="Add automatic contrast pairs from the last N train scenes' logs (the log preferred to it made "
-                   "faster, slower, jerky, off its lane, tailgating or weaving), weighed by RewardConfig.contrast_weight.")
+                   "faster, slower, jerky, off its lane, tailgating or weaving), weighed by --contrast-weight.")
+@click.option("--contrast-weight", type=click.FloatRange(min=0), default=None,
+              help="Weight of the contrast pairs' loss [default: RewardConfig].")
 @click.option("--title", default=None, help="Title of the model card.")
 @click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
 def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str | None, annotators: tuple[str, ...],
                   out_dir: str, val_fraction: float, split_seed: int, epochs: int | None, lr: float | None,
+                  weight_decay: float | None,
                   batch_size: int | None, margin: float | None, center_coef: float | None, patience: int | None,
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
                   seed: int, threads: int | None, device: str,
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
-                  contrast_scenes: int | None, title: str | None, notes: tuple[str, ...], quiet: bool) -> None:
+                  contrast_scenes: int | None, contrast_weight: float | None, title: str | None,
+                  notes: tuple[str, ...], quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card."""
     from trafficrlhf_sdk.reward import RewardConfig
     from trafficrlhf_sdk.reward.card import train_and_save
     from trafficrlhf_sdk.reward.evaluation import load_preferences
 
     dataset, store = load_preferences(db_path, campaigns, data_dir, annotators, val_fraction, split_seed)
-    overrides = {"max_epochs": epochs, "learning_rate": lr, "batch_size": batch_size, "margin": margin,
-                 "center_rewards_coefficient": center_coef, "early_stopping_patience": patience}
+    overrides = {"max_epochs": epochs, "learning_rate": lr, "weight_decay": weight_decay, "batch_size": batch_size,
+                 "margin": margin, "center_rewards_coefficient": center_coef, "early_stopping_patience": patience,
+                 "contrast_weight": contrast_weight}
     config = RewardConfig(architecture=architecture, architecture_config=_parse_options(arch_options),
                           ensemble_size=ensemble, bootstrap=bootstrap, seed=seed, num_threads=threads,
                           device=device, val_fraction=val_fraction,
