@@ -31,14 +31,14 @@ positions every 0.5 s: finer differences of nuScenes' 2 Hz keyframes turn centim
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
-from trafficrlhf_sdk.metrics.geometry import colliding_pairs, lane_direction, pair_step_flags, path_gaps
+from trafficrlhf_sdk.metrics.cues import flow_neighbours, near_misses_per_step, path_cues, recent_speed
+from trafficrlhf_sdk.metrics.geometry import lane_direction
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["FAILURE_TERMS", "STYLE_TERMS", "JudgmentConfig", "RealismJudgment", "agent_penalties",
@@ -146,16 +146,8 @@ def agent_penalties(batch: ScenarioTensor, controlled: torch.Tensor,
     terms["offroad"] = ((offroad_per_step(window) & w_future).any(-1).double() if has_drivable
                         else torch.zeros(agents.shape, dtype=torch.float64))
 
-    # what the history shows: the distance covered over the last second (the speed channel where that is not
-    # visible), heading and position at the start
-    back = max(0, now - round(1.0 / batch.dt))
-    covered = torch.linalg.vector_norm(states[:, :, now, :2] - states[:, :, back, :2], dim=-1)
-    recent = valid.clone()
-    recent[:, :, now + 1:] = False
-    recent[:, :, :back] = False
-    seen_move = valid[:, :, now] & valid[:, :, back] & (now > back)
-    v_hist = torch.where(seen_move, covered / max((now - back) * batch.dt, 1e-9), _masked_mean(states[..., 2], recent))
-    start_ok = valid[:, :, now]
+    # what the history shows: the speed over the last second, heading at the start
+    v_hist = recent_speed(batch)
     yaw0 = states[:, :, now, 3]
     horizon = (batch.num_steps - 1 - now) * batch.dt
 
@@ -165,21 +157,14 @@ def agent_penalties(batch: ScenarioTensor, controlled: torch.Tensor,
     # the flow: neighbours near the agent at the start and heading its way, at the speed the item shows them
     # driving at: their history for the agents a model drives (all of which change together in a candidate),
     # their replayed future for the others
-    xy0 = states[:, :, now, :2]
-    dist = torch.cdist(xy0, xy0)
-    same_way = torch.cos(yaw0[:, :, None] - yaw0[:, None, :]) > math.cos(math.pi / 4)
-    eye = torch.eye(batch.num_agents, dtype=torch.bool)[None]
-    near = (dist <= cfg.flow_radius_m) & same_way & start_ok[:, :, None] & start_ok[:, None, :] & ~eye
+    near = flow_neighbours(batch, cfg.flow_radius_m)
     shown = torch.where(controlled.to(torch.bool) | ~moved, v_hist, v_mean)
     flow_n = near.sum(-1)
     flow = (near * shown[:, None, :]).sum(-1) / flow_n.clamp_min(1)
     # the agent followed at the start: nearest in its path
-    speed10 = states[..., 2]
-    gap, _, in_path = path_gaps(states[..., :2], states[..., 3], speed10, batch.extent.double(), valid)
-    gap_now = torch.where(in_path[..., now], gap[..., now], torch.full_like(gap[..., now], math.inf))
-    lead_gap, lead = gap_now.min(-1)
-    has_lead = lead_gap <= cfg.lead_range_m
-    v_lead = v_mean.gather(1, lead)
+    cues = path_cues(batch, cfg.ttc_s, cfg.headway_s, cfg.stall_speed)
+    has_lead = cues.lead_gap[:, :, now] <= cfg.lead_range_m
+    v_lead = v_mean.gather(1, cues.lead_index[:, :, now])
     # the band of plausible mean speeds over the window
     reach = cfg.comfort_accel * horizon / 2
     hi = v_hist + reach
@@ -193,16 +178,15 @@ def agent_penalties(batch: ScenarioTensor, controlled: torch.Tensor,
     terms["pace"] = torch.where(moved, (error.clamp_min(0) / 0.3).clamp_max(3.0), torch.zeros_like(error))
 
     # stalling: nearly stopped with nobody close ahead, after driving at the start
-    ahead = torch.where(in_path, gap, torch.full_like(gap, math.inf)).amin(2)  # (K, A, T)
     every = max(1, round(STAT_DT / batch.dt))
-    ahead_s = ahead[:, :, now::every][:, :, 1:]
+    ahead_s = cues.lead_gap[:, :, now::every][:, :, 1:]
     stalled = (kin["speed"] < 0.5) & kin["speed_ok"] & (ahead_s[:, :, : kin["speed"].shape[2]] > cfg.stall_gap_m)
     drove = v_hist > cfg.stall_speed
     terms["stall"] = torch.where(drove, stalled.sum(-1) / kin["speed_ok"].sum(-1).clamp_min(1),
                                  torch.zeros_like(v_hist))
 
-    terms["tailgate"] = _tailgating(window, w_future, cfg)
-    terms["near_miss"] = _near_misses(window, w_future, cfg)
+    terms["tailgate"] = _share(cues.tailgating[:, :, now:], w_future)
+    terms["near_miss"] = _share(near_misses_per_step(window, cfg.near_miss_m), w_future)
     terms["lane"] = _lane_error(window, w_future, cfg)
     terms["wrong_way"] = _wrong_way(window, w_future, yaw0, cfg)
 
@@ -260,26 +244,6 @@ def _sampled_kinematics(states: torch.Tensor, valid: torch.Tensor, dt: float, ev
 def _share(flags: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
     """``(K, A)``: share of the ``steps (K, A, T)`` where ``flags``."""
     return ((flags & steps).sum(-1) / steps.sum(-1).clamp_min(1)).double()
-
-
-def _tailgating(window: ScenarioTensor, future: torch.Tensor, cfg: JudgmentConfig) -> torch.Tensor:
-    """Share of each agent's future steps with a short time to collision or time headway to an agent ahead."""
-    speed = window.states[..., 2]
-    gap, closing, in_path = path_gaps(window.xy, window.yaw, speed, window.extent, window.valid)
-    inf = torch.full_like(gap, float("inf"))
-    ttc = torch.where(in_path & (closing > 0), gap / closing.clamp_min(1e-6), inf).amin(2)
-    headway = torch.where(in_path, gap / speed[:, :, None].clamp_min(1e-6), inf).amin(2)
-    close = (ttc < cfg.ttc_s) | ((headway < cfg.headway_s) & (speed > cfg.stall_speed))
-    return _share(close, future)
-
-
-def _near_misses(window: ScenarioTensor, future: torch.Tensor, cfg: JudgmentConfig) -> torch.Tensor:
-    """Share of each agent's future steps where its box comes within ``near_miss_m`` of another without touching."""
-    if cfg.near_miss_m <= 0:
-        return torch.zeros(future.shape[:2], dtype=torch.float64)
-    grown = window.extent + 2 * cfg.near_miss_m
-    close = pair_step_flags(window.valid, *colliding_pairs(window.xy, window.yaw, grown, window.valid))
-    return _share(close & ~collisions_per_step(window), future)
 
 
 def _lane_error(window: ScenarioTensor, future: torch.Tensor, cfg: JudgmentConfig) -> torch.Tensor:

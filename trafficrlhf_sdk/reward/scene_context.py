@@ -30,7 +30,8 @@ import math
 import torch
 
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_corner_share, offroad_per_step
-from trafficrlhf_sdk.metrics.geometry import colliding_pairs, lane_direction, pair_step_flags, path_gaps
+from trafficrlhf_sdk.metrics.cues import near_misses_per_step, path_cues
+from trafficrlhf_sdk.metrics.geometry import lane_direction
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
 __all__ = ["NUM_SCENE_CONTEXT_FEATURES", "scene_context_features"]
@@ -46,22 +47,14 @@ SPEED_SCALE = 10.0
 
 
 def _events(scenario: ScenarioTensor) -> dict[str, torch.Tensor]:
-    """Per-step flags ``(B, A, T)`` (bool) of what a person notices, and the corner share off the road (float)."""
+    """Per-step flags ``(B, A, T)`` (bool) of what a person notices, the lead of each agent, and the share of box
+    corners off the road (float)."""
     valid = scenario.valid
-    speed = scenario.states[..., 2]
     out = {"collision": collisions_per_step(scenario)}
-    grown = scenario.extent + 2 * NEAR_MISS_M
-    close = pair_step_flags(valid, *colliding_pairs(scenario.xy, scenario.yaw, grown, valid))
-    out["near_miss"] = close & ~out["collision"]
-    gap, closing, in_path = path_gaps(scenario.xy, scenario.yaw, speed, scenario.extent, valid)
-    inf = torch.full_like(gap, math.inf)
-    ttc = torch.where(in_path & (closing > 0), gap / closing.clamp_min(1e-6), inf).amin(2)
-    headway = torch.where(in_path, gap / speed[:, :, None].clamp_min(1e-6), inf).amin(2)
-    out["tailgate"] = (ttc < TTC_S) | ((headway < HEADWAY_S) & (speed > DRIVING))
-    lead = torch.where(in_path, gap, inf).min(2)
-    out["lead_gap"] = lead.values
-    out["lead_closing"] = closing.gather(2, lead.indices[:, :, None]).squeeze(2)
-    out["lead_index"] = lead.indices
+    out["near_miss"] = near_misses_per_step(scenario, NEAR_MISS_M, out["collision"])
+    cues = path_cues(scenario, TTC_S, HEADWAY_S, DRIVING)
+    out.update(tailgate=cues.tailgating, lead_gap=cues.lead_gap, lead_closing=cues.lead_closing,
+               lead_index=cues.lead_index)
     layers = scenario.map.layers if scenario.map is not None else ()
     zeros = torch.zeros_like(valid)
     out["offroad"] = offroad_per_step(scenario) if "drivable" in layers else zeros
@@ -74,7 +67,7 @@ def _events(scenario: ScenarioTensor) -> dict[str, torch.Tensor]:
     lane_yaw, on_lane = lane_direction(scenario)
     if on_lane is not None:
         against |= on_lane & (torch.cos(yaw.double() - lane_yaw) < 0)
-    out["against"] = against & (speed > DRIVING)
+    out["against"] = against & (scenario.states[..., 2] > DRIVING)
     return out
 
 
