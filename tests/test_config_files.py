@@ -126,3 +126,18 @@ def test_an_experiment_fails_at_load_on_a_misspelled_key_in_a_recipe_it_reads(tm
         PaperConfig(align_bits=recipe)
     assert "align_bits" in str(caught.value) and "align.epochz" in str(caught.value)
     assert PaperConfig(align_bits="docs/recipes/bits-rm.toml").align_bits == "docs/recipes/bits-rm.toml"
+
+
+def test_a_recipe_without_a_reward_takes_the_command_lines(tmp_path: Path) -> None:
+    """`align --config` with only an [align] table and `--reward-model` on the command line: the command line
+    fills (and overrides) the file's fields before it is validated."""
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+    from trafficrlhf_sdk.errors import DataFormatError
+
+    path = tmp_path / "only_align.toml"
+    path.write_text('model = "ctg"\n[align]\nepochs = 3\n')
+    recipe = AlignRecipe.load(str(path), reward_model="builtin:failure", checkpoint=None)
+    assert recipe.reward_model == "builtin:failure" and recipe.align.epochs == 3 and recipe.model == "ctg"
+    assert AlignRecipe.load(str(path), model="bits", reward_model="builtin:failure").model == "bits"
+    with pytest.raises(DataFormatError, match="reward_model"):
+        AlignRecipe.load(str(path))

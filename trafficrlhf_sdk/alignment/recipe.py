@@ -57,12 +57,13 @@ class AlignRecipe(BaseModel):
                                                  "paper's value for the model.")
 
     @classmethod
-    def load(cls, path: str) -> AlignRecipe:
-        """Read and validate a TOML recipe; errors name the file."""
+    def load(cls, path: str, **fields: Any) -> AlignRecipe:
+        """Read and validate a TOML recipe, ``fields`` (those not None, e.g. the command line's) over the file's;
+        errors name the file."""
         if not os.path.isfile(path):
             raise DataNotFoundError(f"--config {path!r}: no such file; give a TOML recipe (see "
                                     "reference_models/*/*/recipe.toml or loop.toml).")
-        data = read_toml(path)
+        data = {**read_toml(path), **{k: v for k, v in fields.items() if v is not None}}
         try:
             return cls(**data)
         except ValidationError as exc:

@@ -80,7 +80,8 @@ def _recipe(config_path: str | None, model: str | None, checkpoint: str | None, 
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe
     from trafficrlhf_sdk.errors import TrafficRLHFError
 
-    recipe = AlignRecipe.load(config_path) if config_path else None
+    recipe = (AlignRecipe.load(config_path, model=model, checkpoint=checkpoint, reward_model=reward_spec)
+              if config_path else None)
     if reward_spec is None and recipe is None:
         raise TrafficRLHFError("no reward given: pass --reward-model FOLDER (or builtin:NAME), or --config RECIPE.")
     if model is None and checkpoint is None and (recipe is None or (recipe.model is None and not recipe.checkpoint)):
