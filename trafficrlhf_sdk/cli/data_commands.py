@@ -1,4 +1,5 @@
-"""Commands about installed components and data: ``plugins``, ``sources``, ``inspect``, ``render``."""
+"""Commands about installed components and data: ``plugins``, ``sources``, ``inspect``, ``render`` (``render
+scene`` and ``render compare``)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from trafficrlhf_sdk.cli.app import cli, format_error
+from trafficrlhf_sdk.cli.app import cli, format_error, parse_key_values
 from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
 
 if TYPE_CHECKING:
     from trafficrlhf_sdk.scenario import ScenarioSource
 
-__all__ = ["inspect_command", "plugins_command", "render_command", "sources_command"]
+__all__ = ["compare_command", "inspect_command", "plugins_command", "render", "render_command", "sources_command"]
 
 json_option = click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON instead of a table.")
 split_option = click.option("--split", default="val", show_default=True, help="Which split of the source.")
@@ -198,7 +199,27 @@ def _inspect_rows(report: dict[str, Any]) -> list[tuple[str, str]]:
 
 
 # ------------------------------------------------------------------------------------------------- render
-@cli.command("render")
+class _DefaultCommandGroup(click.Group):
+    """A group whose first argument, when it names none of its commands, goes to its default command: ``render
+    SOURCE SCENE`` runs ``render scene SOURCE SCENE``."""
+
+    def __init__(self, *args: Any, default: str, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.default = default
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if args and args[0] not in self.commands and args[0] not in ctx.help_option_names:
+            args = [self.default, *args]
+        return super().parse_args(ctx, args)
+
+
+@cli.group("render", cls=_DefaultCommandGroup, default="scene")
+def render() -> None:
+    """Pictures of scenes: a logged scene as a PNG (`render SOURCE SCENE`, short for `render scene`), or models
+    side by side in closed loop from the same start (`render compare`)."""
+
+
+@render.command("scene")
 @click.argument("source_name", metavar="SOURCE")
 @click.argument("scene_id", metavar="SCENE")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=str), default=None,
@@ -210,7 +231,10 @@ def _inspect_rows(report: dict[str, Any]) -> list[tuple[str, str]]:
 @click.option("--dpi", type=click.IntRange(min=20, max=600), default=110, show_default=True)
 def render_command(source_name: str, scene_id: str, output: str | None, split: str, root: str | None,
                    step: int | None, dpi: int) -> None:
-    """Render scene SCENE of SOURCE (map, boxes, trails) to a PNG and print its path."""
+    """Render scene SCENE of SOURCE (map, boxes, trails) to a PNG and print its path.
+
+    `trafficrlhf render SOURCE SCENE` is short for `trafficrlhf render scene SOURCE SCENE`.
+    """
     from trafficrlhf_sdk.render import save_scene_png
 
     source = open_source(source_name, root)
@@ -230,6 +254,66 @@ def render_command(source_name: str, scene_id: str, output: str | None, split: s
         ) from exc
     path = save_scene_png(scenario, output or f"{scene_id}.png", step=step, dpi=dpi)
     click.echo(path)
+
+
+@render.command("compare")
+@click.option("--checkpoint", "checkpoints", multiple=True,
+              help="A model's weights (a folder or a bundled checkpoint's name), repeatable: one panel each, the base "
+                   "first, e.g. --checkpoint ctg-4s --checkpoint ctg-baseline.")
+@click.option("--model", "models", multiple=True,
+              help="Registered traffic model or built-in policy: once for every --checkpoint, once per --checkpoint, "
+                   "or, without --checkpoint, one panel per --model.")
+@click.option("--guidance", default=None, help="Guidance for every model that supports it, e.g. no_collision "
+              "[default: the one a bundled checkpoint's card was measured with; `none` turns it off].")
+@click.option("--model-option", "model_options", multiple=True, metavar="KEY=VALUE",
+              help="Traffic-model option (JSON value) for every model, repeatable.")
+@click.option("--source", default="nuscenes_pred", show_default=True, help="Registered scenario source.")
+@split_option
+@root_option
+@click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=100, show_default=True,
+              help="Simulate the first N long-enough scenes of the split.")
+@click.option("--scene-id", "scene_ids", multiple=True,
+              help="Simulate and draw exactly this scene, failing or not (repeatable); overrides --scenes and --worst.")
+@click.option("--worst", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Draw the N scenes where the base fails with the most agents.")
+@click.option("--seed", type=int, default=0, show_default=True, help="The seed of every model's run.")
+@click.option("--batch-size", type=click.IntRange(min=1), default=50, show_default=True,
+              help="Scenes per simulated batch.")
+@click.option("--duration", type=click.FloatRange(min=0.5), default=10.0, show_default=True,
+              help="Seconds simulated after the 3 s of history.")
+@click.option("--frame-hz", type=click.FloatRange(0.5, 10.0), default=5.0, show_default=True,
+              help="Animation frames per simulated second (2-5 keeps a GIF to a few hundred KB).")
+@click.option("--speed", type=click.FloatRange(0.1, 10.0), default=1.0, show_default=True,
+              help="Playback speed of the animations (1: real time).")
+@click.option("--dpi", type=click.IntRange(min=40, max=300), default=100, show_default=True)
+@click.option("--out", "out_dir", required=True, type=click.Path(path_type=str),
+              help="Folder for <rank>_<scene>.gif / .png per scene and side_by_side.json.")
+def compare_command(checkpoints: tuple[str, ...], models: tuple[str, ...], guidance: str | None,
+                    model_options: tuple[str, ...], source: str, split: str, root: str | None, num_scenes: int,
+                    scene_ids: tuple[str, ...], worst: int, seed: int, batch_size: int, duration: float,
+                    frame_hz: float, speed: float, dpi: int, out_dir: str) -> None:
+    """Models side by side from the same start, on the scenes where the base fails (GIF + PNG per scene).
+
+    Every model runs in closed loop from the same logged start with the same seed; the scenes where a controlled
+    agent of the first model (the base) collides or leaves the road are drawn, the most failing first: an
+    animation with one panel per model and a still at the base's first failure.
+    """
+    from trafficrlhf_sdk.evaluation.side_by_side import SideBySideRequest, panel_specs, render_side_by_side
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig
+
+    request = SideBySideRequest(
+        panels=panel_specs(models, checkpoints), guidance=guidance, source=source, split=split, root=root,
+        model_options=parse_key_values(model_options, "--model-option"), num_scenes=num_scenes,
+        scene_ids=scene_ids, worst=worst, seed=seed, batch_size=batch_size,
+        simulation=SimulationConfig(duration_s=duration), frame_hz=frame_hz, speed=speed, dpi=dpi)
+    outcome = render_side_by_side(request, out_dir, log=lambda line: click.echo(line, err=True))
+    runs = outcome.runs
+    for m, (label, rate) in enumerate(zip(runs.labels, runs.failure_rates)):
+        click.echo(f"{label}: failure rate {rate:.4f}, fails in {runs.scenes_failing(m)} of {runs.num_scenes} scenes")
+    for scene in outcome.scenes:
+        counts = ", ".join(f"{label} {n}" for label, n in zip(runs.labels, scene.failing_agents))
+        click.echo(f"{scene.rank}. {scene.scene_id} (failing agents: {counts})\n   {scene.animation}\n   {scene.still}")
+    click.echo(f"summary: {outcome.summary}")
 
 
 @cli.command("checkpoint-digest")

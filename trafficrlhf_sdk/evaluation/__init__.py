@@ -7,7 +7,9 @@ and drawings of failures.
 - :func:`first_failures`, :func:`save_failure_png` (``failures``);
 - :func:`write_report`, the one-page report of an RLHF loop (``report``);
 - :func:`run_evaluation` + :class:`EvaluationRequest` -> :class:`EvaluationOutcome`: scene selection, one run per
-  seed (:func:`evaluate_seeds` -> :class:`SeedRuns`, their mean) and the files written (``runs``).
+  seed (:func:`evaluate_seeds` -> :class:`SeedRuns`, their mean) and the files written (``runs``);
+- :func:`render_side_by_side` + :class:`SideBySideRequest`: models side by side from the same start on the scenes
+  where the base fails, as GIFs and PNG stills (``side_by_side``).
 """
 
 from trafficrlhf_sdk.lazy import lazy_exports
@@ -52,6 +54,18 @@ _EXPORTS = {
     "check_out_dir": "runs",
     "render_worst": "runs",
     "run_evaluation": "runs",
+    "PanelSpec": "side_by_side",
+    "SceneFigure": "side_by_side",
+    "SideBySide": "side_by_side",
+    "SideBySideOutcome": "side_by_side",
+    "SideBySideRequest": "side_by_side",
+    "failing_scenes": "side_by_side",
+    "panel_specs": "side_by_side",
+    "render_side_by_side": "side_by_side",
+    "save_side_by_side_animation": "side_by_side",
+    "save_side_by_side_still": "side_by_side",
+    "side_by_side_frames": "side_by_side",
+    "simulate_side_by_side": "side_by_side",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
