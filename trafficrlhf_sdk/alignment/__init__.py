@@ -13,15 +13,30 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from trafficrlhf_sdk.alignment.averaging import average_checkpoints, extrapolate_checkpoint
-from trafficrlhf_sdk.alignment.config import PAPER_ALPHA, AlignConfig, paper_alpha
-from trafficrlhf_sdk.alignment.recipe import AlignRecipe, run_recipe
-from trafficrlhf_sdk.alignment.trainer import AlignResult, AlignTrainer, RewardLike, scenario_scores
+from trafficrlhf_sdk.lazy import lazy_exports
 
-__all__ = ["PAPER_ALPHA", "AlignConfig", "AlignRecipe", "AlignResult", "AlignTrainer", "RewardLike", "TrafficRLHFEnv",
-           "align", "average_checkpoints", "extrapolate_checkpoint", "paper_alpha", "run_recipe", "scenario_scores"]
+if TYPE_CHECKING:
+    from trafficrlhf_sdk.alignment.trainer import AlignResult
+
+# torch loads with the first name that needs it: reading and checking a recipe (AlignRecipe, AlignConfig) does not
+_EXPORTS = {
+    "PAPER_ALPHA": "config",
+    "AlignConfig": "config",
+    "paper_alpha": "config",
+    "AlignRecipe": "recipe",
+    "run_recipe": "recipe",
+    "average_checkpoints": "averaging",
+    "extrapolate_checkpoint": "averaging",
+    "AlignResult": "trainer",
+    "AlignTrainer": "trainer",
+    "RewardLike": "trainer",
+    "scenario_scores": "trainer",
+    "TrafficRLHFEnv": "env",
+}
+__all__ = sorted([*_EXPORTS, "align"])
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: Any = None, reference: Any = None,
@@ -36,6 +51,9 @@ def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: 
     the frozen model the KL terms hold the policy to (None: ``model`` as it starts). The adapter is updated in
     place and returned with the per-epoch history.
     """
+    from trafficrlhf_sdk.alignment.config import AlignConfig, paper_alpha
+    from trafficrlhf_sdk.alignment.trainer import AlignResult, AlignTrainer
+
     if isinstance(model, str):
         from trafficrlhf_sdk.plugins import get_traffic_model
 
@@ -50,11 +68,3 @@ def align(model: Any, reward_model: Any, alpha: float | None = None, *, scenes: 
                            reference=reference)
     history = trainer.train(callback)
     return AlignResult(model, history)
-
-
-def __getattr__(name: str) -> Any:
-    if name == "TrafficRLHFEnv":
-        from trafficrlhf_sdk.alignment.env import TrafficRLHFEnv
-
-        return TrafficRLHFEnv
-    raise AttributeError(name)
