@@ -144,12 +144,13 @@ def test_every_builtin_reward_builds_and_is_listed_by_the_plugins_command() -> N
     from trafficrlhf_sdk.cli import get_cli
     from trafficrlhf_sdk.plugins import registry
     from trafficrlhf_sdk.reward import builtin
+    from trafficrlhf_sdk.reward.oracle import JudgmentReward
 
     names = registry("rewards").names()
-    assert {"failure", "failure-margins", "realism-margins", "random"} <= set(names)
+    assert {"failure", "failure-margins", "realism-margins", "random", "judgment"} <= set(names)
     for name in names:
         reward = load_reward(f"builtin:{name}")
-        assert isinstance(reward, (builtin.FailureReward, builtin.RandomReward))
+        assert isinstance(reward, (builtin.FailureReward, builtin.RandomReward, JudgmentReward))
         assert callable(reward.step_rewards)
     assert load_reward("builtin:collision").offroad is False
     assert load_reward("builtin:realism-kinematics").kinematics_weight == 0.5
