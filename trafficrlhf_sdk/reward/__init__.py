@@ -10,41 +10,32 @@
   :func:`describe_reward_model` reads a saved one back.
 """
 
-from trafficrlhf_sdk.reward.card import TrainedRewardModel, describe_reward_model, model_card, train_and_save
-from trafficrlhf_sdk.reward.config import RewardConfig
-from trafficrlhf_sdk.reward.ctg_mlp import CTGMLPConfig, CTGMLPRewardModel
-from trafficrlhf_sdk.reward.data import PairData, build_pair_data, filter_pairs, split_by_context
-from trafficrlhf_sdk.reward.losses import bradley_terry_loss, preference_metrics
-from trafficrlhf_sdk.reward.model import (
-    RewardEnsemble,
-    RewardModel,
-    get_reward_model_architecture,
-    reward_model_architectures,
-)
-from trafficrlhf_sdk.reward.trafficgen_mcg import TrafficGenMCGConfig, TrafficGenMCGRewardModel
-from trafficrlhf_sdk.reward.trainer import RewardTrainer, TrainingResult, evaluate_pairs
+from trafficrlhf_sdk.lazy import lazy_exports
 
-__all__ = [
-    "CTGMLPConfig",
-    "CTGMLPRewardModel",
-    "PairData",
-    "RewardConfig",
-    "RewardEnsemble",
-    "RewardModel",
-    "RewardTrainer",
-    "TrafficGenMCGConfig",
-    "TrafficGenMCGRewardModel",
-    "TrainedRewardModel",
-    "TrainingResult",
-    "bradley_terry_loss",
-    "build_pair_data",
-    "describe_reward_model",
-    "evaluate_pairs",
-    "filter_pairs",
-    "get_reward_model_architecture",
-    "model_card",
-    "preference_metrics",
-    "reward_model_architectures",
-    "split_by_context",
-    "train_and_save",
-]
+# torch loads with the first name that needs it: reading and checking a RewardConfig does not
+_EXPORTS = {
+    "TrainedRewardModel": "card",
+    "describe_reward_model": "card",
+    "model_card": "card",
+    "train_and_save": "card",
+    "RewardConfig": "config",
+    "CTGMLPConfig": "ctg_mlp",
+    "CTGMLPRewardModel": "ctg_mlp",
+    "PairData": "data",
+    "build_pair_data": "data",
+    "filter_pairs": "data",
+    "split_by_context": "data",
+    "bradley_terry_loss": "losses",
+    "preference_metrics": "losses",
+    "RewardEnsemble": "model",
+    "RewardModel": "model",
+    "get_reward_model_architecture": "model",
+    "reward_model_architectures": "model",
+    "TrafficGenMCGConfig": "trafficgen_mcg",
+    "TrafficGenMCGRewardModel": "trafficgen_mcg",
+    "RewardTrainer": "trainer",
+    "TrainingResult": "trainer",
+    "evaluate_pairs": "trainer",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
