@@ -70,7 +70,7 @@ def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[
     from trafficrlhf_sdk.cli import main
 
     config = tmp_path / "ladder.toml"
-    config.write_text('contexts = 4\n[reward]\nmax_epoch = 2\n')
+    config.write_text('campaigns = [[4, 0]]\n[reward]\nmax_epoch = 2\n')
     with pytest.raises(SystemExit) as exit_info:
         main(["experiment", "ladder", "--config", str(config), "--out", str(tmp_path / "out")])
     assert exit_info.value.code == 2 and "reward.max_epoch" in capsys.readouterr().err
@@ -82,7 +82,7 @@ def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[
 def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     recipe = tmp_path / "recipe.toml"
     recipe.write_text(TINY_RECIPE)
-    config = LadderConfig(recipe=str(recipe), contexts=3, scenes=2, seeds=(0,), agreement_contexts=2,
+    config = LadderConfig(recipe=str(recipe), campaigns=((3, 0), (2, 1)), scenes=2, seeds=(0,), agreement_contexts=2,
                           contrast_scenes=2, probe_scenes=2,
                           reward={"max_epochs": 1, "batch_size": 2, "ensemble_size": 1, "progress": False})
     out = tmp_path / "ladder"

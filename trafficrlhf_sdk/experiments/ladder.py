@@ -57,12 +57,17 @@ class LadderConfig(BaseModel):
                                     "replaced row by row), relative to the working directory or the repository.")
     reward_model: str | None = Field(None, description="A learned reward-model folder for rows (c) and (d); None: "
                                      "train one on stand-in labels of the base model's candidates (below).")
-    contexts: int = Field(600, ge=1, description="Train contexts labelled for the learned reward model.")
+    campaigns: tuple[tuple[int, int], ...] = Field(
+        ((200, 1), (400, 11), (442, 21)), min_length=1,
+        description="The labelled train campaigns of the learned reward model, as (contexts, campaign seed): each "
+                    "takes the first N long-enough train scenes (442 at most) and draws its own candidates, so "
+                    "several campaigns label more contexts than there are scenes (the default: 1,042, those of "
+                    "`reference_models/reward/ctg_ladder`).")
     candidates: int = Field(5, ge=2, le=9, description="Candidates per context (N).")
     seconds: float = Field(4.0, gt=0, description="Length of each candidate (s).")
     annotators: tuple[str, ...] = Field(("attentive", "safety", "flow"), min_length=1,
                                         description="Stand-in profiles that label every context.")
-    feedback_seed: int = Field(0, ge=0, description="Campaign seed of the labelled contexts.")
+    agreement_seed: int = Field(0, ge=0, description="Campaign seed of the val contexts of the agreement check.")
     reward: RewardConfig = Field(default_factory=lambda: RewardConfig(learning_rate=1e-3, weight_decay=0.0,
                                                                       max_epochs=60, contrast_weight=1.0),
                                  description="How the learned reward model trains.")
@@ -125,16 +130,20 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
     """The product path: the base model's candidates on train contexts, stand-in labels, a reward model."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
 
-    campaign = CampaignConfig(name="ladder-train", model=recipe.model, guidance=recipe.align.guidance,
-                              model_options={**recipe.model_options, "checkpoint": recipe.checkpoint},
-                              split="train", num_contexts=config.contexts, num_candidates=config.candidates,
-                              candidate_seconds=config.seconds, seed=config.feedback_seed)
-    generated = generate_step(os.path.join(out_dir, "feedback", "generate"), db, campaign, **steps)
-    labelled = label_step(os.path.join(out_dir, "feedback", "label"), db, campaign.name,
-                          {name: profiles[name] for name in config.annotators}, after=[generated], **steps)
-    trained = reward_model_step(os.path.join(out_dir, "reward_model"), config.reward, db, [campaign.name],
+    labelled, names = [], []
+    for i, (contexts, seed) in enumerate(config.campaigns):
+        campaign = CampaignConfig(name=f"ladder-train-{i}", model=recipe.model, guidance=recipe.align.guidance,
+                                  model_options={**recipe.model_options, "checkpoint": recipe.checkpoint},
+                                  split="train", num_contexts=contexts, num_candidates=config.candidates,
+                                  candidate_seconds=config.seconds, seed=seed)
+        folder = os.path.join(out_dir, "feedback", campaign.name)
+        generated = generate_step(os.path.join(folder, "generate"), db, campaign, **steps)
+        labelled.append(label_step(os.path.join(folder, "label"), db, campaign.name,
+                                   {name: profiles[name] for name in config.annotators}, after=[generated], **steps))
+        names.append(campaign.name)
+    trained = reward_model_step(os.path.join(out_dir, "reward_model"), config.reward, db, names,
                                 contrast_scenes=config.contrast_scenes, probe_scenes=config.probe_scenes,
-                                candidate_seconds=config.seconds, after=[labelled],
+                                candidate_seconds=config.seconds, after=labelled,
                                 title=f"{recipe.model} reward model of the alignment ladder", **steps)
     return trained["folder"], [trained]
 
@@ -151,7 +160,7 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
     campaign = CampaignConfig(name=f"ladder-agreement-{moment}", model=recipe.model, guidance=recipe.align.guidance,
                               model_options={**recipe.model_options, "checkpoint": checkpoint}, split="val",
                               num_contexts=config.agreement_contexts, num_candidates=config.candidates,
-                              candidate_seconds=config.seconds, seed=config.feedback_seed)
+                              candidate_seconds=config.seconds, seed=config.agreement_seed)
     folder = os.path.join(out_dir, "agreement", moment)
     generated = generate_step(os.path.join(folder, "generate"), db, campaign, **steps)
 
