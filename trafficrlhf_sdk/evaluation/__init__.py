@@ -46,6 +46,7 @@ _EXPORTS = {
     "write_report": "report",
     "run_label": "compare",
     "EvaluationRequest": "runs",
+    "SceneSelection": "runs",
     "EvaluationOutcome": "runs",
     "SeedRuns": "runs",
     "evaluate_seeds": "runs",

@@ -28,13 +28,42 @@ from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, EvaluationRepo
 from trafficrlhf_sdk.parallel import ExecutionConfig
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
-__all__ = ["EvaluationOutcome", "EvaluationRequest", "SeedRuns", "check_out_dir", "evaluate_seeds", "load_scenes",
-           "render_worst", "run_evaluation", "select_scenes"]
+__all__ = ["EvaluationOutcome", "EvaluationRequest", "SceneSelection", "SeedRuns", "check_out_dir", "evaluate_seeds",
+           "load_scenes", "render_worst", "run_evaluation", "select_scenes"]
 
 HISTORY_S = 3.0  # the protocol's history before the closed loop starts
 
 
-class EvaluationRequest(BaseModel):
+class SceneSelection(BaseModel):
+    """The scenes a closed-loop run reads and the protocol it runs them under (shared by the requests of
+    :func:`run_evaluation` and :func:`~trafficrlhf_sdk.evaluation.side_by_side.render_side_by_side`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    source: str = Field("nuscenes_pred", description="Registered scenario source.")
+    split: str = Field("val", description="Split of the source.")
+    root: str | None = Field(None, description="Data directory of the source; None: the source's default.")
+    num_scenes: int = Field(100, ge=1, description="The first N long-enough scenes of the split, sorted by name.")
+    scene_ids: tuple[str, ...] = Field((), description="Only these scenes (in this order); overrides `num_scenes`.")
+    batch_size: int = Field(50, ge=1, description="Scenes per simulated batch.")
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig, description="The closed-loop protocol "
+                                         "(duration, late agents, agents after their log ends).")
+
+    def load(self, log: Callable[[str], None] | None = None) -> tuple[Any, list[str]]:
+        """``(scenario, scene_ids)``: the selected scenes of the source, loaded as one batch (:func:`select_scenes`,
+        :func:`load_scenes`); a protocol shorter than 10 s also admits shorter scenes."""
+        from trafficrlhf_sdk.plugins import get_scenario_source
+
+        duration = self.simulation.duration_s
+        options: dict[str, Any] = {"root": self.root} if self.root else {}
+        if duration != 10.0:
+            options["min_future_s"] = duration
+        source = get_scenario_source(self.source, **options)
+        ids = select_scenes(source, self.split, self.num_scenes, self.scene_ids, duration, log)
+        return load_scenes(source, self.split, ids, duration, log)
+
+
+class EvaluationRequest(SceneSelection):
     """Everything :func:`run_evaluation` needs: the model, the scenes, the protocol and the seeds."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -46,17 +75,8 @@ class EvaluationRequest(BaseModel):
     guidance: str | None = Field(None, description="Guidance spec for models that support it; None keeps the one "
                                  "a bundled checkpoint's card was measured with, 'none' turns it off.")
     model_options: dict[str, Any] = Field(default_factory=dict, description="Other traffic-model options.")
-    source: str = Field("nuscenes_pred", description="Registered scenario source.")
-    split: str = Field("val", description="Split of the source.")
-    root: str | None = Field(None, description="Data directory of the source; None: the source's default.")
-    num_scenes: int = Field(100, ge=1, description="The first N long-enough scenes of the split, sorted by name.")
-    scene_ids: tuple[str, ...] = Field((), description="Evaluate only these scenes (in this order); overrides "
-                                       "`num_scenes`.")
     seeds: tuple[int, ...] = Field((0,), min_length=1, description="One run per seed; several give their mean.")
-    batch_size: int = Field(50, ge=1, description="Scenes per simulated batch.")
     rollouts: int = Field(1, ge=1, description="K rollouts per scene (K >= 2 adds the realism meta-metric).")
-    simulation: SimulationConfig = Field(default_factory=SimulationConfig, description="The closed-loop protocol "
-                                         "(duration, late agents, agents after their log ends).")
     reward_model: str | None = Field(None, description="Saved reward model folder: adds the reward-cost metric.")
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="In-process or on Ray workers.")
 
@@ -240,7 +260,7 @@ def run_evaluation(request: EvaluationRequest, out_dir: str | None = None, rende
     ``log`` hears the notes on skipped scenes."""
     import torch
 
-    from trafficrlhf_sdk.plugins import build_policy, get_scenario_source
+    from trafficrlhf_sdk.plugins import build_policy
 
     if out_dir is not None:
         check_out_dir(out_dir)
@@ -262,13 +282,7 @@ def run_evaluation(request: EvaluationRequest, out_dir: str | None = None, rende
     first = build(request.seeds[0])
     model = request.model or str(getattr(first, "name", None) or type(first).__name__)
     guidance = getattr(getattr(first, "options", None), "guidance", request.guidance)
-    options: dict[str, Any] = {"root": request.root} if request.root else {}
-    if request.simulation.duration_s != 10.0:
-        options["min_future_s"] = request.simulation.duration_s
-    source = get_scenario_source(request.source, **options)
-    scene_ids = select_scenes(source, request.split, request.num_scenes, request.scene_ids,
-                              request.simulation.duration_s, log)
-    scenario, scene_ids = load_scenes(source, request.split, scene_ids, request.simulation.duration_s, log)
+    scenario, scene_ids = request.load(log)
     config = EvaluationConfig(simulation=request.simulation, batch_size=request.batch_size, rollouts=request.rollouts)
     execution = request.execution if request.execution.uses_ray else None
     runs = evaluate_seeds(lambda seed: first if seed == request.seeds[0] else build(seed), scenario, request.seeds,

@@ -37,9 +37,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.evaluation.failures import FirstFailures, first_failures
 from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig
-from trafficrlhf_sdk.evaluation.runs import check_out_dir, evaluate_seeds, load_scenes, select_scenes
+from trafficrlhf_sdk.evaluation.runs import SceneSelection, check_out_dir, evaluate_seeds
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
-from trafficrlhf_sdk.simulation.simulator import Rollout, SimulationConfig
+from trafficrlhf_sdk.simulation.simulator import Rollout
 
 __all__ = ["PanelSpec", "SceneFigure", "SideBySide", "SideBySideOutcome", "SideBySideRequest", "failing_scenes",
            "panel_specs", "render_side_by_side", "save_side_by_side_animation", "save_side_by_side_still",
@@ -93,26 +93,18 @@ def panel_specs(models: Sequence[str] = (), checkpoints: Sequence[str] = ()) -> 
     return tuple(PanelSpec(model=m, checkpoint=c) for m, c in zip(paired, checkpoints))
 
 
-class SideBySideRequest(BaseModel):
+class SideBySideRequest(SceneSelection):
     """Everything :func:`render_side_by_side` needs: the models, the scenes, the protocol and the drawing."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     panels: tuple[PanelSpec, ...] = Field(min_length=1, description="The models, the base first (its failures "
                                           "choose the scenes).")
     guidance: str | None = Field(None, description="Guidance for every model that supports it; None keeps the one "
                                  "a bundled checkpoint's card was measured with, 'none' turns it off.")
     model_options: dict[str, Any] = Field(default_factory=dict, description="Other options for every model.")
-    source: str = Field("nuscenes_pred", description="Registered scenario source.")
-    split: str = Field("val", description="Split of the source.")
-    root: str | None = Field(None, description="Data directory of the source; None: the source's default.")
-    num_scenes: int = Field(100, ge=1, description="Simulate the first N long-enough scenes of the split.")
     scene_ids: tuple[str, ...] = Field((), description="Simulate and draw exactly these scenes (failing or not), "
                                        "in this order; overrides `num_scenes` and `worst`.")
     worst: int = Field(3, ge=1, description="Draw at most this many of the scenes where the base fails.")
     seed: int = Field(0, description="The seed of every model's run (the same start, the same seed).")
-    batch_size: int = Field(50, ge=1, description="Scenes per simulated batch.")
-    simulation: SimulationConfig = Field(default_factory=SimulationConfig, description="The closed-loop protocol.")
     frame_hz: float = Field(5.0, ge=0.5, le=10.0, description="Animation frames per simulated second.")
     speed: float = Field(1.0, gt=0.0, le=10.0, description="Playback speed (1: real time).")
     dpi: int = Field(100, ge=40, le=300, description="Resolution of the animations and stills.")
@@ -519,7 +511,7 @@ def render_side_by_side(request: SideBySideRequest, out_dir: str, log: Callable[
     given) and write ``out_dir/<rank>_<scene>.gif`` and ``.png`` per scene plus ``side_by_side.json`` (models,
     seed, failure rates, the scenes and their failing agents). Every model is built before any data is read, so a
     bad name or option fails at once; ``log`` hears the progress."""
-    from trafficrlhf_sdk.plugins import build_policy, get_scenario_source
+    from trafficrlhf_sdk.plugins import build_policy
 
     check_out_dir(out_dir)
     say = log or (lambda _line: None)
@@ -529,13 +521,7 @@ def render_side_by_side(request: SideBySideRequest, out_dir: str, log: Callable[
                                            "checkpoint": panel.checkpoint, "seed": request.seed})
                 for panel in request.panels]
     labels = _unique([panel.name for panel in request.panels])
-    options: dict[str, Any] = {"root": request.root} if request.root else {}
-    duration = request.simulation.duration_s
-    if duration != 10.0:
-        options["min_future_s"] = duration
-    source = get_scenario_source(request.source, **options)
-    scene_ids = select_scenes(source, request.split, request.num_scenes, request.scene_ids, duration, say)
-    scenario, scene_ids = load_scenes(source, request.split, scene_ids, duration, say)
+    scenario, _ = request.load(say)
     config = EvaluationConfig(simulation=request.simulation, batch_size=request.batch_size)
     note = f"seed {request.seed}" + (f", guidance {request.guidance}" if request.guidance else "")
     runs = simulate_side_by_side(policies, scenario, labels, request.seed, config, progress, say, note)

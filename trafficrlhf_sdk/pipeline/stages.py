@@ -259,7 +259,7 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
                                                 "guidance": request.guidance, "seed": seed})
 
         began = time.perf_counter()
-        scenes = load() if load is not None else _load_scenes(request, log)
+        scenes = load() if load is not None else request.load(log)[0]
         config = EvaluationConfig(simulation=request.simulation, batch_size=request.batch_size,
                                   rollouts=request.rollouts)
         execution = request.execution if request.execution.uses_ray else None
@@ -279,19 +279,6 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
                 "wall_time_s": time.perf_counter() - began}
 
     return run_step("evaluate", folder, inputs, work, after=after, overwrite=overwrite, log=log)
-
-
-def _load_scenes(request: EvaluationRequest, log: Log | None) -> Any:
-    from trafficrlhf_sdk.evaluation.runs import load_scenes, select_scenes
-    from trafficrlhf_sdk.plugins import get_scenario_source
-
-    duration = request.simulation.duration_s
-    options: dict[str, Any] = {"root": request.root} if request.root else {}
-    if duration != 10.0:
-        options["min_future_s"] = duration
-    source = get_scenario_source(request.source, **options)
-    ids = select_scenes(source, request.split, request.num_scenes, request.scene_ids, duration, log)
-    return load_scenes(source, request.split, ids, duration, log)[0]
 
 
 def _kept(values: Mapping[str, Any], names: Sequence[str] | None) -> dict[str, Any]:
