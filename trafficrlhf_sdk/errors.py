@@ -9,8 +9,13 @@ from __future__ import annotations
 __all__ = [
     "DataFormatError",
     "DataNotFoundError",
+    "DatabaseFileError",
     "DeviceUnavailableError",
     "DuplicateRegistrationError",
+    "FileEncodingError",
+    "InvalidOptionError",
+    "RewardModelError",
+    "SafetensorsFileError",
     "ScenarioValidationError",
     "TrafficRLHFError",
     "UnknownComponentError",
@@ -43,6 +48,28 @@ class DataNotFoundError(TrafficRLHFError, FileNotFoundError):
 
 class DataFormatError(TrafficRLHFError, ValueError):
     """A data file exists but cannot be parsed (malformed row, corrupt safetensors, ...)."""
+
+
+class FileEncodingError(DataFormatError):
+    """A text file (labels, configs, rankings) is not valid in the encoding it must have (UTF-8)."""
+
+
+class DatabaseFileError(DataFormatError):
+    """A file given as a database is not an SQLite database, is damaged, or is missing where it must exist."""
+
+
+class SafetensorsFileError(DataFormatError):
+    """A safetensors file has a bad header, does not match its declared size, or is too large to read here."""
+
+
+class InvalidOptionError(TrafficRLHFError, ValueError):
+    """An option (``--architecture-option``, ``--model-option``, a config field) has a value the component
+    cannot use; the message names the option, the value and the accepted range."""
+
+
+class RewardModelError(TrafficRLHFError, ValueError):
+    """A reward model loads but does not behave as one: its probe pass gives outputs that are not finite or not in
+    the architecture's range."""
 
 
 class UnsafePickleError(DataFormatError):
