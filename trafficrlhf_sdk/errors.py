@@ -13,7 +13,9 @@ __all__ = [
     "DeviceUnavailableError",
     "DuplicateRegistrationError",
     "FileEncodingError",
+    "InputLimitError",
     "InvalidOptionError",
+    "MapMismatchError",
     "RewardModelError",
     "SafetensorsFileError",
     "ScenarioValidationError",
@@ -78,3 +80,12 @@ class UnsafePickleError(DataFormatError):
 
 class DeviceUnavailableError(TrafficRLHFError, ValueError):
     """A torch device was asked for that this machine does not have (e.g. ``cuda`` on a CPU-only install)."""
+
+
+class MapMismatchError(DataFormatError):
+    """A scene's map does not line up with its logged agents (wrong origin, scale or orientation of the map)."""
+
+
+class InputLimitError(DataFormatError):
+    """An input is larger than a stated limit (agents, steps, map pixels, shared references); the message names the
+    option that raises the limit."""
