@@ -14,7 +14,7 @@ from typing import Any
 import click
 
 from trafficrlhf_sdk.cli.app import cli, parse_key_values
-from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.errors import DatabaseFileError, TrafficRLHFError
 
 __all__ = ["feedback"]
 
@@ -23,12 +23,14 @@ db_option = click.option("--db", "db_path", required=True, type=click.Path(dir_o
 campaign_option = click.option("--campaign", required=True, help="Campaign name.")
 
 
-def _store(db_path: str, must_exist: bool = True) -> Any:
+def _store(db_path: str) -> Any:
+    """The existing feedback database at ``db_path``; only `feedback create` makes a new one."""
     from trafficrlhf_sdk.feedback.store import FeedbackStore
 
-    if must_exist and not os.path.isfile(db_path):
-        raise TrafficRLHFError(f"feedback database {db_path!r} does not exist; create it with `trafficrlhf feedback "
-                               "create --db ...`.")
+    if not os.path.isfile(db_path):
+        raise DatabaseFileError(f"`--db` {db_path!r}: no such feedback database; create it (with a campaign) "
+                                f"by `trafficrlhf feedback create --db {db_path} --name NAME --model MODEL`, or "
+                                "check the path.")
     return FeedbackStore(db_path)
 
 
@@ -113,7 +115,7 @@ def annotator_group() -> None:
 @click.argument("name")
 def annotator_add(db_path: str, name: str) -> None:
     """Create annotator NAME and print its token (shown once; only a hash is stored)."""
-    _, token = _store(db_path, must_exist=False).add_annotator(name)
+    _, token = _store(db_path).add_annotator(name)
     click.echo(token)
 
 

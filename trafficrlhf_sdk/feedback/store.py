@@ -29,7 +29,7 @@ from typing import Any, Literal
 
 import torch
 
-from trafficrlhf_sdk.errors import DataFormatError
+from trafficrlhf_sdk.errors import DatabaseFileError, DataFormatError
 from trafficrlhf_sdk.feedback.errors import (
     AuthenticationError,
     DuplicateSubmissionError,
@@ -67,6 +67,7 @@ __all__ = [
     "ContextRecord",
     "FeedbackStore",
     "Label",
+    "check_database_file",
     "open_store",
 ]
 
@@ -77,6 +78,25 @@ LabelKind = Literal["regular", "gold", "all"]
 
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def check_database_file(path: str) -> None:
+    """Refuse a file at ``path`` that exists and is not an SQLite database, before SQLite touches it (an empty
+    file or no file is a new database)."""
+    if os.path.isdir(path):
+        raise DatabaseFileError(f"`--db` {path!r} is a directory; pass the feedback database file (e.g. "
+                                "feedback.db).")
+    if not os.path.exists(path):
+        return
+    with open(path, "rb") as handle:
+        head = handle.read(len(SQLITE_MAGIC))
+    if head and head != SQLITE_MAGIC:
+        raise DatabaseFileError(f"`--db` {path!r} is not an SQLite database (it starts with {head[:8]!r}, not "
+                                "'SQLite format 3'); pass the file `trafficrlhf feedback create` made, or a new "
+                                "path for `feedback create`.")
 
 
 # -------------------------------------------------------------------------------------------------- store
@@ -104,6 +124,16 @@ class FeedbackStore(StoreStatistics):
         self._all: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
         self._write_lock = threading.Lock()
+        check_database_file(self.path)
+        try:
+            self._open()
+        except sqlite3.DatabaseError as exc:  # damaged past its header: SQLite finds out on the first read
+            self.close()
+            raise DatabaseFileError(f"`--db` {self.path!r} is not a readable feedback database (SQLite says: "
+                                    f"{exc}); pass the file `trafficrlhf feedback create` made, or restore it from "
+                                    "a backup.") from None
+
+    def _open(self) -> None:
         conn = self._conn()
         conn.execute("PRAGMA journal_mode=WAL")
         upgrading = conn.execute("PRAGMA user_version").fetchone()[0] == 1
