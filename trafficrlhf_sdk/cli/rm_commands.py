@@ -89,7 +89,9 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
     from trafficrlhf_sdk.reward import RewardConfig
     from trafficrlhf_sdk.reward.card import train_and_save
     from trafficrlhf_sdk.reward.evaluation import load_preferences
+    from trafficrlhf_sdk.reward.model import check_architecture_options
 
+    check_architecture_options(architecture, _parse_options(arch_options))  # before reading any data
     dataset, store = load_preferences(db_path, campaigns, data_dir, annotators, val_fraction, split_seed)
     overrides = {"max_epochs": epochs, "learning_rate": lr, "weight_decay": weight_decay, "batch_size": batch_size,
                  "margin": margin, "center_rewards_coefficient": center_coef, "early_stopping_patience": patience,

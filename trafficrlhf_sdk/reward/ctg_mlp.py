@@ -11,7 +11,7 @@ so any length, any number of agents and any padding work; invalid steps and padd
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -21,7 +21,10 @@ from trafficrlhf_sdk.reward.features import FeatureSpec, StepInputs, compute_ste
 from trafficrlhf_sdk.reward.model import RewardModel
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["CTGMLPConfig", "CTGMLPRewardModel", "ItemRewardModel", "tanh_head"]
+__all__ = ["MAX_LAYER_WIDTH", "CTGMLPConfig", "CTGMLPRewardModel", "ItemRewardModel", "LayerWidth", "tanh_head"]
+
+MAX_LAYER_WIDTH = 8192  # one 8192 x 8192 layer is 268 MB of float32 weights; the paper's widest is 512
+LayerWidth = Annotated[int, Field(ge=1, le=MAX_LAYER_WIDTH)]
 
 
 class StepFeatureOptions(BaseModel):
@@ -31,11 +34,11 @@ class StepFeatureOptions(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     step_dt: float = Field(0.5, gt=0, description="Seconds between scored steps (2 Hz as the paper's reward cost).")
-    history_steps: int = Field(0, ge=0, description="Raw past states seen per step, every `step_dt` (the "
+    history_steps: int = Field(0, ge=0, le=100, description="Raw past states seen per step, every `step_dt` (the "
                                                      "kinematics always use the last two); 0 generalises best.")
-    num_neighbours: int = Field(6, ge=0, description="Nearest other agents seen per step.")
+    num_neighbours: int = Field(6, ge=0, le=256, description="Nearest other agents seen per step.")
     neighbour_radius_m: float = Field(40.0, gt=0, description="Agents farther than this (m) are not neighbours.")
-    crop_size: int = Field(16, ge=4, description="Map crop cells per side (a multiple of the architecture's "
+    crop_size: int = Field(16, ge=4, le=512, description="Map crop cells per side (a multiple of the architecture's "
                                                  "downsampling: 4 for ctg_mlp, `patch` for trafficgen_mcg).")
     crop_resolution_m: float = Field(1.0, gt=0, description="Size of a crop cell (m).")
     crop_supersample: int = Field(2, ge=1, le=15, description="Raster samples per cell side (averaged).")
@@ -60,10 +63,12 @@ class StepFeatureOptions(BaseModel):
 class CTGMLPConfig(StepFeatureOptions):
     """Options of :class:`CTGMLPRewardModel` (stored in ``config.json``)."""
 
-    hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
-                                          description="MLP widths (the paper's 512-512-512-128-32); Tanh after each.")
-    map_channels: tuple[int, int] = Field((16, 32), description="Channels of the two stride-2 conv layers.")
-    map_embedding: int = Field(64, ge=1, description="Size of the map code fed to the MLP.")
+    hidden_sizes: tuple[LayerWidth, ...] = Field((512, 512, 512, 128, 32), min_length=1, max_length=32,
+                                                 description="MLP widths (the paper's 512-512-512-128-32), each 1 to "
+                                                             "8192; Tanh after each.")
+    map_channels: tuple[LayerWidth, LayerWidth] = Field((16, 32), description="Channels of the two stride-2 conv "
+                                                                              "layers (each 1 to 8192).")
+    map_embedding: LayerWidth = Field(64, description="Size of the map code fed to the MLP (1 to 8192).")
 
 
 def tanh_head(width: int, hidden_sizes: tuple[int, ...]) -> nn.Sequential:

@@ -18,6 +18,7 @@ Architectures are registered by plugins (``register_reward_model_architectures``
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from typing import Any, ClassVar
@@ -26,12 +27,33 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import nn
 
-from trafficrlhf_sdk.errors import DataFormatError, UnknownComponentError
+from trafficrlhf_sdk.errors import DataFormatError, InvalidOptionError, UnknownComponentError
 from trafficrlhf_sdk.reward.serialization import load_weights, read_config, read_weights, save_reward_model
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "get_reward_model_architecture",
-           "load_reward_model", "reward_model_architectures"]
+__all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "check_architecture_options",
+           "get_reward_model_architecture", "load_reward_model", "option_error_message",
+           "reward_model_architectures"]
+
+
+def option_error_message(config_type: type[BaseModel], given: dict[str, Any], exc: ValidationError, owner: str,
+                         flag: str) -> str:
+    """One line for options ``given`` that ``config_type`` refused: each bad option with its value, what is wrong
+    and what it accepts (the field's description), and how to set it (``flag KEY=VALUE``)."""
+    problems: dict[str, str] = {}
+    for err in exc.errors():
+        loc = [str(part) for part in err.get("loc", ())]
+        key = loc[0] if loc else "<options>"
+        if key in problems:  # one line per option (a tuple's element error is followed by a length error)
+            continue
+        field = config_type.model_fields.get(key)
+        shown = json.dumps(given[key], default=str)[:80] if key in given else "(not given)"
+        accepted = f"; accepted: {field.description.rstrip('.')}" if field is not None and field.description else ""
+        if err.get("type") == "extra_forbidden":
+            accepted = f"; known options: {', '.join(config_type.model_fields)}"
+        problems[key] = f"option `{key}` = {shown}: {'.'.join(loc)}: {err.get('msg', 'invalid value')}{accepted}"
+    return (f"{owner}: " + " | ".join(problems.values()) + f". Fix it with `{flag} KEY=VALUE` (a JSON value), or "
+            "drop it to use the default.")
 
 
 class ScenarioInputs:
@@ -86,7 +108,12 @@ class RewardModel(nn.Module):
         if config is None:
             config = self.Config()
         elif isinstance(config, dict):
-            config = self.Config(**config)
+            try:
+                config = self.Config(**config)
+            except ValidationError as exc:
+                raise InvalidOptionError(option_error_message(self.Config, config, exc,
+                                                              f"reward-model architecture {self.architecture!r}",
+                                                              "--architecture-option")) from None
         elif not isinstance(config, self.Config):
             raise TypeError(f"`config` must be a {self.Config.__name__} or a dict; got {type(config).__name__}.")
         self.config = config
@@ -181,6 +208,17 @@ def get_reward_model_architecture(name: str) -> type[RewardModel]:
         raise DataFormatError(f"reward-model architecture {name!r} is registered as {cls!r}, which is not a "
                               "RewardModel subclass; fix the plugin that registers it.")
     return cls
+
+
+def check_architecture_options(name: str, options: dict[str, Any]) -> BaseModel:
+    """The validated options of architecture ``name`` (before any data is read or any weight allocated); bad ones
+    raise :class:`~trafficrlhf_sdk.errors.InvalidOptionError` naming each option and its value."""
+    cls = get_reward_model_architecture(name)
+    try:
+        return cls.Config(**options)
+    except ValidationError as exc:
+        raise InvalidOptionError(option_error_message(cls.Config, options, exc, f"reward-model architecture "
+                                                      f"{name!r}", "--architecture-option")) from None
 
 
 def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,

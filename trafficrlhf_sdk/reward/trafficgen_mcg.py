@@ -33,7 +33,7 @@ import torch
 from pydantic import Field
 from torch import nn
 
-from trafficrlhf_sdk.reward.ctg_mlp import ItemRewardModel, StepFeatureOptions, tanh_head
+from trafficrlhf_sdk.reward.ctg_mlp import MAX_LAYER_WIDTH, ItemRewardModel, LayerWidth, StepFeatureOptions, tanh_head
 from trafficrlhf_sdk.reward.features import (
     SIZE_SCALE,
     SPEED_SCALE,
@@ -54,14 +54,15 @@ NEIGHBOUR_FEATURES = 9  # x, y, v_lon, v_lat, cos, sin, length, width, valid
 class TrafficGenMCGConfig(StepFeatureOptions):
     """Options of :class:`TrafficGenMCGRewardModel` (stored in ``config.json``)."""
 
-    hidden_sizes: tuple[int, ...] = Field((512, 512, 512, 128, 32), min_length=1,
-                                          description="Head MLP widths (the paper's 512-512-512-128-32); Tanh after "
-                                                      "each.")
-    width: int = Field(64, ge=4, description="Width of the agent and map embeddings and of every gating block "
-                                             "(TrafficGen: 1024; compact here).")
-    gating_blocks: int = Field(3, ge=1, description="Context-gating blocks per set (TrafficGen: 5).")
-    num_neighbours: int = Field(8, ge=0, description="Nearest other agents in the agent set.")
-    patch: int = Field(4, ge=1, description="Crop cells per side of one map vector.")
+    hidden_sizes: tuple[LayerWidth, ...] = Field((512, 512, 512, 128, 32), min_length=1, max_length=32,
+                                                 description="Head MLP widths (the paper's 512-512-512-128-32), each "
+                                                             "1 to 8192; Tanh after each.")
+    width: int = Field(64, ge=4, le=MAX_LAYER_WIDTH, description="Width of the agent and map embeddings and of "
+                                                                  "every gating block (TrafficGen: 1024; compact "
+                                                                  "here).")
+    gating_blocks: int = Field(3, ge=1, le=64, description="Context-gating blocks per set (TrafficGen: 5).")
+    num_neighbours: int = Field(8, ge=0, le=256, description="Nearest other agents in the agent set.")
+    patch: int = Field(4, ge=1, le=64, description="Crop cells per side of one map vector.")
 
 
 def neighbour_vectors(scenario: ScenarioTensor, scene: torch.Tensor, agent: torch.Tensor, step: torch.Tensor,
