@@ -7,12 +7,15 @@ import os
 from collections.abc import Iterator, Sequence
 from typing import ClassVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from trafficrlhf_sdk.errors import UnknownComponentError
+from trafficrlhf_sdk.errors import TrafficRLHFError, UnknownComponentError
+from trafficrlhf_sdk.scenario.checks import MAX_AGENTS, MIN_ON_MAP_SHARE
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["ScenarioSource", "SourceConfig", "default_data_root"]
+__all__ = ["SOURCE_OPTIONS_ENV", "ScenarioSource", "SourceConfig", "default_data_root", "environment_options"]
+
+SOURCE_OPTIONS_ENV = "TRAFFICRLHF_SOURCE_OPTIONS"
 
 
 def default_data_root() -> str:
@@ -36,6 +39,13 @@ class SourceConfig(BaseModel):
     max_future_s: float | None = Field(
         None, gt=0, description="Future kept after 'now' (s); None keeps everything up to the end of the scene."
     )
+    min_on_map_share: float = Field(
+        MIN_ON_MAP_SHARE, ge=0, le=1, description="A scene whose moving vehicles spend a smaller share of their "
+        "logged positions on the drivable layer of its own map is refused (the map's origin or scale does not "
+        "belong to the tracks); 0 accepts every scene. Real nuScenes scenes measure 0.9 or more.")
+    max_agents: int = Field(
+        MAX_AGENTS, ge=1, description="Agents (tracks) one scene may hold, checked before any per-agent array is "
+        "allocated; real scenes hold at most a few hundred.")
 
     @property
     def history_steps(self) -> int:
@@ -54,7 +64,18 @@ class ScenarioSource(abc.ABC):
     Config: ClassVar[type[SourceConfig]] = SourceConfig
 
     def __init__(self, config: SourceConfig | None = None, **options: object) -> None:
-        self.config = config if config is not None else self.Config(**options)
+        """``config``, or a ``Config`` built from ``options`` over those of ``$TRAFFICRLHF_SOURCE_OPTIONS``."""
+        if config is None:
+            merged = {**environment_options(), **options}
+            try:
+                config = self.Config(**merged)
+            except ValidationError as exc:
+                if not set(environment_options()) - set(options):
+                    raise
+                raise TrafficRLHFError(f"source {self.name!r}: the options {merged} (with those of "
+                                       f"${SOURCE_OPTIONS_ENV}) are not valid: {_first_error(exc)}; fix "
+                                       f"${SOURCE_OPTIONS_ENV} or the option.") from exc
+        self.config = config
 
     @property
     @abc.abstractmethod
@@ -98,3 +119,23 @@ class ScenarioSource(abc.ABC):
 
             scenes = progress_bar(scenes, total=len(ids), desc=f"loading {self.name}/{split}", unit="scene")
         return ScenarioTensor.concat(list(scenes))
+
+
+def environment_options() -> dict[str, str]:
+    """Source options from ``$TRAFFICRLHF_SOURCE_OPTIONS``, comma-separated ``key=value`` pairs (e.g.
+    ``min_on_map_share=0,max_agents=4096``): every command that opens a source gets them; options given in
+    code or on the command line win."""
+    text = os.environ.get(SOURCE_OPTIONS_ENV, "").strip()
+    options: dict[str, str] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise TrafficRLHFError(f"${SOURCE_OPTIONS_ENV}={text!r}: {item!r} is not key=value; write comma-separated"
+                                   " pairs such as 'min_on_map_share=0,max_agents=4096'.")
+        options[key.strip()] = value.strip()
+    return options
+
+
+def _first_error(exc: ValidationError) -> str:
+    error = exc.errors()[0]
+    return f"{'.'.join(str(p) for p in error['loc'])}: {error['msg']}"

@@ -10,8 +10,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, FileEncodingError, MapMismatchError
 from trafficrlhf_sdk.scenario import AgentType, MapRaster, ScenarioSource, ScenarioTensor, default_data_root
+from trafficrlhf_sdk.scenario.checks import check_agent_count, check_on_map
 
 __all__ = ["KEYFRAME_DT", "LabelTable", "NuScenesPredSource", "parse_label_file"]
 
@@ -78,8 +79,16 @@ def parse_label_file(path: str) -> LabelTable:
     consecutive keyframes; a file whose tracks x keyframes exceed ``MAX_GRID`` is refused too.
     """
     frames, tracks, cats, lengths, widths, xs, ys, yaws, lines = [], [], [], [], [], [], [], [], []
-    with open(path, encoding="utf-8") as handle:
-        for lineno, line in enumerate(handle, start=1):
+    with open(path, "rb") as handle:
+        for lineno, raw in enumerate(handle, start=1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise FileEncodingError(
+                    f"{path}:{lineno}: not UTF-8 text (byte {raw[exc.start]:#04x} at column {exc.start + 1}); a label "
+                    "file is plain text with 18 space-separated columns per row. Re-export it as UTF-8 (or ASCII) "
+                    "text, or check that the path names a label file."
+                ) from exc
             parts = line.split()
             if not parts:
                 continue
@@ -201,9 +210,10 @@ class NuScenesPredSource(ScenarioSource):
         if not os.path.isfile(label_path):
             raise DataNotFoundError(f"scene {scene_id!r} not found in split {split!r}: no file {label_path!r}.")
         table = parse_label_file(label_path)
+        check_agent_count(len(np.unique(table.track)), self.config.max_agents, label_path)
         scene_map, origin = self._load_map(scene_id)
 
-        _check_on_map(label_path, table, scene_map, origin)
+        _check_on_map(label_path, table, scene_map, origin, self.config.min_on_map_share > 0)
         tracks = np.unique(table.track)
         num_frames = int(table.frame.max()) + 1
         a_idx = np.searchsorted(tracks, table.track)
@@ -238,7 +248,7 @@ class NuScenesPredSource(ScenarioSource):
         extent = np.array([[table.length[first[a]], table.width[first[a]]] for a in range(len(tracks))])
         types = np.array([int(AgentType.from_name(table.category[first[a]])) for a in range(len(tracks))])
         valid_t = torch.from_numpy(valid)[None]
-        return ScenarioTensor(
+        scene = ScenarioTensor(
             states=torch.from_numpy(states).float()[None] * valid_t[..., None],
             valid=valid_t,
             extent=torch.from_numpy(extent).float()[None],
@@ -253,6 +263,10 @@ class NuScenesPredSource(ScenarioSource):
             source=self.name,
             extras={"split": split, "native_dt": KEYFRAME_DT},
         )
+        meta = os.path.join(self.root, "maps", f"meta_{scene_id}.txt")
+        check_on_map(scene, self.config.min_on_map_share, label_path,
+                     f"the origin 'x_min y_min' (or the scale) in {meta}, or the map image beside it")
+        return scene
 
     def _load_map(self, scene_id: str) -> tuple[MapRaster, tuple[float, float]]:
         png = os.path.join(self.root, "maps", f"{scene_id}.png")
@@ -292,9 +306,10 @@ class NuScenesPredSource(ScenarioSource):
         )
 
 
-def _check_on_map(label_path: str, table: LabelTable, scene_map: MapRaster, origin: tuple[float, float]) -> None:
-    """Refuse a scene whose agents lie far outside its map raster, or whose vehicles are never on its drivable
-    layer: the map's origin or scale (``maps/meta_<scene>.txt``) does not belong to the labels."""
+def _check_on_map(label_path: str, table: LabelTable, scene_map: MapRaster, origin: tuple[float, float],
+                  need_road: bool = True) -> None:
+    """Refuse a scene whose agents lie far outside its map raster, or (``need_road``) whose vehicles are never on
+    its drivable layer: the map's origin or scale (``maps/meta_<scene>.txt``) does not belong to the labels."""
     line = table.line if table.line is not None else np.arange(1, len(table.frame) + 1)
     extent = max(scene_map.raster.shape[-2:]) / float(scene_map.world_to_pixel[0, 0, 0])
     x, y = table.x - origin[0], table.y - origin[1]
@@ -305,12 +320,13 @@ def _check_on_map(label_path: str, table: LabelTable, scene_map: MapRaster, orig
                               f"{MAP_MARGIN_M:.0f} m outside the map raster (origin {origin}, {extent:.0f} m across); "
                               "the coordinates or the map's meta file are wrong.")
     vehicle = np.array([AgentType.from_name(c) == AgentType.VEHICLE for c in table.category])
-    if vehicle.any():
+    if need_road and vehicle.any():
         xy = torch.from_numpy(np.stack([x[vehicle], y[vehicle]], -1))[None].double()
         if not bool(scene_map.lookup(xy).any()):
-            raise DataFormatError(f"{label_path}: none of the scene's {int(vehicle.sum())} vehicle rows lies on the "
-                                  "drivable layer of its map, so no agent would be driven; the map's origin or scale "
-                                  "(maps/meta_<scene>.txt) does not belong to these labels.")
+            raise MapMismatchError(f"{label_path}: none of the scene's {int(vehicle.sum())} vehicle rows lies on the "
+                                   "drivable layer of its map, so no agent would be driven; the map's origin or scale "
+                                   "(maps/meta_<scene>.txt) does not belong to these labels. To load it as it is, set "
+                                   "min_on_map_share=0.")
 
 
 def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

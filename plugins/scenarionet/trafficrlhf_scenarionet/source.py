@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, InputLimitError
 from trafficrlhf_sdk.scenario import (
     AgentType,
     MapRaster,
@@ -22,6 +22,7 @@ from trafficrlhf_sdk.scenario import (
     SourceConfig,
     default_data_root,
 )
+from trafficrlhf_sdk.scenario.checks import OPTIONS_HINT, check_agent_count, check_on_map
 from trafficrlhf_scenarionet.map_raster import LAYERS, parse_map_features, rasterize, vectorize
 from trafficrlhf_scenarionet.unpickler import restricted_load
 
@@ -30,6 +31,10 @@ __all__ = ["ROOT_SPLIT", "ScenarioNetConfig", "ScenarioNetSource", "Tracks", "re
 ROOT_SPLIT = "all"  # split name of the pickles lying directly in the root
 SUMMARY_FILES = frozenset({"dataset_summary.pkl", "dataset_mapping.pkl"})
 REQUIRED_KEYS = ("length", "metadata", "tracks", "map_features")
+# Limits checked before allocating (fields of ScenarioNetConfig; the nuScenes-mini scenes hold at most 201 steps, 226
+# tracks and 1.2 M map pixels).
+MAX_STEPS = 100_000
+MAX_MAP_PIXELS = 25_000_000  # 1,667 m x 1,667 m at 3 px/m; 75 MB of layers
 
 
 class ScenarioNetConfig(SourceConfig):
@@ -49,6 +54,10 @@ class ScenarioNetConfig(SourceConfig):
         "are then skipped, and counted, when they are streamed (iter_batches).")
     rasterize_map: bool = Field(True, description="Rasterize the map of each scene; False reads tracks only "
                                 "(map=None), for statistics over many scenes.")
+    max_steps: int = Field(MAX_STEPS, ge=1, description="Logged steps (the pickle's `length`) one scene may hold, "
+                           "checked before any per-step array is allocated (100,000 steps = 2.8 h at 0.1 s).")
+    max_map_pixels: int = Field(MAX_MAP_PIXELS, ge=1, description="Pixels (H x W) of one scene's map raster, checked "
+                                "before it is allocated; the raster spans the agents' positions plus `margin_m`.")
 
 
 def read_scenario(path: str) -> dict[str, Any]:
@@ -226,6 +235,11 @@ class ScenarioNetSource(ScenarioSource):
         data = read_scenario(path)
         cfg = self.config
         num_steps = int(data["length"])
+        if num_steps > cfg.max_steps:
+            raise InputLimitError(f"{path}: 'length' is {num_steps:,} logged steps, more than max_steps="
+                                  f"{cfg.max_steps:,}; fix 'length' (it must equal the length of every track's state "
+                                  f"arrays), or raise the limit with {OPTIONS_HINT.format(option='max_steps')}.")
+        check_agent_count(len(data["tracks"]), cfg.max_agents, path)
         stride = self._stride(_sample_rate(data, path), path)
         current = cfg.history_steps
         t_total = (num_steps - 1) // stride + 1
@@ -241,6 +255,7 @@ class ScenarioNetSource(ScenarioSource):
             return self._tensor(tracks, points.min(0) - cfg.margin_m, None, scene_id, split, data)
         origin = points.min(0) - cfg.margin_m  # world position of pixel corner (0, 0) = scene frame origin
         shape = tuple(int(v) for v in np.maximum(np.ceil((points.max(0) + cfg.margin_m - origin) * ppm), 1))
+        _check_raster_size(shape, cfg, tracks, path)
         features = parse_map_features(data["map_features"], path)
         raster = rasterize(features, origin, shape, ppm, cfg.lane_width_m)  # type: ignore[arg-type]
         focus = tracks.xy[0, current] if tracks.valid[0, current] else points.mean(0)
@@ -256,7 +271,10 @@ class ScenarioNetSource(ScenarioSource):
             polyline_type=torch.from_numpy(poly_types)[None],
         )
 
-        return self._tensor(tracks, origin, scene_map, scene_id, split, data)
+        scene = self._tensor(tracks, origin, scene_map, scene_id, split, data)
+        check_on_map(scene, cfg.min_on_map_share, path, "the pickle's 'map_features' (they must share the tracks' "
+                     "world frame and metres)")
+        return scene
 
     def _tensor(self, tracks: Tracks, origin: np.ndarray, scene_map: MapRaster | None, scene_id: str, split: str,
                 data: Mapping[str, Any]) -> ScenarioTensor:
@@ -283,6 +301,26 @@ class ScenarioNetSource(ScenarioSource):
             source=self.name,
             extras={"split": split, "dataset": str(data["metadata"].get("dataset", ""))},
         )
+
+
+def _check_raster_size(shape: tuple[int, ...], cfg: ScenarioNetConfig, tracks: Tracks, path: str) -> None:
+    """Refuse a map raster of more than ``cfg.max_map_pixels`` pixels before it is allocated, naming the agent
+    position farthest from the others (a wrong coordinate makes the raster span it)."""
+    pixels = math.prod(shape)
+    if pixels <= cfg.max_map_pixels:
+        return
+    xy = np.where(tracks.valid[..., None], tracks.xy, np.nan)
+    centre = np.nanmedian(xy.reshape(-1, 2), axis=0)
+    distance = np.where(tracks.valid, np.linalg.norm(np.nan_to_num(xy - centre), axis=-1), -1.0)
+    agent, step = np.unravel_index(int(np.argmax(distance)), distance.shape)
+    size_m = np.array(shape) / cfg.pixels_per_meter
+    raise InputLimitError(
+        f"{path}: the agents' positions span {size_m[0]:,.0f} m x {size_m[1]:,.0f} m, a map raster of {pixels:,} "
+        f"pixels at {cfg.pixels_per_meter} px/m, more than max_map_pixels={cfg.max_map_pixels:,}; the farthest "
+        f"position is track {tracks.ids[agent]!r} at step {step} ({tracks.xy[agent, step, 0]:,.1f}, "
+        f"{tracks.xy[agent, step, 1]:,.1f}), {distance[agent, step]:,.0f} m from the others' median. Fix that "
+        f"coordinate, lower pixels_per_meter, or raise the limit with {OPTIONS_HINT.format(option='max_map_pixels')}."
+    )
 
 
 @dataclass(frozen=True)
@@ -315,8 +353,14 @@ def read_tracks(data: Mapping[str, Any], path: str, steps: np.ndarray) -> Tracks
     keys = sorted(data["tracks"], key=lambda k: str(k) != sdc)  # SDC first, then file order (stable sort)
     ids: list[str] = []
     xy, speed, yaw, valid, extent, types = [], [], [], [], [], []
+    seen: dict[int, str] = {}
     for key in keys:
         agent, track = str(key), data["tracks"][key]
+        if id(track) in seen:  # one object under two keys: a shared reference, never written by a converter
+            raise DataFormatError(f"{path}: tracks {seen[id(track)]!r} and {agent!r} are the same object (a shared "
+                                  "reference in the pickle); a scenario holds one track object per agent. Re-export "
+                                  "the scenario, or drop the duplicated track ids.")
+        seen[id(track)] = agent
         if not isinstance(track, Mapping) or not isinstance(track.get("state"), Mapping):
             raise DataFormatError(f"{path}: track {agent!r} is not a dict with a 'state' dict.")
         pos = _state(track, "position", num_steps, 2, path, agent)[steps]
