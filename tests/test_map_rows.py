@@ -89,3 +89,18 @@ def test_bad_rows_are_refused_with_the_argument_named():
         MapRaster(raster=raster, world_to_pixel=w2p, rows=torch.tensor([0.0, 1.0, 1.0]))
     with pytest.raises(ScenarioValidationError, match=r"world_to_pixel` must have shape \(3, 3, 3\)"):
         MapRaster(raster=raster, world_to_pixel=w2p[:2], rows=torch.tensor([0, 1, 1]))
+
+
+@SETTINGS
+@given(data=st.data(), scenario=scenario_tensors(max_scenes=3, max_agents=4, max_steps=6))
+def test_crops_of_selected_agents_equal_those_of_every_slot(data, scenario):
+    picks = data.draw(_picks(scenario.num_scenes), label="picks")
+    shared = scenario[picks]  # shared raster rows as well as dense ones
+    for view in (shared, _dense(shared)):
+        mask = torch.tensor(data.draw(st.lists(st.booleans(), min_size=view.num_scenes * view.num_agents,
+                                               max_size=view.num_scenes * view.num_agents), label="mask"))
+        mask = mask.reshape(view.num_scenes, view.num_agents)
+        full = map_crops(view, size_px=6, resolution_m=0.7)
+        part = map_crops(view, size_px=6, resolution_m=0.7, agents=mask)
+        assert torch.equal(part[mask], full[mask])
+        assert not part[~mask].any()

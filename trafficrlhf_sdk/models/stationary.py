@@ -48,6 +48,11 @@ class StationaryHold:
         finally:
             self._planning = previous
 
+    @property
+    def in_plan(self) -> bool:
+        """Whether a :meth:`planning` block is open (the caller executes the samples and keeps no trace)."""
+        return self._planning
+
     def mask(self, context: ScenarioTensor) -> torch.Tensor:
         """bool ``(B, A)``: the agents of ``context`` to hold still now."""
         speed = context.states[:, :, context.current_index, 2].abs()

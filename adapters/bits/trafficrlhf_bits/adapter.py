@@ -161,7 +161,7 @@ class BITSAdapter(TrafficModelAdapter):
         goal when ``modes``), driven by the policy. Runs without gradients."""
         now = context.current_index
         with torch.no_grad():
-            feats = select_rows(agent_features(context, self.cfg), agents)
+            feats = select_rows(agent_features(context, self.cfg, agents), agents)
             state_now = context.states[:, :, now][agents]
             held = self._hold.mask(context)[agents]
             out = self.model.goal_net(feats)
@@ -246,7 +246,7 @@ class BITSAdapter(TrafficModelAdapter):
         k = cell.shape[3] if cell.dim() == 4 else 1  # goal sets (train_on_selection): K goals per sample
         rows = cell.reshape(b, s, a, k).transpose(1, 2)[agents].reshape(-1, s * k)  # (N, S*K)
         mask = trace.tensors["drivable"][:, 0][agents]  # (N, cells): the same for every sample
-        feats = select_rows(agent_features(context, self.cfg), agents)
+        feats = select_rows(agent_features(context, self.cfg, agents), agents)
         out = self.model.goal_net(feats)
         log_p = self.model.masked_log_probs(out.logits, mask).gather(1, rows).reshape(-1, s, k).sum(-1)
         return self._scatter(log_p, agents, torch.zeros(b, a, s, device=context.device))
@@ -268,7 +268,7 @@ class BITSAdapter(TrafficModelAdapter):
             mask = window_mask(batch, t, h)
             if not mask.any():
                 continue
-            rows = select_rows(agent_features(batch.replace_unchecked(current_index=t), self.cfg), mask)
+            rows = select_rows(agent_features(batch.replace_unchecked(current_index=t), self.cfg, mask), mask)
             _, states = future_targets(batch, t, h)
             final = states[mask][:, -1]
             goals.append(torch.stack([final[:, 0], final[:, 1], final[:, 3]], -1))
@@ -354,7 +354,7 @@ class BITSAdapter(TrafficModelAdapter):
         now, b, a, h = context.current_index, context.num_scenes, context.num_agents, self.horizon
         valid_now = context.valid[:, :, now]
         agents = output.trace.agents.to(context.device)
-        feats = select_rows(agent_features(context, self.cfg), valid_now)
+        feats = select_rows(agent_features(context, self.cfg, valid_now), valid_now)
         out = self.model.goal_net(feats)
         mask = feats["map"][:, 0].flatten(1) > 0
         local = self.model.policy.rollout(feats, self.model.goal_net.goal_at(out, self.model.mode_goals(out, mask)))

@@ -548,3 +548,31 @@ def test_training_windows_list_the_same_co_denoised_neighbours_as_the_adapter(sc
             target = int(samples["neighbour_row"][original, j])
             assert (row == -1) == (target == -1) and (row == -1 or int(idx[row]) == target)
     assert batch["group"].unique().tolist() == [0]
+
+
+@needs_data
+def test_planning_skips_the_held_agents_denoising_without_changing_the_rollout(scenes, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_ctg import CTGAdapter
+    from trafficrlhf_sdk.models.stationary import StationaryHold
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+    now = scenes.current_index
+    driven = scenes.controlled & scenes.valid[:, :, now]
+    first = driven & (driven.cumsum(-1) == 1)  # the first driven agent of each scene stands still at the start
+    states = scenes.states.clone()
+    states[:, :, now, 2] = torch.where(first, 0.0, states[:, :, now, 2])
+    scenes = scenes.replace_unchecked(states=states)
+    config = SimulationConfig(duration_s=1.0)
+    held = CTGAdapter(seed=3, guidance="no_collision")
+    held.reset(scenes)
+    assert held._hold.mask(scenes)[driven].any() and not held._hold.mask(scenes)[driven].all()
+    calls: list[int] = []
+    original = held.model.denoiser.forward
+    monkeypatch.setattr(held.model.denoiser, "forward", lambda x, *a: calls.append(x.shape[0]) or original(x, *a))
+    skipped = simulate(held, scenes, config)
+    monkeypatch.setattr(StationaryHold, "in_plan", property(lambda self: False))  # denoise every row
+    rows: list[int] = []
+    monkeypatch.setattr(held.model.denoiser, "forward", lambda x, *a: rows.append(x.shape[0]) or original(x, *a))
+    full = simulate(held, scenes, config)
+    assert torch.equal(skipped.simulated.states, full.simulated.states)
+    assert sum(calls) < sum(rows)

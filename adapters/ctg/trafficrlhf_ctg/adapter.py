@@ -295,7 +295,7 @@ class CTGAdapter(TrafficModelAdapter):
         scene-denoising model, the rows' co-denoised neighbours (the other ``agents`` rows); and for a steering
         head that reads the road or the traffic, the rows' drivable crop (the first map layer) and speed (and
         their neighbours and extent)."""
-        features = agent_features(context, self.cfg)
+        features = agent_features(context, self.cfg, crop_agents=agents)
         rows = select_rows(features, agents)
         if self.model.mixer is not None:
             rows["neighbour_row"] = co_denoised_rows(agents, features["neighbour_index"], features["neighbour_valid"])
@@ -361,8 +361,10 @@ class CTGAdapter(TrafficModelAdapter):
             encode, scene, steer_map = self._plan_encoder(context, agents)
             cond, state_now = encode(None), context.states[:, :, now][agents]
             held = self._hold.mask(context)[agents]
+            # inside plan() the held agents' samples are never executed and no trace is kept: skip their denoising
+            active = ~held if self._hold.in_plan else None
             if mode == "proposal" and cond.shape[0] > 0:  # an unguided proposal, then the plans
-                proposal, _, _, _ = self.model.sample(cond, s, generator, steer_map=steer_map)
+                proposal, _, _, _ = self.model.sample(cond, s, generator, steer_map=steer_map, active=active)
                 plan_positions = self._plan_positions(self._scatter(
                     self._rollout(self.model.normalize(proposal), state_now, held), agents, base_futures))
                 cond = encode(plan_positions)
@@ -382,7 +384,7 @@ class CTGAdapter(TrafficModelAdapter):
                     return (loss * agents[:, None]).sum()
 
             actions, chain, delta, log_prob = self.model.sample(cond, s, generator, guidance_fn, cond_fn, scene,
-                                                                steer_map)
+                                                                steer_map, active)
             if cond_fn is not None:
                 plan_positions = torch.stack(step_plans, 3)  # (B, S, A, K, F, 2)
             futures = self._rollout(self.model.normalize(actions), state_now, held)
@@ -491,7 +493,7 @@ class CTGAdapter(TrafficModelAdapter):
             if not mask.any():
                 continue
             at_t = batch.replace_unchecked(current_index=t)
-            features = agent_features(at_t, self.cfg)
+            features = agent_features(at_t, self.cfg, crop_agents=mask)
             rows = select_rows(features, mask)
             if self.model.mixer is not None:
                 row = co_denoised_rows(mask, features["neighbour_index"], features["neighbour_valid"])

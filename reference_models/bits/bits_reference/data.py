@@ -21,15 +21,17 @@ __all__ = ["FEATURE_KEYS", "agent_features", "future_targets", "scene_windows", 
 FEATURE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neighbour_valid", "v0")
 
 
-def agent_features(context: ScenarioTensor, cfg: BITSConfig) -> dict[str, torch.Tensor]:
-    """Features of every agent slot at ``context.current_index``, each with leading dims ``(B, A)``.
+def agent_features(context: ScenarioTensor, cfg: BITSConfig, crop_agents: torch.Tensor | None = None
+                   ) -> dict[str, torch.Tensor]:
+    """Features of every agent slot at ``context.current_index``, each with leading dims ``(B, A)``; with
+    ``crop_agents (B, A)`` the map crops of only those slots (the rows a caller selects), the others left 0.
 
     map ``(B, A, C, S, S)`` ({0, 1}, ``cfg.resolution_m`` per cell, ``cfg.behind_fraction`` of it behind the
     agent), history ``(B, A, Th, 5)`` and history_valid, extent ``(B, A, 2)``, neighbours ``(B, A, K, 7)`` and
     neighbour_valid, v0 ``(B, A)`` (m/s).
     """
     crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.resolution_m,
-                      behind_fraction=cfg.behind_fraction)
+                      behind_fraction=cfg.behind_fraction, agents=crop_agents)
     history, history_valid = history_features(context, cfg.history_steps)
     neighbours, neighbour_valid = neighbour_features(context, cfg.num_neighbours)
     return {

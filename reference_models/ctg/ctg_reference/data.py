@@ -24,9 +24,10 @@ FEATURE_KEYS = ("map", "history", "history_valid", "extent", "neighbours", "neig
 PLAN_KEYS = ("neighbour_plan", "neighbour_plan_valid")
 
 
-def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dtype = torch.float32
-                   ) -> dict[str, torch.Tensor]:
-    """Features of every agent slot at ``context.current_index``, each with leading dims ``(B, A)``.
+def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dtype = torch.float32,
+                   crop_agents: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Features of every agent slot at ``context.current_index``, each with leading dims ``(B, A)``; with
+    ``crop_agents (B, A)`` the map crops of only those slots (the rows a caller selects), the others left 0.
 
     map ``(B, A, C, S, S)`` (``cfg.map_resolution`` m per cell, a quarter of the crop behind the agent),
     history ``(B, A, Th, 5)`` and history_valid, extent ``(B, A, 2)``,
@@ -34,7 +35,7 @@ def agent_features(context: ScenarioTensor, cfg: CTGConfig, map_dtype: torch.dty
     v0 ``(B, A)``.
     """
     crops = map_crops(context, size_px=cfg.map_size, resolution_m=cfg.map_resolution,
-                      behind_fraction=MAP_BEHIND_FRACTION)
+                      behind_fraction=MAP_BEHIND_FRACTION, agents=crop_agents)
     history, history_valid = history_features(context, cfg.history_steps)
     neighbours, neighbour_valid, neighbour_index = neighbour_features(context, cfg.num_neighbours,
                                                                       return_index=True)

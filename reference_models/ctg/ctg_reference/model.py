@@ -325,7 +325,8 @@ class CTGModel(nn.Module):
 
     def sample(self, cond: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
                guidance_fn: GuidanceFn | None = None, cond_fn: CondFn | None = None, scene: SceneRows | None = None,
-               steer_map: SteerMap | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+               steer_map: SteerMap | None = None, active: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Draw ``num_samples`` normalized action sequences per conditioning row.
 
         Args:
@@ -342,6 +343,10 @@ class CTGModel(nn.Module):
             steer_map: for a ``steer_road`` head, the rows' drivable crop ``(N, 1, G, G)`` and speed ``v0 (N,)``;
                 a ``steer_neighbours`` head or a ``follow`` head also needs the rows' neighbours ``(N, K, 7)``,
                 their valid mask ``(N, K)`` and the rows' extent ``(N, 2)`` (see :data:`SteerMap`).
+            active: optional bool ``(N,)``: the rows whose samples the caller uses. The denoiser runs on these
+                only; the noise is still drawn for every row, so the active rows' samples equal those of a call
+                without ``active``, and the other rows return their noise (a planner that holds those agents
+                still). Ignored by scene-denoising models, whose rows read each other's samples.
 
         Returns:
             actions ``(N, S, H, 2)`` physical; chain ``(N, S, K+1, H, 2)`` normalized ``x_K .. x_0``;
@@ -353,6 +358,9 @@ class CTGModel(nn.Module):
         at = draw_device(generator, cond.device)
         x = torch.randn((n * s, h, 2), generator=generator, device=at).to(cond.device)
         schedule = self.sample_schedule
+        rows = None
+        if active is not None and scene is None and not bool(active.all()):
+            rows = active.to(x.device)[:, None].expand(n, s).reshape(-1).nonzero().flatten()
         chain, deltas, log_probs = [x], [], []
         x0 = x
         for i, (k, k_prev) in enumerate(schedule):
@@ -360,7 +368,12 @@ class CTGModel(nn.Module):
                 c = cond_fn(i, x0.reshape(n, s, h, 2)).reshape(n * s, -1)
             c_step = c if scene is None else self._mixed(c.reshape(n, s, -1), x.reshape(n, s, h, 2), k,
                                                           scene).reshape(n * s, -1)
-            mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
+            if rows is None:
+                mean, sigma, x0 = self._transition(x, k, k_prev, c_step, with_x0=True)
+            else:  # the unused rows keep their noise as mean and a zero clean prediction
+                part, sigma, x0_part = self._transition(x[rows], k, k_prev, c_step[rows], with_x0=True)
+                mean, x0 = x.clone(), torch.zeros_like(x)
+                mean[rows], x0[rows] = part, x0_part
             shift = self._head_shifts(c_step, x0, k, steer_map, n)
             if shift is not None:
                 mean = mean + sigma * shift
