@@ -75,6 +75,9 @@ def rm() -> None:
               help="Weight of the contrast pairs' loss [default: RewardConfig].")
 @click.option("--title", default=None, help="Title of the model card.")
 @click.option("--note", "notes", multiple=True, help="Markdown paragraph added to the model card (repeatable).")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run from the newest epoch checkpoint in "
+              "--out/checkpoints, with the same options (--epochs may change); the result equals an uninterrupted "
+              "run's.")
 @click.option("--quiet", is_flag=True, help="No progress bar or per-epoch lines.")
 def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str | None, annotators: tuple[str, ...],
                   out_dir: str, val_fraction: float, split_seed: int, epochs: int | None, lr: float | None,
@@ -84,8 +87,11 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   seed: int, threads: int | None, device: str,
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
                   contrast_scenes: int | None, contrast_weight: float | None, title: str | None,
-                  notes: tuple[str, ...], quiet: bool) -> None:
-    """Train a reward model with the Bradley–Terry loss and save it with its model card."""
+                  notes: tuple[str, ...], resume: bool, quiet: bool) -> None:
+    """Train a reward model with the Bradley–Terry loss and save it with its model card.
+
+    Every epoch is checkpointed in OUT/checkpoints (removed when the model is saved): after Ctrl-C, run the same
+    command with --resume."""
     from trafficrlhf_sdk.reward import RewardConfig
     from trafficrlhf_sdk.reward.card import train_and_save
     from trafficrlhf_sdk.reward.evaluation import load_preferences
@@ -102,14 +108,30 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                           progress=not quiet, **{k: v for k, v in overrides.items() if v is not None})
     # the command line that made this model, for the card
     commands = ["trafficrlhf " + shlex.join(sys.argv[1:])] if os.path.basename(sys.argv[0]) == "trafficrlhf" else []
-    trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
-                             annotators=annotators, contrast_scenes=contrast_scenes, half=half,
-                             test_campaign=test_campaign, test_annotators=test_annotators,
-                             tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
-                             log=None if quiet else _echo_epoch, on_start=lambda info: _echo_start(architecture, info))
+    try:
+        trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
+                                 annotators=annotators, contrast_scenes=contrast_scenes, half=half,
+                                 test_campaign=test_campaign, test_annotators=test_annotators,
+                                 tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
+                                 log=None if quiet else _echo_epoch, resume=resume,
+                                 on_start=lambda info: _echo_start(architecture, info))
+    except KeyboardInterrupt:
+        _echo_resume_hint(out_dir)
+        raise
     result = trained.result
     _echo_metrics(f"trained in {result.train_seconds:.1f} s (best epochs {result.best_epochs}) -> {out_dir}",
                   trained.card["metrics"])
+
+
+def _echo_resume_hint(out_dir: str) -> None:
+    from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
+    from trafficrlhf_sdk.reward.card import CHECKPOINTS_FOLDER
+
+    found = list_checkpoints(os.path.join(out_dir, CHECKPOINTS_FOLDER))
+    if found:
+        click.echo(f"interrupted: {os.path.basename(found[-1])} (epochs done) is kept in "
+                   f"{os.path.join(out_dir, CHECKPOINTS_FOLDER)}; run the same command with --resume to continue.",
+                   err=True)
 
 
 def _echo_start(architecture: str, info: dict[str, Any]) -> None:

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
-__all__ = ["TrainedRewardModel", "describe_reward_model", "model_card", "train_and_save"]
+__all__ = ["CHECKPOINTS_FOLDER", "TrainedRewardModel", "describe_reward_model", "model_card", "train_and_save"]
+
+CHECKPOINTS_FOLDER = "checkpoints"  # inside the output folder, while a training run is unfinished
 
 
 def model_card(metrics: dict[str, Any], model: Any, *, dataset: Any = None, campaigns: Sequence[str] = (),
@@ -73,7 +76,8 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
                    title: str | None = None, notes: Sequence[str] = (), commands: Sequence[str] = (),
                    log: Callable[[dict[str, float]], None] | None = None,
                    on_start: Callable[[dict[str, Any]], None] | None = None, source: str | None = None,
-                   root: str | None = None, future_steps: int = 40, probe_scenes: int = 0) -> TrainedRewardModel:
+                   root: str | None = None, future_steps: int = 40, probe_scenes: int = 0,
+                   resume: bool = False) -> TrainedRewardModel:
     """Train a reward model on ``dataset`` with ``config`` (a :class:`RewardConfig`), test it on a held-out
     campaign, and write ``out_dir``: ``config.json`` + ``model.safetensors`` + ``README.md`` (the card) and
     ``training_log.json``.
@@ -88,6 +92,9 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     ``root``: contrast windows of ``future_steps`` steps, and with ``probe_scenes`` N the probes on N val scenes
     (:func:`~trafficrlhf_sdk.reward.contrast.probe_reward_model`), recorded in the card as ``probe_<kind>`` (the
     pass rate) and returned as ``probes``.
+
+    Every epoch is checkpointed in ``out_dir/checkpoints`` (removed once the model is saved); ``resume`` continues
+    an interrupted run from there, with the same final weights as an uninterrupted one.
     """
     import torch
 
@@ -105,11 +112,13 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     if contrast_scenes:
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
                                                      future_steps=future_steps))
-    trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast)
+    checkpoints = os.path.join(out_dir, CHECKPOINTS_FOLDER)
+    trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast,
+                            checkpoint_dir=checkpoints)
     info = {**trainer.dataset_info, "featurize_seconds": trainer.featurize_seconds}
     if on_start is not None:
         on_start(info)
-    result = trainer.train()
+    result = trainer.train(resume=resume)
     model = result.model
     if half:  # round to float16 now, so the test metrics below are those of the weights that are saved
         model.half().float()
@@ -129,6 +138,7 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
         json.dump({"history": result.history, "best_epochs": result.best_epochs,
                    "train_seconds": result.train_seconds, "featurize_seconds": result.featurize_seconds}, handle,
                   indent=2)
+    shutil.rmtree(checkpoints, ignore_errors=True)  # the run is complete: nothing left to resume
     return TrainedRewardModel(model, result, card, out_dir, info, probes)
 
 

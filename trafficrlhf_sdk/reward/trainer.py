@@ -8,6 +8,11 @@ reward range on the training batches and the validation contexts, stops early wh
 improving and restores the best epoch. With ``ensemble_size > 1`` it trains a bootstrap ensemble
 (:class:`~trafficrlhf_sdk.reward.model.RewardEnsemble`) whose spread across members is the uncertainty.
 
+With ``checkpoint_dir`` the trainer checkpoints every epoch (weights, moving average, best epoch so far,
+optimizer, early-stopping counter, the shuffling generator and torch's RNG) through the same machinery as
+``align`` (:mod:`trafficrlhf_sdk.alignment.checkpointing`); ``train(resume=True)`` continues from the newest one,
+and the final weights equal those of an uninterrupted run bit for bit.
+
 Example:
     >>> trainer = RewardTrainer(RewardConfig(), train_dataset=PreferenceDataset.load("prefs"))
     >>> result = trainer.train()
@@ -17,7 +22,10 @@ Example:
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from collections.abc import Callable
@@ -25,14 +33,18 @@ from typing import Any
 
 import torch
 
-from trafficrlhf_sdk.errors import DataFormatError, DeviceUnavailableError
+from trafficrlhf_sdk.errors import DataFormatError, DeviceUnavailableError, TrafficRLHFError
 from trafficrlhf_sdk.feedback.preference import PreferenceDataset
 from trafficrlhf_sdk.reward.config import RewardConfig
 from trafficrlhf_sdk.reward.data import PairData, build_pair_data, split_by_context
 from trafficrlhf_sdk.reward.losses import bradley_terry_loss, preference_metrics
 from trafficrlhf_sdk.reward.model import RewardEnsemble, RewardModel, get_reward_model_architecture
 
-__all__ = ["RewardTrainer", "TrainingResult", "evaluate_pairs", "training_device"]
+__all__ = ["RESUME_FREE_FIELDS", "RewardTrainer", "TrainingResult", "evaluate_pairs", "training_device"]
+
+TENSORS_FILE = "trainer_tensors.safetensors"
+# RewardConfig fields a resumed run may differ in: they change neither the data nor any computed value
+RESUME_FREE_FIELDS = frozenset({"progress", "max_epochs"})
 
 
 @dataclass
@@ -108,13 +120,17 @@ class RewardTrainer:
         contrast_dataset: automatic contrast pairs (:func:`~trafficrlhf_sdk.reward.contrast.contrast_dataset`):
             every optimiser step adds ``config.contrast_weight`` times their Bradley–Terry loss on a batch of
             them; they never enter the validation figures.
+        checkpoint_dir: a folder for a checkpoint after every epoch (``checkpoint-N``, N the epochs done over
+            all members; the newest two are kept); :meth:`train` with ``resume=True`` continues from it.
     """
 
     def __init__(self, config: RewardConfig | None = None, train_dataset: PreferenceDataset | PairData | None = None,
                  eval_dataset: PreferenceDataset | PairData | None = None, model: RewardModel | None = None,
                  labels: torch.Tensor | None = None, log: Callable[[dict[str, float]], None] | None = None,
-                 contrast_dataset: PreferenceDataset | None = None) -> None:
+                 contrast_dataset: PreferenceDataset | None = None, checkpoint_dir: str | None = None) -> None:
         self.config = config or RewardConfig()
+        self.checkpoint_dir = checkpoint_dir
+        self._finished: list[tuple[RewardModel, int, list[dict[str, float]]]] = []
         training_device(self.config.device)  # before featurizing, which can take a while
         self.architecture = get_reward_model_architecture(self.config.architecture)
         if train_dataset is None:
@@ -157,16 +173,32 @@ class RewardTrainer:
         return build_pair_data(self._template.prepare, data, labels, split, progress=self.config.progress)
 
     # -------------------------------------------------------------------- train
-    def train(self) -> TrainingResult:
-        """Train (every ensemble member), restore the best epochs, set ``self.model`` and return the result."""
+    def train(self, resume: bool = False) -> TrainingResult:
+        """Train (every ensemble member), restore the best epochs, set ``self.model`` and return the result.
+
+        ``resume`` continues from the newest intact checkpoint in ``checkpoint_dir`` (an error when there is
+        none, or when the settings or the data differ from the checkpoint's). Without it, a ``checkpoint_dir``
+        that already holds checkpoints is refused rather than overwritten."""
         cfg = self.config
         device = training_device(cfg.device)
+        saved = self._resume_state() if resume else None
+        if saved is None and self.checkpoint_dir is not None:
+            from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
+
+            found = list_checkpoints(self.checkpoint_dir)
+            if found:
+                raise TrafficRLHFError(
+                    f"{self.checkpoint_dir!r} holds checkpoints of an unfinished run (newest: "
+                    f"{os.path.basename(found[-1])}); continue it with --resume (resume=True), or delete that folder "
+                    "to start over.")
         threads = torch.get_num_threads()
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
         began = time.perf_counter()
+        self._finished = []
         try:
             members, history, best_epochs = [], [], []
+            start = 0 if saved is None else int(saved["state"]["member"])
             for m in range(cfg.ensemble_size):
                 torch.manual_seed(cfg.seed + 1000 * m)
                 if self.model is not None and cfg.ensemble_size == 1:
@@ -174,10 +206,17 @@ class RewardTrainer:
                 else:
                     member = self.architecture(self.config.architecture_config)
                 member.to(device)
-                best_epoch, member_history = self._train_member(member, m)
+                if m < start:  # finished before the interruption: its final weights are in the checkpoint
+                    assert saved is not None
+                    done = saved["state"]["finished"][m]
+                    member.load_state_dict(_prefixed(saved["tensors"], f"done{m}."))
+                    best_epoch, member_history = int(done["best_epoch"]), list(done["history"])
+                else:
+                    best_epoch, member_history = self._train_member(member, m, saved if m == start else None)
                 members.append(member)
                 history += member_history
                 best_epochs.append(best_epoch)
+                self._finished.append((member, best_epoch, member_history))
         finally:
             torch.set_num_threads(threads)
         model = members[0] if len(members) == 1 else RewardEnsemble(members=members)
@@ -193,7 +232,8 @@ class RewardTrainer:
         return TrainingResult(model, history, metrics, best_epochs, seconds, self.featurize_seconds,
                               dict(self.dataset_info))
 
-    def _train_member(self, model: RewardModel, member: int) -> tuple[int, list[dict[str, float]]]:
+    def _train_member(self, model: RewardModel, member: int,
+                      saved: dict[str, Any] | None = None) -> tuple[int, list[dict[str, float]]]:
         cfg = self.config
         generator = torch.Generator().manual_seed(cfg.seed + 7919 * member)
         contexts = self.train_data.contexts_with_pairs()
@@ -201,12 +241,6 @@ class RewardTrainer:
             contexts = contexts[torch.randint(len(contexts), (len(contexts),), generator=generator)]
         optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
         steps_per_epoch = math.ceil(len(contexts) / cfg.batch_size)
-        bar = None
-        if cfg.progress:
-            from trafficrlhf_sdk.console import progress
-
-            label = f"reward model {member + 1}/{cfg.ensemble_size}" if cfg.ensemble_size > 1 else "reward model"
-            bar = progress(total=cfg.max_epochs * steps_per_epoch, desc=label, unit="step", leave=False)
         best = (math.inf, -1, copy.deepcopy(model.state_dict()))
         history: list[dict[str, float]] = []
         stale = 0
@@ -216,7 +250,29 @@ class RewardTrainer:
         contrast = self.contrast_data
         contrast_contexts = None if contrast is None else contrast.contexts_with_pairs()
         contrast_at = 0
-        for epoch in range(1, cfg.max_epochs + 1):
+        first_epoch, stopped = 1, False
+        if saved is not None:  # continue exactly where the checkpoint left this member
+            state, tensors = saved["state"], saved["tensors"]
+            model.load_state_dict(_prefixed(tensors, "model."))
+            if ema is not None:
+                ema = {k: v.to(ema[k].device) for k, v in _prefixed(tensors, "ema.").items()}
+            if state["best_epoch"] > 0:
+                best = (float(state["best_value"]), int(state["best_epoch"]), _prefixed(tensors, "best."))
+            from trafficrlhf_sdk.alignment.checkpointing import load_optimizer_state
+
+            load_optimizer_state(optimizer, _prefixed(tensors, "optimizer."), state["optimizer"])
+            generator.set_state(tensors["generator_state"])
+            torch.set_rng_state(tensors["torch_rng_state"])
+            history, stale, contrast_at = list(state["history"]), int(state["stale"]), int(state["contrast_at"])
+            first_epoch, stopped = int(state["epoch"]) + 1, bool(state["stopped"])
+        bar = None
+        if cfg.progress:
+            from trafficrlhf_sdk.console import progress
+
+            label = f"reward model {member + 1}/{cfg.ensemble_size}" if cfg.ensemble_size > 1 else "reward model"
+            bar = progress(total=cfg.max_epochs * steps_per_epoch, initial=(first_epoch - 1) * steps_per_epoch,
+                           desc=label, unit="step", leave=False)
+        for epoch in range(first_epoch, 1 if stopped else cfg.max_epochs + 1):
             tic = time.perf_counter()
             model.train()
             order = contexts[torch.randperm(len(contexts), generator=generator)]
@@ -265,11 +321,6 @@ class RewardTrainer:
                             if k != "num_pairs"})
             row["seconds"] = time.perf_counter() - tic
             history.append(row)
-            if self.log is not None:
-                self.log(dict(row))
-            if bar is not None:
-                bar.set_postfix({k: f"{v:.3f}" for k, v in row.items() if k in ("train_loss", "val_loss",
-                                                                                 "val_accuracy")})
             if "val_loss" in row:
                 value = row["val_loss"] if cfg.metric_mode == "loss" else -row["val_accuracy"]
                 if value < best[0] - cfg.early_stopping_min_delta:
@@ -278,7 +329,17 @@ class RewardTrainer:
                     stale += 1
             if raw is not None:
                 model.load_state_dict(raw)
-            if "val_loss" in row and cfg.early_stopping_patience is not None and stale >= cfg.early_stopping_patience:
+            stop = ("val_loss" in row and cfg.early_stopping_patience is not None
+                    and stale >= cfg.early_stopping_patience)
+            if self.checkpoint_dir is not None:  # before anything that may be interrupted: this epoch is kept
+                self._save_checkpoint(member, epoch, stop, model, ema, best, optimizer, generator, history, stale,
+                                      contrast_at)
+            if self.log is not None:
+                self.log(dict(row))
+            if bar is not None:
+                bar.set_postfix({k: f"{v:.3f}" for k, v in row.items() if k in ("train_loss", "val_loss",
+                                                                                 "val_accuracy")})
+            if stop:
                 break
         if bar is not None:
             bar.close()
@@ -288,6 +349,83 @@ class RewardTrainer:
         if ema is not None:
             model.load_state_dict(ema)
         return len(history), history
+
+    # ---------------------------------------------------------------- checkpoints
+    def _fingerprint(self) -> str:
+        """SHA-256 of the pairs trained and validated on (a resumed run must see the same data)."""
+        digest = hashlib.sha256()
+        for data in (self.train_data, self.eval_data, self.contrast_data):
+            if data is None:
+                digest.update(b"-")
+                continue
+            for tensor in (data.winner, data.loser, data.labels, data.pair_context):
+                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+            digest.update(json.dumps(data.context_keys, sort_keys=True, default=str).encode())
+        return digest.hexdigest()
+
+    def _save_checkpoint(self, member: int, epoch: int, stopped: bool, model: RewardModel,
+                         ema: dict[str, torch.Tensor] | None, best: tuple[float, int, dict[str, torch.Tensor]],
+                         optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                         history: list[dict[str, float]], stale: int, contrast_at: int) -> str:
+        from safetensors.torch import save_file
+
+        from trafficrlhf_sdk.alignment.checkpointing import STATE_FILE, optimizer_state_files, write_checkpoint
+
+        assert self.checkpoint_dir is not None
+        optimizer_tensors, optimizer_meta = optimizer_state_files(optimizer)
+        tensors = {**{f"model.{k}": v for k, v in model.state_dict().items()},
+                   **{f"optimizer.{k}": v for k, v in optimizer_tensors.items()},
+                   "generator_state": generator.get_state(), "torch_rng_state": torch.get_rng_state()}
+        if ema is not None:
+            tensors.update({f"ema.{k}": v for k, v in ema.items()})
+        if best[1] > 0:
+            tensors.update({f"best.{k}": v for k, v in best[2].items()})
+        for m, (done, _, _) in enumerate(self._finished):
+            tensors.update({f"done{m}.{k}": v for k, v in done.state_dict().items()})
+        state = {"member": member, "epoch": epoch, "stopped": stopped, "stale": stale, "contrast_at": contrast_at,
+                 "best_value": best[0], "best_epoch": best[1], "history": history,
+                 "finished": [{"best_epoch": b, "history": h} for _, b, h in self._finished],
+                 "optimizer": optimizer_meta, "config": self.config.model_dump(mode="json"),
+                 "data_sha256": self._fingerprint()}
+
+        def write(folder: str) -> None:
+            save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()},
+                      os.path.join(folder, TENSORS_FILE), metadata={"format": "pt"})
+            with open(os.path.join(folder, STATE_FILE), "w", encoding="utf-8") as handle:
+                json.dump(state, handle)
+
+        epochs_done = sum(len(h) for _, _, h in self._finished) + epoch
+        return write_checkpoint(self.checkpoint_dir, epochs_done, write)
+
+    def _resume_state(self) -> dict[str, Any]:
+        """The newest intact checkpoint of ``checkpoint_dir`` as ``{"state": ..., "tensors": ...}``, after checking
+        that it belongs to this run (settings and data)."""
+        from trafficrlhf_sdk.alignment.checkpointing import STATE_FILE, resume_newest
+        from trafficrlhf_sdk.scenario.io import safe_load_file
+
+        if self.checkpoint_dir is None:
+            raise TrafficRLHFError("resume needs `checkpoint_dir` (the --out of the interrupted run).")
+        loaded: dict[str, Any] = {}
+
+        def load(folder: str) -> None:
+            with open(os.path.join(folder, STATE_FILE), encoding="utf-8") as handle:
+                state = json.load(handle)
+            now = self.config.model_dump(mode="json")
+            changed = {k: (state["config"].get(k), v) for k, v in now.items()
+                       if k not in RESUME_FREE_FIELDS and state["config"].get(k) != v}
+            if changed:
+                shown = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in sorted(changed.items())[:5])
+                raise _ResumeMismatch(f"resume: the settings differ from checkpoint {folder!r} ({shown}); resume "
+                                      "with the options of the interrupted run (only --epochs may change).")
+            if state["data_sha256"] != self._fingerprint():
+                raise _ResumeMismatch(f"resume: checkpoint {folder!r} trained on other preference pairs than this "
+                                      "run's (campaigns, annotators, --val-fraction or --split-seed differ); resume "
+                                      "with the data options of the interrupted run.")
+            tensors, _ = safe_load_file(os.path.join(folder, TENSORS_FILE))
+            loaded.update(state=state, tensors=tensors)
+
+        resume_newest(self.checkpoint_dir, load, lambda exc: isinstance(exc, _ResumeMismatch))
+        return loaded
 
     def _final_metrics(self, model: RewardModel, members: list[RewardModel]) -> dict[str, float]:
         metrics: dict[str, float] = {}
@@ -312,3 +450,12 @@ class RewardTrainer:
         data = dataset if isinstance(dataset, PairData) else build_pair_data(
             self.model.prepare, dataset, split=tuple("val" for _ in range(dataset.num_contexts)))
         return evaluate_pairs(self.model, data, self.config)
+
+
+class _ResumeMismatch(TrafficRLHFError):
+    """A checkpoint is intact but belongs to another run (settings or data); resuming must stop, not fall back."""
+
+
+def _prefixed(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    """The entries of ``tensors`` whose key starts with ``prefix``, the prefix removed."""
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
