@@ -37,7 +37,7 @@ from typing import Any, Literal
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.errors import DataFormatError, TrafficRLHFError
 from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
 from trafficrlhf_sdk.parallel import ExecutionConfig, run_tasks
@@ -284,6 +284,12 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
             context, cands, cand_valid, logged, logged_valid = _mixed_candidates(
                 campaign, source.load_scene(cfg["split"], scene_id), slots, cfg, (cfg["source"], cfg["split"],
                                                                                   scene_id))
+        if not bool(context.controlled.any()):
+            raise DataFormatError(
+                f"{cfg['source']}/{cfg['split']}/{scene_id}: the context has no controlled agent (no vehicle is "
+                "present at its start on the drivable layer of its map), so its items would show nobody to judge; "
+                "nothing was stored for it. Leave the scene out of the campaign, or fix its map."
+            )
         added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
                                        cand_valid, logged, logged_valid, __version__, candidate_models=slots))
         if on_context is not None:
