@@ -22,7 +22,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.errors import DataFormatError, TrafficRLHFError
 from trafficrlhf_sdk.evaluation.compare import run_label
 from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, EvaluationReport, evaluate_policy, seeds_summary
 from trafficrlhf_sdk.parallel import ExecutionConfig
@@ -288,6 +288,13 @@ def run_evaluation(request: EvaluationRequest, out_dir: str | None = None, rende
     runs = evaluate_seeds(lambda seed: first if seed == request.seeds[0] else build(seed), scenario, request.seeds,
                           config, extra_metrics=extra_metrics, progress=progress, execution=execution,
                           metadata=request.metadata(model, scene_ids, guidance or None))
+    if runs.reports[0].num_controlled_agents == 0:
+        raise DataFormatError(
+            f"none of the {len(scene_ids)} scenes ({', '.join(scene_ids[:5])}{', ...' if len(scene_ids) > 5 else ''})"
+            f" of {request.source}/{request.split} has an agent to drive (a vehicle present at 'now' on the drivable "
+            "layer of its map), so every metric would be empty; nothing was written. Pick other scenes, or fix the "
+            "scenes' maps."
+        )
     outcome = EvaluationOutcome(runs, model)
     if out_dir is not None:
         if not (len(runs.reports) > 1 if seed_folders is None else seed_folders):

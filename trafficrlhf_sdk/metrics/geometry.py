@@ -57,13 +57,32 @@ def colliding_pairs(
         ``(scene, i, j, step)``, each int64 ``(P,)``: agents ``i < j`` of ``scene`` overlap at ``step``.
 
     A circumscribed-circle test prunes pairs first, so only nearby pairs reach the exact box test, which runs
-    in float64.
+    in float64. The pairs are taken ``PAIR_CHUNK_CELLS // (B * T)`` at a time, so memory follows a chunk (and the
+    overlaps found), not the ``A^2 T`` pairs of a large scene; the result is the same in the same order.
     """
-    a = valid.shape[1]
+    b, a, t = valid.shape
     empty = torch.zeros(0, dtype=torch.long, device=xy.device)
     if a < 2:
         return empty, empty, empty, empty
     first, second = torch.triu_indices(a, a, 1, device=xy.device)  # each unordered pair once, (P,)
+    chunk = max(1, PAIR_CHUNK_CELLS // max(1, b * t))
+    if len(first) <= chunk:
+        return _colliding_pairs(xy, yaw, extent, valid, first, second)
+    parts = [_colliding_pairs(xy, yaw, extent, valid, first[lo:lo + chunk], second[lo:lo + chunk])
+             for lo in range(0, len(first), chunk)]
+    scene, i, j, step = (torch.cat([part[k] for part in parts]) for k in range(4))
+    # the order of one pass over every pair: by scene, then pair (i, j), then step
+    order = torch.argsort(((scene * a + i) * a + j) * t + step)
+    return scene[order], i[order], j[order], step[order]
+
+
+PAIR_CHUNK_CELLS = 1 << 22  # scene x pair x step cells tested at once by colliding_pairs (4 M: tens of MB)
+
+
+def _colliding_pairs(xy: torch.Tensor, yaw: torch.Tensor, extent: torch.Tensor, valid: torch.Tensor,
+                     first: torch.Tensor, second: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`colliding_pairs` over the agent pairs ``(first, second)`` only."""
     # most agent slots are padding or absent: list the pairs valid together first, then prune those by distance
     scene, pair, step = (valid[:, first] & valid[:, second]).nonzero(as_tuple=True)
     i, j = first[pair], second[pair]
