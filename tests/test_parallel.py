@@ -63,12 +63,14 @@ def test_evaluation_on_ray_equals_in_process(ray_head, val_scenes) -> None:  # t
 
 
 @pytest.mark.data
-def test_campaign_candidates_on_ray_equal_in_process(ray_head, tmp_path, nuscenes_source) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("contexts", ["log", "closed_loop"])
+def test_campaign_candidates_on_ray_equal_in_process(ray_head, tmp_path, nuscenes_source, contexts) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign
     from trafficrlhf_sdk.feedback.store import FeedbackStore
 
     config = CampaignConfig(name="c", model="noisy_log", num_contexts=3, num_candidates=3, candidate_seconds=2.0,
-                            root=nuscenes_source.root, model_options={"position_noise_m": 2.0}, seed=4)
+                            root=nuscenes_source.root, model_options={"position_noise_m": 2.0}, seed=4,
+                            contexts=contexts, drive_seconds=2.0)
     local_store, ray_store = FeedbackStore(tmp_path / "a.db"), FeedbackStore(tmp_path / "b.db")
     local = create_campaign(local_store, config)
     remote = create_campaign(ray_store, config, execution=RAY)

@@ -259,31 +259,17 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
           on_context: Callable[[str], None] | None, execution: ExecutionConfig | None = None) -> CampaignReport:
     cfg = campaign.config
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
-    added, skipped = [], []
-    made: dict[str, Any] = {}
-    if execution is not None and execution.uses_ray:  # scale-out hook: generate on Ray workers, store here
-        todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
+    todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
+    skipped = [s for s in scene_ids if (cfg["source"], cfg["split"], s) in present]
+    if execution is not None and execution.uses_ray:  # scale-out: generate on Ray workers, store here
         made = campaign_candidates(campaign, source, todo, execution)
-    for scene_id in scene_ids:
-        if (cfg["source"], cfg["split"], scene_id) in present:
-            skipped.append(scene_id)
-            continue
+        parts: Any = (made.pop(scene_id) for scene_id in todo)
+    else:  # in-process, one context at a time (each stored as soon as it is made), the model built once
+        shared = _shared_payload(campaign, source)
+        parts = (_candidates_task(shared, scene_id) for scene_id in todo)
+    added = []
+    for scene_id, (context, cands, cand_valid, logged, logged_valid) in zip(todo, parts):
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
-        slots = cfg.get("candidate_models")
-        if scene_id in made:
-            context, cands, cand_valid, logged, logged_valid = made.pop(scene_id)
-        elif not slots:
-            scene = source.load_scene(cfg["split"], scene_id)
-            policy = campaign_policy(campaign.model, campaign.guidance, seed, cfg.get("model_options"))
-            if cfg.get("contexts", "log") == "closed_loop":
-                scene = closed_loop_context(policy, scene, cfg["drive_seconds"], cfg["candidate_seconds"], seed)
-            with torch.no_grad():
-                context, cands, cand_valid, logged, logged_valid = generate_candidates(
-                    policy, scene, campaign.num_candidates, cfg["candidate_seconds"], cfg["map_margin_m"])
-        else:
-            context, cands, cand_valid, logged, logged_valid = _mixed_candidates(
-                campaign, source.load_scene(cfg["split"], scene_id), slots, cfg, (cfg["source"], cfg["split"],
-                                                                                  scene_id))
         if not bool(context.controlled.any()):
             raise DataFormatError(
                 f"{cfg['source']}/{cfg['split']}/{scene_id}: the context has no controlled agent (no vehicle is "
@@ -291,7 +277,8 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
                 "nothing was stored for it. Leave the scene out of the campaign, or fix its map."
             )
         added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
-                                       cand_valid, logged, logged_valid, __version__, candidate_models=slots))
+                                       cand_valid, logged, logged_valid, __version__,
+                                       candidate_models=cfg.get("candidate_models")))
         if on_context is not None:
             on_context(scene_id)
     return CampaignReport(store.campaign(campaign.id), added, skipped)
@@ -324,16 +311,29 @@ def _mixed_candidates(campaign: Campaign, scene: ScenarioTensor, slots: list[str
     return context, candidates, candidate_valid, logged, logged_valid
 
 
+def _shared_payload(campaign: Campaign, source: Any) -> dict[str, Any]:
+    """What every context's task reads: the campaign, the source and the model, built once (None for a campaign
+    that mixes models, which :func:`_mixed_candidates` builds per context)."""
+    cfg = campaign.config
+    policy = None if cfg.get("candidate_models") else \
+        campaign_policy(campaign.model, campaign.guidance, campaign.seed, cfg.get("model_options"))
+    return {"campaign": campaign, "source": source, "policy": policy}
+
+
 def _candidates_task(shared: dict[str, Any], scene_id: str) -> tuple[Any, ...]:
     """One campaign context's candidates (runs in-process or on a Ray worker): the scene is read from the shipped
-    source, and the shipped model is re-seeded with the context's seed (what building it with that seed does)."""
+    source, and the shipped model is re-seeded with the context's seed (what building it with that seed does);
+    for ``contexts="closed_loop"`` the model first drives the scene to the context (:func:`closed_loop_context`)."""
     campaign, cfg = shared["campaign"], shared["campaign"].config
     scene = shared["source"].load_scene(cfg["split"], scene_id)
     key = (cfg["source"], cfg["split"], scene_id)
     if cfg.get("candidate_models"):
         return _mixed_candidates(campaign, scene, cfg["candidate_models"], cfg, key)
     policy = shared["policy"]
-    seed_policy(policy, context_seed(campaign.seed, *key))
+    seed = context_seed(campaign.seed, *key)
+    seed_policy(policy, seed)
+    if cfg.get("contexts", "log") == "closed_loop":
+        scene = closed_loop_context(policy, scene, cfg["drive_seconds"], cfg["candidate_seconds"], seed)
     with torch.no_grad():
         return generate_candidates(policy, scene, campaign.num_candidates, cfg["candidate_seconds"],
                                    cfg["map_margin_m"])
@@ -345,8 +345,5 @@ def campaign_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str
     logged_valid)}``, as :func:`create_campaign` makes them, computed on ``execution`` (Ray workers; in-process
     without). The model is built once and shipped once with the source; each task re-seeds it with its context's
     seed. Storing stays with the caller (one writer to the database)."""
-    cfg = campaign.config
-    policy = None if cfg.get("candidate_models") else \
-        campaign_policy(campaign.model, campaign.guidance, campaign.seed, cfg.get("model_options"))
-    shared = {"campaign": campaign, "source": source, "policy": policy}
+    shared = _shared_payload(campaign, source)
     return dict(zip(scene_ids, run_tasks(_candidates_task, shared, list(scene_ids), execution)))
