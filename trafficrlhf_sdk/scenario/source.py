@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 import os
+import warnings
 from collections.abc import Iterator, Sequence
 from typing import ClassVar
 
@@ -66,11 +67,16 @@ class ScenarioSource(abc.ABC):
     def __init__(self, config: SourceConfig | None = None, **options: object) -> None:
         """``config``, or a ``Config`` built from ``options`` over those of ``$TRAFFICRLHF_SOURCE_OPTIONS``."""
         if config is None:
-            merged = {**environment_options(), **options}
+            fields, from_env = self.Config.model_fields, environment_options()
+            ignored = sorted(set(from_env) - set(fields))
+            if ignored:  # another source's option, or a typo: say so, never fail a source that does not take it
+                warnings.warn(f"${SOURCE_OPTIONS_ENV}: source {self.name!r} takes no option {ignored}; ignored. Its "
+                              f"options are {sorted(fields)}.", stacklevel=2)
+            merged = {**{k: v for k, v in from_env.items() if k in fields}, **options}
             try:
                 config = self.Config(**merged)
             except ValidationError as exc:
-                if not set(environment_options()) - set(options):
+                if not set(merged) - set(options):
                     raise
                 raise TrafficRLHFError(f"source {self.name!r}: the options {merged} (with those of "
                                        f"${SOURCE_OPTIONS_ENV}) are not valid: {_first_error(exc)}; fix "
@@ -123,8 +129,8 @@ class ScenarioSource(abc.ABC):
 
 def environment_options() -> dict[str, str]:
     """Source options from ``$TRAFFICRLHF_SOURCE_OPTIONS``, comma-separated ``key=value`` pairs (e.g.
-    ``min_on_map_share=0,max_agents=4096``): every command that opens a source gets them; options given in
-    code or on the command line win."""
+    ``min_on_map_share=0,max_agents=4096``): every command that opens a source gets those its source takes;
+    options given in code or on the command line win; a key the source does not take is ignored with a warning."""
     text = os.environ.get(SOURCE_OPTIONS_ENV, "").strip()
     options: dict[str, str] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
