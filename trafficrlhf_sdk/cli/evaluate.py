@@ -81,13 +81,15 @@ def _fmt(value: float | None) -> str:
 @click.option("--after-log-end", type=click.Choice(["end", "continue"]), default="end", show_default=True,
               help="A driven agent whose logged track ends before the rollout does: removed from the scene from "
                    "then on (end) or driven to the end of the rollout (continue, upstream).")
-@click.option("--rollouts", type=click.IntRange(min=1), default=1, show_default=True,
-              help="K rollouts per scene. K >= 2 adds the realism meta-metric (WOSAC style; 8 is the usual K: compare "
-                   "models only at equal K) and pools the other metrics over the K rollouts.")
-@click.option("--duration", type=click.FloatRange(min=0.5), default=10.0, show_default=True,
-              help="Seconds simulated after the 3 s of history; scenes shorter than 3 s + DURATION are skipped (and "
-                   "counted). The paper's protocol is 10 s; a shorter one makes short scenes usable (e.g. ScenarioNet "
-                   "exports), but its numbers compare only with runs of the same duration.")
+@click.option("--rollouts", type=click.IntRange(min=1, max=64), default=1, show_default=True,
+              help="K rollouts per scene, at most 64 (all are held in memory). K >= 2 adds the realism meta-metric "
+                   "(WOSAC style; 8 is the usual K: compare models only at equal K) and pools the other metrics over "
+                   "the K rollouts.")
+@click.option("--duration", type=click.FloatRange(min=1.0), default=10.0, show_default=True,
+              help="Seconds simulated after the 3 s of history, at least 1 (the realism metrics need three samples "
+                   "0.5 s apart); scenes shorter than 3 s + DURATION are skipped (and counted). The paper's protocol "
+                   "is 10 s; a shorter one makes short scenes usable (e.g. ScenarioNet exports), but its numbers "
+                   "compare only with runs of the same duration.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
               help="Run the (rollout, batch) simulations on N Ray workers started for the run (pip install "
                    "'trafficrlhf-sdk[ray]'); 0 runs in-process. Same seeds give the same numbers either way.")

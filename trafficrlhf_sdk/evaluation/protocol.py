@@ -41,8 +41,9 @@ class EvaluationConfig(BaseModel):
     batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch (memory bound).")
     seed: int = Field(0, description="Seed of the run: each (rollout, batch) task seeds torch's global generator "
                       "and the policy's sampler from it (derive_seed), in-process and on Ray alike.")
-    rollouts: int = Field(1, ge=1, description="K rollouts per scene. K >= 2 adds the realism meta-metric "
-                          "(RealismMetaMetric); the other metrics are pooled over the K rollouts.")
+    rollouts: int = Field(1, ge=1, le=64, description="K rollouts per scene, at most 64 (every rollout is held in "
+                          "memory until the metrics run). K >= 2 adds the realism meta-metric (RealismMetaMetric); "
+                          "the other metrics are pooled over the K rollouts.")
     meta: RealismMetaConfig | None = Field(None, description="Meta-metric options; None uses the defaults with "
                                            "K = `rollouts`.")
 
