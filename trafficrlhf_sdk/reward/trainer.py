@@ -337,7 +337,7 @@ class RewardTrainer:
             if self.log is not None:
                 self.log(dict(row))
             if bar is not None:
-                bar.set_postfix({k: f"{v:.3f}" for k, v in row.items() if k in ("train_loss", "val_loss",
+                bar.set_postfix(**{k: f"{v:.3f}" for k, v in row.items() if k in ("train_loss", "val_loss",
                                                                                  "val_accuracy")})
             if stop:
                 break
