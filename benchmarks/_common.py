@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import platform
 import resource
@@ -47,13 +48,27 @@ def configure_threads() -> None:
         torch.set_num_threads(args.threads)
 
 
+MAX_IDLE_LOAD = 0.5
+"""The largest 1-minute load average before a run for its figures to count as measured alone."""
+
+
 def header(title: str) -> None:
-    """Apply ``--threads`` and print what runs where."""
+    """Apply ``--threads``, print what runs where and the load average now, and at exit the load average then,
+    with a verdict: a run that started on a busy machine is marked UNDER LOAD and its figures are not to be
+    reported (other jobs' work is in them)."""
     configure_threads()
+    before = os.getloadavg()[0]
     print(f"== {title}")
     print(f"   python {platform.python_version()}, torch {torch.__version__}, {torch.get_num_threads()} torch threads, "
-          f"{os.cpu_count()} CPUs, {platform.machine()}; load average {os.getloadavg()[0]:.2f} (other processes "
-          "may share the machine)")
+          f"{os.cpu_count()} CPUs, {platform.machine()}; load average before {before:.2f}")
+
+    def verdict() -> None:
+        after = os.getloadavg()[0]
+        alone = before <= MAX_IDLE_LOAD
+        print(f"== load average before {before:.2f}, after {after:.2f}: "
+              + ("measured alone" if alone else f"UNDER LOAD (> {MAX_IDLE_LOAD} before): discard these figures"))
+
+    atexit.register(verdict)
 
 
 def load_val(num_scenes: int = 100):  # type: ignore[no-untyped-def]

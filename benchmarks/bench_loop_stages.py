@@ -26,7 +26,7 @@ import os
 import tempfile
 import time
 
-from _common import ROOT, header, peak_rss_mb
+from _common import MAX_IDLE_LOAD, ROOT, header, peak_rss_mb
 
 RECIPE = os.path.join(ROOT, "docs", "recipes", "ctg-ladder.toml")
 
@@ -87,7 +87,7 @@ def main() -> None:
     parser.add_argument("--rm-epochs", type=int, default=5, help="Reward-model epochs per run.")
     parser.add_argument("--align-epochs", type=int, default=2, help="Fine-tuning epochs per run.")
     parser.add_argument("--scenes", type=int, default=20, help="Val scenes evaluated per run.")
-    parser.add_argument("--max-load", type=float, default=0.5, help="Largest 1-minute load average before a "
+    parser.add_argument("--max-load", type=float, default=MAX_IDLE_LOAD, help="Largest 1-minute load average before a "
                         "stage for its figure to count as measured alone.")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (header applies it).")
     args = parser.parse_args()
