@@ -91,3 +91,113 @@ def test_invalid_architecture_options_name_the_option_and_value(option: str, key
                             "--architecture-option", option], capsys)
     assert code == 2 and "internal error" not in err and f"option `{key}`" in err
     assert not (tmp_path / "m").exists()
+
+
+# ------------------------------------------------------------------------------------ reward models at load
+SMALL_ARCH = {"hidden_sizes": [16, 8], "map_channels": [2, 4], "map_embedding": 4}
+
+
+def saved_model(tmp_path: Path, scale: float, name: str = "model") -> Path:
+    import torch
+
+    from trafficrlhf_sdk.reward.ctg_mlp import CTGMLPRewardModel
+
+    torch.manual_seed(0)
+    model = CTGMLPRewardModel(SMALL_ARCH)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.mul_(scale)
+    out = tmp_path / name
+    model.save_pretrained(out)
+    return out
+
+
+@pytest.mark.parametrize("scale", [1e30, 1e20])
+def test_finite_but_huge_weights_are_refused_at_load(scale: float, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from trafficrlhf_sdk.errors import RewardModelError
+    from trafficrlhf_sdk.reward import RewardModel
+
+    folder = saved_model(tmp_path, scale)
+    with pytest.raises(RewardModelError, match="synthetic scene") as info:
+        RewardModel.from_pretrained(folder)
+    assert str(folder) in str(info.value) and "re-train" in str(info.value)
+    code, _, err = run_cli(["rm", "info", str(folder)], capsys)
+    assert code == 2 and "synthetic scene" in err and "internal error" not in err
+
+
+def test_a_sound_model_passes_the_probe(tmp_path: Path) -> None:
+    from trafficrlhf_sdk.reward import RewardModel
+    from trafficrlhf_sdk.reward.model import check_outputs
+
+    model = RewardModel.from_pretrained(saved_model(tmp_path, 1.0))
+    check_outputs(model, "fresh model")
+
+
+# ------------------------------------------------------------------------------------------ safetensors files
+def write_safetensors(path: Path, data_bytes: int, declared: int | None = None) -> Path:
+    """A safetensors file of one float32 tensor of ``data_bytes``, its header declaring ``declared`` bytes; the
+    data is a hole (sparse), so a 22 GiB file costs no disk."""
+    import json
+    import struct
+
+    declared = data_bytes if declared is None else declared
+    header = {"__metadata__": {"format": "pt"}, "w": {"dtype": "F32", "shape": [declared // 4],
+                                                      "data_offsets": [0, declared]}}
+    raw = json.dumps(header).encode()
+    raw += b" " * (-len(raw) % 8)
+    with open(path, "wb") as handle:
+        handle.write(struct.pack("<Q", len(raw)) + raw)
+        handle.truncate(8 + len(raw) + data_bytes)
+    return path
+
+
+@pytest.mark.parametrize(("case", "match"), [("truncated", "should be"), ("padded", "should be"),
+                                             ("short", "too short"), ("header", "bytes of JSON")])
+def test_malformed_safetensors_are_refused_from_the_header(case: str, match: str, tmp_path: Path) -> None:
+    from trafficrlhf_sdk.errors import SafetensorsFileError
+    from trafficrlhf_sdk.safetensors_files import check_safetensors_file
+
+    path = tmp_path / "w.safetensors"
+    if case == "truncated":
+        write_safetensors(path, 64, declared=128)
+    elif case == "padded":
+        write_safetensors(path, 128, declared=64)
+    elif case == "short":
+        path.write_bytes(b"\x01\x02")
+    else:
+        path.write_bytes((10**12).to_bytes(8, "little") + b"{}")
+    with pytest.raises(SafetensorsFileError, match=match) as info:
+        check_safetensors_file(path)
+    assert str(path) in str(info.value)
+
+
+def test_a_sparse_22_gib_reward_model_is_refused_before_reading(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    folder = saved_model(tmp_path, 1.0)
+    write_safetensors(folder / "model.safetensors", 22 * 1024**3)
+    code, _, err = run_cli(["rm", "info", str(folder)], capsys)  # refused in well under a second, nothing hashed
+    assert code == 2 and "22.0 GiB" in err and "internal error" not in err
+
+
+def test_a_sparse_22_gib_file_under_a_4_gb_address_limit_is_a_clear_error(tmp_path: Path) -> None:
+    import resource
+    import subprocess
+    import sys
+
+    path = write_safetensors(tmp_path / "big.safetensors", 22 * 1024**3)
+    code = ("from trafficrlhf_sdk.feedback.preference import PreferenceDataset\n"
+            "from trafficrlhf_sdk.errors import SafetensorsFileError\n"
+            "try:\n"
+            f"    PreferenceDataset.load({str(tmp_path)!r})\n"
+            "except SafetensorsFileError as exc:\n"
+            "    print(exc)\n")
+    (tmp_path / "preferences.safetensors").symlink_to(path)
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (4_000_000 * 1024, resource.RLIM_INFINITY))
+
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                            preexec_fn=limit)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "22.0 GiB" in result.stdout and "nothing was read" in result.stdout

@@ -32,6 +32,7 @@ from safetensors.torch import save_file
 
 from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore
+from trafficrlhf_sdk.safetensors_files import check_safetensors_file
 from trafficrlhf_sdk.scenario.io import safe_load_file
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor, scenario_from_tensors, scenario_tensors
 
@@ -222,6 +223,8 @@ class PreferenceDataset:
     def load(directory: str | os.PathLike[str]) -> PreferenceDataset:
         """Read a dataset written by :meth:`save`."""
         path = os.path.join(os.fspath(directory), TENSORS_FILE)
+        if os.path.isfile(path):  # a missing file gets safe_load_file's error
+            check_safetensors_file(path, "preference dataset")
         tensors, header = safe_load_file(path)
         if header.get("trafficrlhf_preferences") not in (FORMAT_VERSION, SOFT_FORMAT_VERSION):
             raise DataFormatError(f"{path!r} is not a TrafficRLHF preference dataset (format "

@@ -33,6 +33,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.safetensors_files import check_safetensors_file
 from trafficrlhf_sdk.scenario.io import safe_load_file, sha256_file
 
 __all__ = [
@@ -259,6 +260,9 @@ def _check_finite(tensors: dict[str, torch.Tensor], directory: str) -> None:
 def _verified_tensors(directory: str, info: WeightsInfo, expected: dict[str, torch.Tensor], what: str,
                       device: str | torch.device) -> dict[str, torch.Tensor]:
     path = weights_path(directory, info)
+    size = sum(t.numel() * t.element_size() for t in expected.values())
+    # before hashing or reading; a truncated file is named by the SHA-256 check below
+    check_safetensors_file(path, f"checkpoint {directory!r}: weights file", size, exact_size=False)
     check_state(expected, _header(path), repr(path), what)
     actual = sha256_file(path)
     if actual != info.sha256:

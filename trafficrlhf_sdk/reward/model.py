@@ -27,12 +27,12 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from torch import nn
 
-from trafficrlhf_sdk.errors import DataFormatError, InvalidOptionError, UnknownComponentError
+from trafficrlhf_sdk.errors import DataFormatError, InvalidOptionError, RewardModelError, UnknownComponentError
 from trafficrlhf_sdk.reward.serialization import load_weights, read_config, read_weights, save_reward_model
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "check_architecture_options",
-           "get_reward_model_architecture", "load_reward_model", "option_error_message",
+__all__ = ["RewardEnsemble", "RewardModel", "ScenarioInputs", "check_architecture_options", "check_outputs",
+           "get_reward_model_architecture", "load_reward_model", "option_error_message", "probe_scene",
            "reward_model_architectures"]
 
 
@@ -102,6 +102,8 @@ class RewardModel(nn.Module):
 
     architecture: ClassVar[str] = ""
     Config: ClassVar[type[BaseModel]]
+    #: the interval every scene and per-step reward lies in (checked on a synthetic scene when loading)
+    output_range: ClassVar[tuple[float, float]] = (-1.0, 1.0)
 
     def __init__(self, config: BaseModel | dict[str, Any] | None = None) -> None:
         super().__init__()
@@ -242,11 +244,60 @@ def load_reward_model(directory: str | os.PathLike[str], verify: bool = True,
     except (ValidationError, TypeError, ValueError) as exc:
         raise DataFormatError(f"{directory!r}: config.json's `config` does not fit architecture {name!r}: "
                               f"{' '.join(str(exc).split())}") from exc
-    tensors, weights = read_weights(directory, config, verify)
+    size = sum(t.numel() * max(t.element_size(), 4) for t in model.state_dict().values())  # stored in <= 32 bits
+    tensors, weights = read_weights(directory, config, verify, expected_bytes=size)
     load_weights(model, tensors, weights, config, directory)
     model.card_info = {k: config[k] for k in ("data", "training", "metrics") if k in config}
     model.card_info.update(config.get("card") or {})
-    return model.to(device).eval()
+    check_outputs(model.eval(), f"reward model {directory!r}")
+    return model.to(device)
+
+
+def probe_scene() -> ScenarioTensor:
+    """A tiny synthetic scene every architecture can score: two cars driving along a straight road for 3 s (1 s of
+    history), on a 64 m x 64 m map at 1 px/m whose middle 12 m are drivable."""
+    steps, dt, now = 31, 0.1, 10
+    t = torch.arange(steps, dtype=torch.float32) * dt
+    cars = []
+    for x0, y0, speed in ((-10.0, -2.0, 8.0), (-4.0, 2.0, 9.0)):
+        x = x0 + speed * t
+        cars.append(torch.stack([x, torch.full_like(t, y0), torch.full_like(t, speed), torch.zeros_like(t)], -1))
+    raster = torch.zeros(1, 3, 64, 64, dtype=torch.uint8)
+    raster[0, 0, :, 26:38] = 1  # drivable: |y| < 6 m (the column index follows y)
+    raster[0, 2, :, 32] = 1  # a lane divider at y = 0
+    to_pixel = torch.tensor([[[1.0, 0.0, 32.0], [0.0, 1.0, 32.0], [0.0, 0.0, 1.0]]])
+    from trafficrlhf_sdk.scenario.map import MapRaster
+
+    return ScenarioTensor(states=torch.stack(cars)[None], valid=torch.ones(1, 2, steps, dtype=torch.bool),
+                          extent=torch.tensor([[[4.5, 1.9], [4.6, 1.9]]]),
+                          agent_type=torch.ones(1, 2, dtype=torch.long),
+                          controlled=torch.ones(1, 2, dtype=torch.bool), dt=dt, current_index=now,
+                          map=MapRaster(raster=raster, world_to_pixel=to_pixel), scene_ids=("probe",),
+                          agent_ids=(("a", "b"),), source="probe")
+
+
+def check_outputs(model: RewardModel, name: str) -> None:
+    """The probe pass of loading: ``model`` scores :func:`probe_scene`; its scene and per-step rewards must be
+    finite and inside the architecture's :attr:`RewardModel.output_range`, else
+    :class:`~trafficrlhf_sdk.errors.RewardModelError` (weights that load but are unusable, e.g. scaled by 1e30)."""
+    low, high = model.output_range
+    scene = probe_scene().to(model.device)
+    try:
+        with torch.no_grad():
+            outputs = {"scene score is": model(scene).float().cpu(),
+                       "per-step rewards are": model.step_rewards(scene).float().cpu()}
+    except (RuntimeError, ValueError, IndexError) as exc:
+        raise RewardModelError(f"{name}: scoring a tiny synthetic scene fails ({type(exc).__name__}: "
+                               f"{' '.join(str(exc).split())[:200]}); the weights or the architecture's plugin are "
+                               "broken: re-train the model or update the plugin.") from None
+    for what, values in outputs.items():
+        bad = ~torch.isfinite(values) | (values < low - 1e-5) | (values > high + 1e-5)
+        if bool(bad.any()):
+            shown = ", ".join(f"{v:.4g}" for v in values[bad].flatten()[:3].tolist())
+            raise RewardModelError(
+                f"{name}: on a tiny synthetic scene its {what} {shown} ({int(bad.sum())} of {values.numel()} "
+                f"values not finite or outside the architecture's range [{low:g}, {high:g}]); the weights load "
+                "but are unusable (scaled, diverged or edited): restore the saved weights or re-train.")
 
 
 class EnsembleConfig(BaseModel):

@@ -19,6 +19,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.safetensors_files import check_safetensors_file
 from trafficrlhf_sdk.scenario.io import safe_load_file, sha256_file
 from trafficrlhf_sdk.version import __version__
 
@@ -95,12 +96,14 @@ def read_config(directory: str | os.PathLike[str]) -> dict[str, Any]:
     return config
 
 
-def read_weights(directory: str | os.PathLike[str], config: dict[str, Any],
-                 verify: bool = True) -> tuple[dict[str, torch.Tensor], str]:
+def read_weights(directory: str | os.PathLike[str], config: dict[str, Any], verify: bool = True,
+                 expected_bytes: int | None = None) -> tuple[dict[str, torch.Tensor], str]:
     """The tensors of the weights file that ``config`` (the folder's ``config.json``) names, and its path.
 
-    The file must lie inside ``directory``, match the SHA-256 recorded in ``config`` (with ``verify``) and hold
-    weights of the architecture ``config`` names.
+    The file must lie inside ``directory``, pass :func:`~trafficrlhf_sdk.safetensors_files.check_safetensors_file`
+    (its header and size, against ``expected_bytes`` of float32 weights when given, and against the memory left),
+    match the SHA-256 recorded in ``config`` (with ``verify``) and hold weights of the architecture ``config``
+    names.
     """
     directory = os.fspath(directory)
     name = config["architecture"]
@@ -116,6 +119,9 @@ def read_weights(directory: str | os.PathLike[str], config: dict[str, Any],
                               "model folder; name a file inside it (model.safetensors).")
     if not os.path.isfile(weights):
         raise DataNotFoundError(f"{directory!r} has no {os.path.basename(weights)}; the weights are missing.")
+    # from the header and the file size, before the file is hashed or read
+    check_safetensors_file(weights, f"reward model {directory!r}: weights file", expected_bytes,
+                           exact_size=not verify)  # with verify, the SHA-256 below names a truncated file
     expected = config.get("weights", {}).get("sha256")
     if verify and not expected:
         raise DataFormatError(f"{os.path.join(directory, CONFIG_FILE)!r} records no SHA-256 of the weights "
