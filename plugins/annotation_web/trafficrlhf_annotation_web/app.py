@@ -51,7 +51,7 @@ from trafficrlhf_sdk.feedback.records import TIE_SLOT
 from trafficrlhf_sdk.feedback.settings import MAX_GUIDELINES_CHARS
 from trafficrlhf_sdk.feedback.store import SQLITE_MAX_INT, Annotator, Campaign, FeedbackStore
 
-from trafficrlhf_annotation_web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard, bearer_token
+from trafficrlhf_annotation_web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard, bearer_token, install_log_filter
 from trafficrlhf_annotation_web.payload import item_base, item_payload, playback_seconds
 
 __all__ = ["MAX_PLAYBACK_SPEED", "LabelIn", "SkipIn", "create_app"]
@@ -168,6 +168,7 @@ def create_app(db_path: str, default_campaign: str | None = None, synchronous: s
     app = FastAPI(title="TrafficRLHF annotation", version=sdk_version, docs_url=None, redoc_url=None)
     app.state.store = store
     app.add_middleware(RequestGuard, store=store, max_body_bytes=max_body_bytes)
+    install_log_filter()
 
     @app.exception_handler(FeedbackError)
     def _feedback_error(request: Request, exc: FeedbackError) -> JSONResponse:
@@ -280,9 +281,13 @@ def create_app(db_path: str, default_campaign: str | None = None, synchronous: s
 
     def label(name: str, item_id: int, body: LabelIn, who: Annotator, revise: bool) -> dict[str, Any]:
         campaign = store.campaign(name)
-        if isinstance(body.choice, int) and body.choice < 0:
-            raise InvalidChoiceError(f"`choice` must be from 0 (none realistic) to {campaign.num_candidates}, or "
-                                     f"\"tie\" for equally realistic; got {body.choice!r}.")
+        tie_allowed = campaign.settings.allow_tie
+        if (body.choice == "tie" and not tie_allowed) or (
+                isinstance(body.choice, int) and not 0 <= body.choice <= campaign.num_candidates):
+            # exactly what this campaign accepts over HTTP (the store's -1 for a tie is not one of them)
+            tie = ', or "tie" (equally realistic)' if tie_allowed else " (this campaign offers no tie)"
+            raise InvalidChoiceError(f"`choice` must be an integer from 0 (none realistic) to "
+                                     f"{campaign.num_candidates} (the slot shown){tie}; got {body.choice!r}.")
         slot = TIE_SLOT if body.choice == "tie" else int(body.choice)
         min_view = None
         if campaign.settings.playback_required and not revise:

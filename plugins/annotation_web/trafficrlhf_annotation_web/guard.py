@@ -9,14 +9,20 @@
    malformed one gives 400;
 3. a body without a declared length (chunked) is counted as it arrives and cut off with 413 at the limit.
 
-The server never holds more than one limit's worth of a body, whatever the client sends: uvicorn stops reading
-a connection whose response has been sent (flow control), and closes it afterwards.
+Outside ``/api`` everything is read-only (the pages and their static files): a request there that declares a
+body gets 405 (``POST``, ``PUT``, ``PATCH``, ``DELETE``) or 400 (a ``GET`` with a body) at once, with
+``Connection: close``, so the body is never read.
+
+The server never holds more than one limit's worth of a body, whatever the client sends: every refusal closes
+the connection, and uvicorn stops reading a connection whose response has been sent (flow control).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Awaitable, Callable, MutableMapping
+from contextvars import ContextVar
 from typing import Any
 
 from starlette.exceptions import HTTPException
@@ -24,10 +30,11 @@ from starlette.exceptions import HTTPException
 from trafficrlhf_sdk.feedback.errors import AuthenticationError
 from trafficrlhf_sdk.feedback.store import FeedbackStore
 
-__all__ = ["DEFAULT_MAX_BODY_BYTES", "RequestGuard", "bearer_token"]
+__all__ = ["DEFAULT_MAX_BODY_BYTES", "DroppedResponseFilter", "RequestGuard", "bearer_token", "install_log_filter"]
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024  # the largest legitimate body (a settings update with guidelines) is ~50 kB
 BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
+log = logging.getLogger(__name__)
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -57,16 +64,32 @@ class RequestGuard:
         self.app, self.store, self.max_body_bytes = app, store, max_body_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """Screen one request, then pass it on (or answer 400/401/413 without reading the body)."""
-        if scope["type"] != "http" or not scope["path"].startswith("/api/"):
+        """Screen one request, then pass it on (or answer 400/401/405/413 without reading the body)."""
+        if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        try:
+            await self._screen(scope, receive, _guarded(send))
+        except _ConnectionGone as gone:  # the server already answered a malformed request and closed the stream
+            _dropped.set(True)
+            log.debug("response to %s %s dropped: %s", scope.get("method"), scope.get("path"), gone)
+
+    async def _screen(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         length_header = headers.get("content-length")
         has_body = (scope["method"] in BODY_METHODS or length_header not in (None, "0")
                     or "transfer-encoding" in headers)
         if not has_body:
             await self.app(scope, receive, send)
+            return
+        if not scope["path"].startswith("/api/"):
+            path = scope["path"][:80]
+            if scope["method"] in ("GET", "HEAD"):
+                await _reply(send, 400, f"{scope['method']} {path} carries a body; pages take none (the API is "
+                                        "under /api/).")
+            else:
+                await _reply(send, 405, f"{scope['method'][:10]} is not allowed on {path}: pages and files outside "
+                                        "/api/ are read-only (GET); the API is under /api/.", {"allow": "GET, HEAD"})
             return
         token = bearer_token(headers.get("authorization"))
         try:
@@ -102,6 +125,56 @@ class RequestGuard:
             return message
 
         await self.app(scope, counted, send)
+
+
+# set in the task of a request whose response :func:`_guarded` dropped; read by :class:`DroppedResponseFilter`
+_dropped: ContextVar[bool] = ContextVar("trafficrlhf_response_dropped", default=False)
+INCOMPLETE_RESPONSE = "ASGI callable returned without completing response."
+
+
+class DroppedResponseFilter(logging.Filter):
+    """Keeps uvicorn's "returned without completing response" error out of the log for a request whose response
+    was dropped on purpose (uvicorn had already answered the malformed request with its own 400)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:  # noqa: D102
+        return not (record.msg == INCOMPLETE_RESPONSE and _dropped.get())
+
+
+def install_log_filter() -> None:
+    """Add :class:`DroppedResponseFilter` to uvicorn's error logger (once)."""
+    logger = logging.getLogger("uvicorn.error")
+    if not any(isinstance(f, DroppedResponseFilter) for f in logger.filters):
+        logger.addFilter(DroppedResponseFilter())
+
+
+class _ConnectionGone(Exception):
+    """The HTTP connection can no longer take a response (see :func:`_guarded`)."""
+
+
+def _protocol_errors() -> tuple[type[BaseException], ...]:
+    try:
+        from h11 import LocalProtocolError
+    except ImportError:  # another server implementation: nothing of h11's to translate
+        return ()
+    return (LocalProtocolError,)
+
+
+def _guarded(send: Send) -> Send:
+    """``send`` that turns "this connection takes no more responses" into :class:`_ConnectionGone`.
+
+    When a client sends a malformed request (a bad chunk, a broken header) while the app is still working on it,
+    uvicorn answers 400 itself and marks the connection for closing; the app's own response then fails inside
+    h11. That is the client's doing, not a server error, so it is dropped quietly instead of logged as a
+    traceback."""
+    errors = _protocol_errors()
+
+    async def guarded(message: Message) -> None:
+        try:
+            await send(message)
+        except errors as exc:
+            raise _ConnectionGone(str(exc)) from None
+
+    return guarded
 
 
 async def _reply(send: Send, status: int, error: str, extra: dict[str, str] | None = None) -> None:
