@@ -8,6 +8,7 @@ first, then size). Errors are JSON ``{"error": message}`` with these statuses:
 - 400: a body that is not valid JSON, or a malformed ``Content-Length``;
 - 401: missing, unknown or revoked token;
 - 404: unknown campaign, item or annotator;
+- 405: a body sent to a page outside ``/api`` (pages are read-only; refused before the body is read);
 - 409: the item's state forbids the request: already labeled (or skipped), never opened, full
   (``labels_per_item``), released after an expired lease, or a label sent before the future played once;
 - 413: a body over the size limit; 422: valid JSON of the wrong shape, a choice outside the range, an item
