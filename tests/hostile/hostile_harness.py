@@ -185,14 +185,19 @@ def record(outcome: Outcome) -> None:
             f.write(json.dumps(row) + "\n")
 
 
+def _stored(path: Path) -> int:
+    stat = path.stat()
+    return min(stat.st_size, stat.st_blocks * 512)  # a sparse file counts by the blocks it holds
+
+
 def folder_bytes(paths: Sequence[Path]) -> int:
-    """Total size of the files under ``paths`` (the input size the memory bound is stated for)."""
+    """Total stored size of the regular files under ``paths`` (the input size the memory bound is stated for)."""
     total = 0
     for path in paths:
         if path.is_file():
-            total += path.stat().st_size
+            total += _stored(path)
         elif path.is_dir():
-            total += sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+            total += sum(_stored(p) for p in path.rglob("*") if p.is_file())
     return total
 
 

@@ -31,8 +31,17 @@ Check = "Callable[[str, str], str | None]"
 
 
 def _rates(value: object) -> list[object]:
+    """Every ``failure_rate`` in a JSON result (per-scene lists flattened, their NaN-as-None left out)."""
     if isinstance(value, dict):
-        return [x for k, v in value.items() for x in ([v] if k == "failure_rate" else _rates(v))]
+        found: list[object] = []
+        for key, item in value.items():
+            if key != "failure_rate":
+                found += _rates(item)
+            elif isinstance(item, list):
+                found += [x for x in item if x is not None]
+            else:
+                found.append(item)
+        return found
     if isinstance(value, list):
         return [x for v in value for x in _rates(v)]
     return []
