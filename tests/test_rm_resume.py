@@ -129,3 +129,46 @@ def test_ctrl_c_in_rm_train_then_resume_equals_an_uninterrupted_run(tiny_db: str
     got, _ = safe_load_file(out / "model.safetensors")
     assert all(torch.equal(expected[k], got[k]) for k in expected)
     assert not (out / "checkpoints").exists()
+
+
+def test_an_interrupted_reward_model_step_continues_from_its_newest_epoch(tiny_db: str, tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The RLHF loop's and the paper experiments' reward-model steps: rerun after Ctrl-C, the step continues from
+    the checkpoint (no step.json yet) and ends with the weights of an uninterrupted step."""
+    from trafficrlhf_sdk.pipeline import read_manifest
+    from trafficrlhf_sdk.pipeline.stages import reward_model_step
+
+    cfg = config(max_epochs=5, early_stopping_patience=None)
+    whole = reward_model_step(str(tmp_path / "whole"), cfg, tiny_db, ["tiny"], val_fraction=0.3)
+
+    save = RewardTrainer._save_checkpoint
+    epochs_seen: list[int] = []
+
+    def save_then_interrupt(self: RewardTrainer, member: int, epoch: int, *args: object) -> str:
+        folder = save(self, member, epoch, *args)  # type: ignore[arg-type]
+        epochs_seen.append(epoch)
+        if epoch == 3:
+            raise KeyboardInterrupt
+        return folder
+
+    folder = str(tmp_path / "step")
+    monkeypatch.setattr(RewardTrainer, "_save_checkpoint", save_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        reward_model_step(folder, cfg, tiny_db, ["tiny"], val_fraction=0.3)
+    assert read_manifest(folder) is None and os.listdir(os.path.join(folder, "checkpoints"))
+    assert epochs_seen == [1, 2, 3]
+
+    def save_and_record(self: RewardTrainer, member: int, epoch: int, *args: object) -> str:
+        epochs_seen.append(epoch)
+        return save(self, member, epoch, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(RewardTrainer, "_save_checkpoint", save_and_record)
+    epochs_seen.clear()
+    resumed = reward_model_step(folder, cfg, tiny_db, ["tiny"], val_fraction=0.3)
+    assert epochs_seen == [4, 5]  # continued, not trained again
+    assert not resumed.cached and read_manifest(folder) is not None
+    assert not os.path.exists(os.path.join(folder, "checkpoints"))
+    expected, _ = safe_load_file(os.path.join(whole.folder, "model.safetensors"))
+    got, _ = safe_load_file(os.path.join(folder, "model.safetensors"))
+    assert all(torch.equal(expected[k], got[k]) for k in expected)
+    assert resumed["metrics"] == whole["metrics"]

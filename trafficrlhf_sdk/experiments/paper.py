@@ -325,7 +325,8 @@ class _Figure3Features:
         data, test_all, test_strict = self._data()
         subset = data.subset(contexts)
         began = time.perf_counter()
-        result = train_and_save(config, subset, folder, title=f"Figure 3 reward model: {size} contexts").result
+        result = train_and_save(config, subset, folder, title=f"Figure 3 reward model: {size} contexts",
+                                resume=None).result  # an interrupted run continues from its newest epoch
         return {"contexts": size, "pairs": len(subset.split_subset("train")),
                 "accuracy": None if test_strict is None else evaluate_pairs(result.model, test_strict)["accuracy"],
                 "accuracy_all_pairs": evaluate_pairs(result.model, test_all)["accuracy"],

@@ -172,7 +172,9 @@ def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Seq
     """A reward model trained with ``config`` on the labels of ``campaigns`` in ``db`` (``val_fraction`` of the
     contexts held out, split by ``split_seed``; only ``annotators``' labels when given), plus contrast pairs from
     the logs of the last ``contrast_scenes`` train scenes of ``source``, probed on ``probe_scenes`` val scenes;
-    saved in ``folder`` with its card by :func:`~trafficrlhf_sdk.reward.card.train_and_save`.
+    saved in ``folder`` with its card by :func:`~trafficrlhf_sdk.reward.card.train_and_save`. A training stopped
+    midway continues from its newest epoch checkpoint in ``folder/checkpoints``, to the weights of an
+    uninterrupted run.
 
     Outputs: ``folder``, the card's ``metrics`` and ``data``, ``dataset`` (pairs and contexts trained and
     validated on), ``preferences`` (contexts and pairs of the labels read) and ``probes``."""
@@ -191,7 +193,8 @@ def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Seq
             trained = train_and_save(config, dataset, folder, store=store, campaigns=campaigns,
                                      annotators=annotators, contrast_scenes=contrast_scenes, title=title,
                                      notes=notes, source=source, root=root,
-                                     future_steps=round(candidate_seconds * 10), probe_scenes=probe_scenes)
+                                     future_steps=round(candidate_seconds * 10), probe_scenes=probe_scenes,
+                                     resume=None)  # an interrupted training continues from its newest epoch
         finally:
             if store is not None:
                 store.close()

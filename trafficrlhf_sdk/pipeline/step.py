@@ -5,8 +5,8 @@ the steps it reads from) that writes its output folder. :func:`run_step` runs it
 
 - ``step.json`` present with the same inputs: the recorded outputs are returned, nothing runs;
 - no ``step.json`` (never run, or stopped midway): the step runs; what an interrupted run left in the folder is
-  the step's own business (alignment continues from its newest checkpoint, a campaign gets the contexts it
-  lacks, a reward model is trained again);
+  the step's own business (alignment and reward-model training continue from their newest epoch checkpoint, a
+  campaign gets the contexts it lacks);
 - ``step.json`` with other inputs: :class:`StepConfigError`, naming each input that differs, unless
   ``overwrite``: then the folder is emptied and the step runs again.
 

@@ -77,7 +77,7 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
                    log: Callable[[dict[str, float]], None] | None = None,
                    on_start: Callable[[dict[str, Any]], None] | None = None, source: str | None = None,
                    root: str | None = None, future_steps: int = 40, probe_scenes: int = 0,
-                   resume: bool = False) -> TrainedRewardModel:
+                   resume: bool | None = False) -> TrainedRewardModel:
     """Train a reward model on ``dataset`` with ``config`` (a :class:`RewardConfig`), test it on a held-out
     campaign, and write ``out_dir``: ``config.json`` + ``model.safetensors`` + ``README.md`` (the card) and
     ``training_log.json``.
@@ -94,7 +94,9 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     pass rate) and returned as ``probes``.
 
     Every epoch is checkpointed in ``out_dir/checkpoints`` (removed once the model is saved); ``resume`` continues
-    an interrupted run from there, with the same final weights as an uninterrupted one.
+    an interrupted run from there, with the same final weights as an uninterrupted one. ``resume=None`` continues
+    when checkpoints are there and starts otherwise (for pipeline steps, whose inputs already match the run's);
+    ``False`` refuses a folder holding checkpoints rather than overwrite them.
     """
     import torch
 
@@ -113,6 +115,10 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
                                                      future_steps=future_steps))
     checkpoints = os.path.join(out_dir, CHECKPOINTS_FOLDER)
+    if resume is None:
+        from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
+
+        resume = bool(list_checkpoints(checkpoints))
     trainer = RewardTrainer(config, train_dataset=dataset, log=log, contrast_dataset=contrast,
                             checkpoint_dir=checkpoints)
     info = {**trainer.dataset_info, "featurize_seconds": trainer.featurize_seconds}

@@ -43,8 +43,9 @@ from trafficrlhf_sdk.reward.model import RewardEnsemble, RewardModel, get_reward
 __all__ = ["RESUME_FREE_FIELDS", "RewardTrainer", "TrainingResult", "evaluate_pairs", "training_device"]
 
 TENSORS_FILE = "trainer_tensors.safetensors"
-# RewardConfig fields a resumed run may differ in: they change neither the data nor any computed value
-RESUME_FREE_FIELDS = frozenset({"progress", "max_epochs"})
+# RewardConfig fields a resumed run may differ in: how it is shown and run, and how far (the pipeline's step
+# digests leave the same ones out); the weights are bit-identical to an uninterrupted run's on the same threads
+RESUME_FREE_FIELDS = frozenset({"progress", "max_epochs", "num_threads"})
 
 
 @dataclass
