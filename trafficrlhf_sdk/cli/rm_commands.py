@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shlex
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 import click
@@ -108,30 +110,33 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                           progress=not quiet, **{k: v for k, v in overrides.items() if v is not None})
     # the command line that made this model, for the card
     commands = ["trafficrlhf " + shlex.join(sys.argv[1:])] if os.path.basename(sys.argv[0]) == "trafficrlhf" else []
-    try:
+    with _resume_hint_on_interrupt(out_dir):
         trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
                                  annotators=annotators, contrast_scenes=contrast_scenes, half=half,
                                  test_campaign=test_campaign, test_annotators=test_annotators,
                                  tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
                                  log=None if quiet else _echo_epoch, resume=resume,
                                  on_start=lambda info: _echo_start(architecture, info))
-    except KeyboardInterrupt:
-        _echo_resume_hint(out_dir)
-        raise
     result = trained.result
     _echo_metrics(f"trained in {result.train_seconds:.1f} s (best epochs {result.best_epochs}) -> {out_dir}",
                   trained.card["metrics"])
 
 
-def _echo_resume_hint(out_dir: str) -> None:
-    from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
-    from trafficrlhf_sdk.reward.card import CHECKPOINTS_FOLDER
+@contextlib.contextmanager
+def _resume_hint_on_interrupt(out_dir: str) -> Iterator[None]:
+    """On Ctrl-C, say which epoch checkpoint is kept and how to continue, then let the interrupt through."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
+        from trafficrlhf_sdk.reward.card import CHECKPOINTS_FOLDER
 
-    found = list_checkpoints(os.path.join(out_dir, CHECKPOINTS_FOLDER))
-    if found:
-        click.echo(f"interrupted: {os.path.basename(found[-1])} (epochs done) is kept in "
-                   f"{os.path.join(out_dir, CHECKPOINTS_FOLDER)}; run the same command with --resume to continue.",
-                   err=True)
+        found = list_checkpoints(os.path.join(out_dir, CHECKPOINTS_FOLDER))
+        if found:
+            click.echo(f"interrupted: {os.path.basename(found[-1])} (epochs done) is kept in "
+                       f"{os.path.join(out_dir, CHECKPOINTS_FOLDER)}; run the same command with --resume to "
+                       "continue.", err=True)
+        raise
 
 
 def _echo_start(architecture: str, info: dict[str, Any]) -> None:
