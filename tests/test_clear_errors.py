@@ -51,6 +51,13 @@ def test_a_file_that_is_not_sqlite_as_db_is_a_clear_error(kind: str, command: li
     assert path.read_bytes() == before  # nothing was written into the file
 
 
+def test_feedback_serve_refuses_a_file_that_is_not_sqlite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("trafficrlhf_annotation_web")
+    path = not_sqlite(tmp_path, "random")
+    code, out, err = run_cli(["feedback", "serve", "--db", str(path), "--port", "1"], capsys)
+    assert code == 2 and "not an SQLite database" in err and "annotation app on" not in out
+
+
 def test_the_store_refuses_a_file_that_is_not_sqlite(tmp_path: Path) -> None:
     path = not_sqlite(tmp_path, "text")
     with pytest.raises(DatabaseFileError, match="not an SQLite database"):

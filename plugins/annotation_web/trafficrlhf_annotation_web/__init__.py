@@ -70,6 +70,9 @@ def register_commands(cli):  # type: ignore[no-untyped-def]
                       max_body_kb: int) -> None:
         """Serve the browser annotation app (tokens: `trafficrlhf feedback annotator add NAME`; the campaign
         owner's page is /admin with a token from `trafficrlhf feedback admin NAME`)."""
+        from trafficrlhf_sdk.feedback.store import check_database_file
+
+        check_database_file(db_path)  # a file that is not SQLite is refused before the banner
         shown = "localhost" if host in ("127.0.0.1", "::1", "localhost") else host
         click.echo(f"annotation app on http://{shown}:{port}/  (open http://{shown}:{port}/?token=TOKEN; admin page "
                    f"http://{shown}:{port}/admin; Ctrl-C stops)")
