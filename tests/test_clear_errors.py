@@ -208,3 +208,27 @@ def test_a_sparse_22_gib_file_under_a_4_gb_address_limit_is_a_clear_error(tmp_pa
                             preexec_fn=limit)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "22.0 GiB" in result.stdout and "nothing was read" in result.stdout
+
+
+# -------------------------------------------------------------------------------------------- text encodings
+@pytest.mark.parametrize("command", [["align", "--config", "{file}", "--model", "ctg", "--out", "{out}"],
+                                     ["rlhf", "--config", "{file}", "--out", "{out}"],
+                                     ["feedback", "prioritize", "--db", "{db}", "--campaign", "tiny", "--ranking",
+                                      "{file}"],
+                                     ["feedback", "settings", "--db", "{db}", "--campaign", "tiny", "--guidelines",
+                                      "{file}"]])
+def test_a_text_file_that_is_not_utf8_is_a_clear_error(command: list[str], tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from trafficrlhf_sdk.testing.feedback import make_tiny_campaign
+
+    db = tmp_path / "fb.db"
+    store = FeedbackStore(db)
+    make_tiny_campaign(store, num_contexts=2)
+    store.close()
+    bad = tmp_path / "latin1.txt"
+    bad.write_bytes("vitesse = 'élevée'\n".encode("latin-1"))
+    args = [a.format(file=bad, out=tmp_path / "out", db=db) for a in command]
+    code, _, err = run_cli(args, capsys)
+    option = command[command.index("{file}") - 1]
+    assert code == 2 and "internal error" not in err
+    assert f"{option} {str(bad)!r} is not UTF-8" in err and "save it as UTF-8" in err

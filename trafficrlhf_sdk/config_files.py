@@ -14,9 +14,10 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, PlainSerializer, SerializationInfo, ValidationError
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, FileEncodingError
 
-__all__ = ["ONLY_SET_FIELDS", "load_config", "read_toml", "set_fields", "validation_message"]
+__all__ = ["ONLY_SET_FIELDS", "encoding_error", "load_config", "read_text", "read_toml", "set_fields",
+           "validation_message"]
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
@@ -40,14 +41,34 @@ def validation_message(exc: ValidationError) -> str:
     return "; ".join(f"{'.'.join(map(str, e['loc'])) or '<config>'}: {e['msg']}" for e in exc.errors())
 
 
+def encoding_error(path: str, option: str, exc: UnicodeDecodeError) -> FileEncodingError:
+    """The error for text file ``path`` (given as ``option``) that is not UTF-8, naming the first bad byte."""
+    bad = exc.object[exc.start:exc.start + 4]
+    return FileEncodingError(f"{option} {path!r} is not UTF-8 text (byte {exc.start} is {bytes(bad)!r}); save it as "
+                             "UTF-8 (e.g. `iconv -t UTF-8`), or pass the file you meant.")
+
+
+def read_text(path: str, option: str) -> str:
+    """The text of UTF-8 file ``path``, given as ``option``; a missing file or another encoding is one error
+    naming the option and the path."""
+    if not os.path.isfile(path):
+        raise DataNotFoundError(f"{option} {path!r}: no such file; check the path.")
+    with open(path, "rb") as handle:
+        raw = handle.read()
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise encoding_error(path, option, exc) from None
+
+
 def read_toml(path: str, option: str = "--config") -> dict[str, Any]:
-    """The table of TOML file ``path``; a missing file or invalid TOML raises an error naming ``option`` and the
-    path."""
+    """The table of TOML file ``path``; a missing file, another encoding than UTF-8 or invalid TOML raises an
+    error naming ``option`` and the path."""
     if not os.path.isfile(path):
         raise DataNotFoundError(f"{option} {path!r}: no such file; give a TOML file.")
+    text = read_text(path, option)
     try:
-        with open(path, "rb") as handle:
-            return tomllib.load(handle)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise DataFormatError(f"{option} {path!r}: not valid TOML ({exc}).") from None
 

@@ -14,6 +14,7 @@ from typing import Any
 import click
 
 from trafficrlhf_sdk.cli.app import cli, parse_key_values
+from trafficrlhf_sdk.config_files import read_text
 from trafficrlhf_sdk.errors import DatabaseFileError, TrafficRLHFError
 
 __all__ = ["feedback"]
@@ -192,8 +193,7 @@ def settings_command(db_path: str, campaign: str, guidelines_path: str | None, n
     if guidelines_path and no_guidelines:
         raise click.UsageError("pass --guidelines FILE or --no-guidelines, not both.")
     if guidelines_path:
-        with open(guidelines_path, encoding="utf-8") as handle:
-            changes["guidelines"] = handle.read()
+        changes["guidelines"] = read_text(guidelines_path, "--guidelines")
     if no_guidelines:
         changes["guidelines"] = None
     store = _store(db_path)
@@ -229,8 +229,8 @@ def prioritize_command(db_path: str, campaign: str, ranking_path: str) -> None:
     """Serve the items of a ranking first, in its order (the others follow as before)."""
     from trafficrlhf_sdk.feedback.selection import priorities_from_ranking
 
-    with open(ranking_path, encoding="utf-8") as handle:
-        lines = [line.strip() for line in handle if line.strip() and not line.startswith("#")]
+    lines = [line.strip() for line in read_text(ranking_path, "--ranking").splitlines()
+             if line.strip() and not line.startswith("#")]
     try:
         ids = [int(line) for line in lines]
     except ValueError as exc:
