@@ -52,6 +52,7 @@ __all__ = ["CampaignConfig", "CampaignReport", "campaign_candidates", "campaign_
            "create_campaign", "crop_map", "extend_campaign", "generate_candidates"]
 
 MAX_CANDIDATES = 9  # keys 1..9 pick a candidate in the app
+CONTEXTS_PER_ROLLOUT = 8  # contexts whose candidates one batched rollout makes (models with scene_generators)
 
 
 class CampaignConfig(BaseModel):
@@ -135,20 +136,51 @@ def generate_candidates(policy: Any, scene: ScenarioTensor, num_candidates: int,
             the agents the policy drove, map cropped); candidates ``(N, A, H, 4)`` and their valid ``(N, A, H)``;
             the logged future ``(A, H, 4)`` and its valid ``(A, H)``, with H = ``seconds / dt`` steps.
     """
-    batch = ScenarioTensor.concat([scene] * num_candidates)
-    rollout = simulate(policy, batch, SimulationConfig(duration_s=seconds))
-    start, end = rollout.start_index, rollout.end_index
-    future = slice(start + 1, end + 1)
-    candidates = rollout.simulated.states[:, :, future].contiguous()
-    candidate_valid = rollout.simulated.valid[:, :, future].contiguous()
-    logged = rollout.logged[0]
-    context = logged.replace_unchecked(controlled=rollout.controlled[:1].clone())
+    rollout = simulate(policy, ScenarioTensor.concat([scene] * num_candidates), SimulationConfig(duration_s=seconds))
+    return _context_candidates(rollout, scene, 0, num_candidates, map_margin_m)
+
+
+def generate_candidates_batch(policy: Any, scenes: Sequence[ScenarioTensor], seeds: Sequence[int],
+                              num_candidates: int, seconds: float, map_margin_m: float) -> list[tuple[Any, ...]]:
+    """:func:`generate_candidates` for several contexts, context i with ``policy`` seeded by ``seeds[i]``.
+
+    An adapter that offers ``scene_generators`` rolls all contexts out as one batch, each context's copies
+    drawing from its own seed (:meth:`~trafficrlhf_sdk.models.adapter.TrafficModelAdapter.seed_scenes`), so each
+    result equals the context's own run; other policies run the contexts one after the other."""
+    if len(scenes) == 1 or not getattr(policy, "scene_generators", False):
+        out = []
+        for scene, seed in zip(scenes, seeds):
+            seed_policy(policy, seed)
+            out.append(generate_candidates(policy, scene, num_candidates, seconds, map_margin_m))
+        return out
+    batch = ScenarioTensor.concat([copy for scene in scenes for copy in [scene] * num_candidates])
+    policy.seed_scenes(seeds, [num_candidates] * len(scenes))
+    try:
+        rollout = simulate(policy, batch, SimulationConfig(duration_s=seconds))
+    finally:
+        policy.seed_scenes(None)
+    return [_context_candidates(rollout, scene, i, num_candidates, map_margin_m) for i, scene in enumerate(scenes)]
+
+
+def _context_candidates(rollout: Any, scene: ScenarioTensor, index: int, num_candidates: int, map_margin_m: float
+                        ) -> tuple[ScenarioTensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Context ``index`` of a rollout over consecutive groups of ``num_candidates`` copies: its context, candidates
+    and logged future (:func:`generate_candidates`), cut back to the scene's own agents and map."""
+    start, end, a = rollout.start_index, rollout.end_index, scene.num_agents
+    rows, future = slice(index * num_candidates, (index + 1) * num_candidates), slice(start + 1, end + 1)
+    candidates = rollout.simulated.states[rows, :a, future].contiguous()
+    candidate_valid = rollout.simulated.valid[rows, :a, future].contiguous()
+    logged = rollout.logged[index * num_candidates]
+    context = logged.replace_unchecked(
+        states=logged.states[:, :a], valid=logged.valid[:, :a], extent=logged.extent[:, :a],
+        agent_type=logged.agent_type[:, :a], controlled=rollout.controlled[rows][:1, :a].clone(), map=scene.map,
+        agent_ids=tuple(ids[:a] for ids in logged.agent_ids))
     if context.map is not None:
-        shown = torch.cat([batch.xy[0][batch.valid[0]], candidates[..., :2][candidate_valid]])
+        shown = torch.cat([scene.xy[0][scene.valid[0]], candidates[..., :2][candidate_valid]])
         context = context.replace_unchecked(map=crop_map(context.map, shown, map_margin_m))
     context = ScenarioTensor(**{f: getattr(context, f) for f in context.__dataclass_fields__})  # validate
-    return (context, candidates, candidate_valid, logged.states[0, :, future].clone(),
-            logged.valid[0, :, future].clone())
+    return (context, candidates, candidate_valid, logged.states[0, :a, future].clone(),
+            logged.valid[0, :a, future].clone())
 
 
 def closed_loop_context(policy: Any, scene: ScenarioTensor, drive_seconds: float, candidate_seconds: float,
@@ -264,9 +296,9 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
     if execution is not None and execution.uses_ray:  # scale-out: generate on Ray workers, store here
         made = campaign_candidates(campaign, source, todo, execution)
         parts: Any = (made.pop(scene_id) for scene_id in todo)
-    else:  # in-process, one context at a time (each stored as soon as it is made), the model built once
+    else:  # in-process, a few contexts at a time (each stored as soon as it is made), the model built once
         shared = _shared_payload(campaign, source)
-        parts = (_candidates_task(shared, scene_id) for scene_id in todo)
+        parts = (part for chunk in _task_chunks(shared, todo) for part in _candidates_task(shared, chunk))
     added = []
     for scene_id, (context, cands, cand_valid, logged, logged_valid) in zip(todo, parts):
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
@@ -320,23 +352,34 @@ def _shared_payload(campaign: Campaign, source: Any) -> dict[str, Any]:
     return {"campaign": campaign, "source": source, "policy": policy}
 
 
-def _candidates_task(shared: dict[str, Any], scene_id: str) -> tuple[Any, ...]:
-    """One campaign context's candidates (runs in-process or on a Ray worker): the scene is read from the shipped
-    source, and the shipped model is re-seeded with the context's seed (what building it with that seed does);
-    for ``contexts="closed_loop"`` the model first drives the scene to the context (:func:`closed_loop_context`)."""
+def _candidates_task(shared: dict[str, Any], scene_ids: list[str]) -> list[tuple[Any, ...]]:
+    """Candidates of a few campaign contexts (runs in-process or on a Ray worker): the scenes are read from the
+    shipped source and the shipped model samples each context from the context's seed (what building it with
+    that seed does), all of them in one rollout when the model offers ``scene_generators``
+    (:func:`generate_candidates_batch`); for ``contexts="closed_loop"`` the model first drives each scene to its
+    context (:func:`closed_loop_context`)."""
     campaign, cfg = shared["campaign"], shared["campaign"].config
-    scene = shared["source"].load_scene(cfg["split"], scene_id)
-    key = (cfg["source"], cfg["split"], scene_id)
+    keys = [(cfg["source"], cfg["split"], scene_id) for scene_id in scene_ids]
+    scenes = [shared["source"].load_scene(cfg["split"], scene_id) for scene_id in scene_ids]
     if cfg.get("candidate_models"):
-        return _mixed_candidates(campaign, scene, cfg["candidate_models"], cfg, key)
+        return [_mixed_candidates(campaign, scene, cfg["candidate_models"], cfg, key)
+                for scene, key in zip(scenes, keys)]
     policy = shared["policy"]
-    seed = context_seed(campaign.seed, *key)
-    seed_policy(policy, seed)
+    seeds = [context_seed(campaign.seed, *key) for key in keys]
     if cfg.get("contexts", "log") == "closed_loop":
-        scene = closed_loop_context(policy, scene, cfg["drive_seconds"], cfg["candidate_seconds"], seed)
+        for i, seed in enumerate(seeds):
+            seed_policy(policy, seed)
+            scenes[i] = closed_loop_context(policy, scenes[i], cfg["drive_seconds"], cfg["candidate_seconds"], seed)
     with torch.no_grad():
-        return generate_candidates(policy, scene, campaign.num_candidates, cfg["candidate_seconds"],
-                                   cfg["map_margin_m"])
+        return generate_candidates_batch(policy, scenes, seeds, campaign.num_candidates, cfg["candidate_seconds"],
+                                         cfg["map_margin_m"])
+
+
+def _task_chunks(shared: dict[str, Any], scene_ids: Sequence[str]) -> list[list[str]]:
+    """The contexts each task makes together: ``CONTEXTS_PER_ROLLOUT`` for a model that samples groups of scenes
+    from their own seeds in one batch, one otherwise."""
+    size = CONTEXTS_PER_ROLLOUT if getattr(shared["policy"], "scene_generators", False) else 1
+    return [list(scene_ids[i : i + size]) for i in range(0, len(scene_ids), size)]
 
 
 def campaign_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str],
@@ -346,4 +389,6 @@ def campaign_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str
     without). The model is built once and shipped once with the source; each task re-seeds it with its context's
     seed. Storing stays with the caller (one writer to the database)."""
     shared = _shared_payload(campaign, source)
-    return dict(zip(scene_ids, run_tasks(_candidates_task, shared, list(scene_ids), execution)))
+    chunks = _task_chunks(shared, list(scene_ids))
+    made = [part for chunk in run_tasks(_candidates_task, shared, chunks, execution) for part in chunk]
+    return dict(zip(scene_ids, made))

@@ -7,6 +7,7 @@ import abc
 import json
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple
 
@@ -14,6 +15,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import save_file
 
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.models.checkpoint import (
     CONFIG_FILE,
     WEIGHTS_FILE,
@@ -23,6 +25,7 @@ from trafficrlhf_sdk.models.checkpoint import (
     read_checkpoint_config,
     sha256_file,
 )
+from trafficrlhf_sdk.models.random import SceneGenerators
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, select_samples
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
@@ -114,11 +117,16 @@ class TrafficModelAdapter(abc.ABC):
     Options: ClassVar[type[AdapterOptions]] = AdapterOptions
     horizon: int = 20
     history_steps: int = 10  # history steps (before "now") the model reads; set from the model's config
+    scene_generators: ClassVar[bool] = False
+    """Whether :meth:`sample` accepts a :class:`~trafficrlhf_sdk.models.random.SceneGenerators` as its generator
+    (one random stream per group of scenes), which lets :meth:`seed_scenes` batch independently seeded groups."""
 
     def __init__(self, config: dict[str, Any] | None = None, **options: Any) -> None:
         self.options = self.Options(**options)
         self.guidance = GuidanceSet.parse(self.options.guidance)
-        self._generator = torch.Generator(device="cpu").manual_seed(self.options.seed)
+        self._generator: torch.Generator | SceneGenerators = torch.Generator(device="cpu").manual_seed(
+            self.options.seed)
+        self._scene_seeds: tuple[list[int], list[int]] | None = None
         self.build(config)
         self.module.to(self.options.device)
 
@@ -173,10 +181,34 @@ class TrafficModelAdapter(abc.ABC):
 
     # ------------------------------------------------------------ policy
     def reset(self, scenario: ScenarioTensor) -> None:
-        """Fit the guidance heuristics on the logged scene at the rollout start."""
+        """Fit the guidance heuristics on the logged scene at the rollout start and re-seed the sampler (one
+        generator from ``options.seed``, or one per group of scenes after :meth:`seed_scenes`)."""
         if self.guidance is not None:
             self.guidance.fit(scenario)
-        self._generator.manual_seed(self.options.seed)
+        if self._scene_seeds is None:
+            self._generator = torch.Generator(device="cpu").manual_seed(self.options.seed)
+            return
+        seeds, sizes = self._scene_seeds
+        if sum(sizes) != scenario.num_scenes:
+            raise ValueError(f"seed_scenes covers {sum(sizes)} scenes in groups {sizes}, but the rollout has "
+                             f"{scenario.num_scenes}; seed the groups of this batch (or call seed_scenes(None)).")
+        self._generator = SceneGenerators(seeds, sizes)
+
+    def seed_scenes(self, seeds: Sequence[int] | None, sizes: Sequence[int] = ()) -> None:
+        """From the next :meth:`reset` on, sample group g of ``sizes[g]`` consecutive scenes from its own
+        generator seeded by ``seeds[g]``: a batch of groups then draws exactly what each group draws alone with
+        its seed as ``options.seed`` (e.g. many feedback contexts, each seeded by its scene, in one rollout).
+        ``None`` returns to one generator from ``options.seed``. Needs an adapter with ``scene_generators``."""
+        if seeds is None:
+            self._scene_seeds = None
+            return
+        if not self.scene_generators:
+            raise TrafficRLHFError(f"the {self.name!r} adapter samples from one generator; run its seeded groups "
+                                   "one by one (seed_policy per group) instead of seed_scenes.")
+        if len(seeds) != len(sizes) or not seeds or any(int(n) < 1 for n in sizes):
+            raise ValueError(f"seed_scenes: seeds {list(seeds)} and sizes {list(sizes)} must pair one seed with "
+                             "each group of at least one scene.")
+        self._scene_seeds = ([int(s) for s in seeds], [int(n) for n in sizes])
 
     @torch.no_grad()
     def plan(self, context: ScenarioTensor, horizon: int) -> Plan:

@@ -576,3 +576,59 @@ def test_planning_skips_the_held_agents_denoising_without_changing_the_rollout(s
     full = simulate(held, scenes, config)
     assert torch.equal(skipped.simulated.states, full.simulated.states)
     assert sum(calls) < sum(rows)
+
+
+@needs_data
+def test_seeded_scene_groups_in_one_batch_roll_out_as_each_group_alone(scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_ctg import CTGAdapter
+    from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+    from trafficrlhf_sdk.simulation.policies import seed_policy
+    from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+    config = SimulationConfig(duration_s=1.0)
+    policy = CTGAdapter(seed=0, guidance="no_collision")
+    groups = [scenes[0], scenes[1], scenes[2]]
+    sizes, seeds = [2, 1, 2], [11, 5, 7]
+    batch = ScenarioTensor.concat([g for g, n in zip(groups, sizes) for g in [g] * n])
+    policy.seed_scenes(seeds, sizes)
+    together = simulate(policy, batch, config).simulated
+    policy.seed_scenes(None)
+    first = 0
+    for group, n, seed in zip(groups, sizes, seeds):
+        seed_policy(policy, seed)
+        alone = simulate(policy, ScenarioTensor.concat([group] * n), config).simulated
+        a = group.num_agents
+        assert torch.equal(together.states[first : first + n, :a], alone.states)
+        assert torch.equal(together.valid[first : first + n, :a], alone.valid)
+        first += n
+    with pytest.raises(ValueError, match="covers 5 scenes"):
+        policy.seed_scenes(seeds, sizes)
+        simulate(policy, scenes, config)
+
+
+@needs_data
+def test_campaign_contexts_made_together_equal_those_made_one_by_one(scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_ctg import CTGAdapter
+    from trafficrlhf_sdk.feedback.campaign import generate_candidates, generate_candidates_batch
+    from trafficrlhf_sdk.simulation.policies import seed_policy
+
+    def own_agents(scene):  # type: ignore[no-untyped-def]
+        """The scene without the batch's padding slots, so the contexts differ in size as loaded one by one."""
+        a = int(scene.valid[0].any(-1).nonzero().max()) + 1
+        return scene.replace_unchecked(states=scene.states[:, :a], valid=scene.valid[:, :a],
+                                       extent=scene.extent[:, :a], agent_type=scene.agent_type[:, :a],
+                                       controlled=scene.controlled[:, :a],
+                                       agent_ids=tuple(ids[:a] for ids in scene.agent_ids))
+
+    policy = CTGAdapter(seed=0, guidance="no_collision")
+    contexts = [own_agents(scenes[i]) for i in range(scenes.num_scenes)]
+    assert len({c.num_agents for c in contexts}) > 1
+    seeds = [3, 1, 4]
+    together = generate_candidates_batch(policy, contexts, seeds, 3, 1.0, 10.0)
+    for scene, seed, made in zip(contexts, seeds, together):
+        seed_policy(policy, seed)
+        alone = generate_candidates(policy, scene, 3, 1.0, 10.0)
+        for x, y in zip(made[1:], alone[1:]):
+            assert torch.equal(x, y)
+        assert torch.equal(made[0].states, alone[0].states) and torch.equal(made[0].controlled, alone[0].controlled)
+        assert torch.equal(made[0].map.raster, alone[0].map.raster)

@@ -53,6 +53,7 @@ from trafficrlhf_sdk.simulation.dynamics import unicycle_rollout
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import AdapterOptions, PolicyTrace, SampleOutput, TrafficModelAdapter
+from trafficrlhf_sdk.models.random import SceneGenerators
 from trafficrlhf_sdk.models.stationary import StationaryHold, StationaryRule
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.policies import Plan
@@ -150,6 +151,7 @@ class CTGAdapter(TrafficModelAdapter):
     name = "ctg"
     Options = CTGOptions
     horizon = 20
+    scene_generators = True
 
     # ------------------------------------------------------------ construction
     def build(self, config: dict[str, Any] | None) -> None:
@@ -344,7 +346,7 @@ class CTGAdapter(TrafficModelAdapter):
 
     # ------------------------------------------------------------ contract
     def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
-               generator: torch.Generator | None = None) -> SampleOutput:
+               generator: torch.Generator | SceneGenerators | None = None) -> SampleOutput:
         """Draw ``num_samples`` futures ``(B, S, A, H, 4)``, H = ``self.horizon``, for the controlled agents valid
         now."""
         self._check_dt(context)
@@ -352,6 +354,8 @@ class CTGAdapter(TrafficModelAdapter):
         b, a, s, h = context.num_scenes, context.num_agents, num_samples, self.horizon
         k = self.cfg.sample_steps
         agents = context.controlled & context.valid[:, :, now]
+        if isinstance(generator, SceneGenerators):  # one stream per group of scenes, over this call's rows
+            generator = generator.rows(agents.nonzero(as_tuple=True)[0], per_row=s)
         current = context.states[:, :, now]  # (B, A, 4)
         hold = torch.stack([current[..., 0], current[..., 1], torch.zeros_like(current[..., 0]), current[..., 3]], -1)
         base_futures = hold[:, :, None, None].expand(b, a, s, h, 4)

@@ -45,6 +45,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from trafficrlhf_sdk.models.random import draw_normal
+
 from ctg_reference.config import CTGConfig
 from ctg_reference.networks import CoDenoiseMixer, ContextEncoder, TemporalUNet
 from ctg_reference.steering import (
@@ -355,8 +357,7 @@ class CTGModel(nn.Module):
         n, s = cond.shape[0], num_samples
         h = self.cfg.horizon
         c = (cond if cond.dim() == 3 else cond[:, None].expand(n, s, cond.shape[-1])).reshape(n * s, -1)
-        at = draw_device(generator, cond.device)
-        x = torch.randn((n * s, h, 2), generator=generator, device=at).to(cond.device)
+        x = draw_normal(generator, (n * s, h, 2), cond.device)
         schedule = self.sample_schedule
         rows = None
         if active is not None and scene is None and not bool(active.all()):
@@ -387,7 +388,7 @@ class CTGModel(nn.Module):
                     step = self.cfg.guidance_step * torch.sign(grad.reshape(n * s, h, 2))
                     delta = torch.minimum(torch.maximum(-step, -sigma), sigma)
             mean = mean + delta
-            noise = torch.randn(mean.shape, generator=generator, device=at).to(cond.device)
+            noise = draw_normal(generator, mean.shape, cond.device)
             x = (mean + sigma * noise).detach()
             chain.append(x)
             deltas.append(delta.detach())
