@@ -58,6 +58,25 @@ def test_feedback_serve_refuses_a_file_that_is_not_sqlite(tmp_path: Path, capsys
     assert code == 2 and "not an SQLite database" in err and "annotation app on" not in out
 
 
+def test_an_empty_file_or_a_database_missing_a_table_is_refused(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    import sqlite3
+
+    empty = tmp_path / "empty.db"
+    empty.write_bytes(b"")
+    code, out, err = run_cli(["feedback", "status", "--db", str(empty)], capsys)
+    assert code == 2 and "empty file" in err and out == "" and empty.read_bytes() == b""
+    damaged = tmp_path / "damaged.db"
+    FeedbackStore(damaged).close()
+    with sqlite3.connect(damaged) as conn:
+        conn.execute("DROP TABLE labels")
+    for command in (["feedback", "status"], ["feedback", "annotator", "list"]):
+        code, _, err = run_cli([*command, "--db", str(damaged)], capsys)
+        assert code == 2 and "table(s) labels are missing" in err and "backup" in err
+    with sqlite3.connect(damaged) as conn:  # nothing was recreated
+        assert conn.execute("SELECT count(*) FROM sqlite_master WHERE name = 'labels'").fetchone() == (0,)
+
+
 def test_the_store_refuses_a_file_that_is_not_sqlite(tmp_path: Path) -> None:
     path = not_sqlite(tmp_path, "text")
     with pytest.raises(DatabaseFileError, match="not an SQLite database"):

@@ -32,6 +32,9 @@ def _store(db_path: str) -> Any:
         raise DatabaseFileError(f"`--db` {db_path!r}: no such feedback database; create it (with a campaign) "
                                 f"by `trafficrlhf feedback create --db {db_path} --name NAME --model MODEL`, or "
                                 "check the path.")
+    if os.path.getsize(db_path) == 0:  # SQLite would take it for a new database and write a schema into it
+        raise DatabaseFileError(f"`--db` {db_path!r} is an empty file, not a feedback database; pass the file "
+                                "`trafficrlhf feedback create` made.")
     return FeedbackStore(db_path)
 
 

@@ -18,6 +18,7 @@ import hashlib
 import json
 import os
 import random
+import re
 import secrets
 import sqlite3
 import threading
@@ -81,6 +82,7 @@ def _now() -> str:
 
 
 SQLITE_MAGIC = b"SQLite format 3\x00"
+SCHEMA_TABLES = tuple(re.findall(r"CREATE TABLE IF NOT EXISTS (\w+)", SCHEMA_SQL))
 
 
 def check_database_file(path: str) -> None:
@@ -146,6 +148,13 @@ class FeedbackStore(StoreStatistics):
                     f"{self.path!r} has feedback schema version {version}; this SDK reads versions 1 to "
                     f"{SCHEMA_VERSION}. Upgrade the SDK to open it."
                 )
+            if version == SCHEMA_VERSION:  # a finished database: never recreate what is missing as empty
+                found = {row[0] for row in tx.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+                missing = sorted(set(SCHEMA_TABLES) - found)
+                if missing:
+                    raise DatabaseFileError(
+                        f"`--db` {self.path!r} is a damaged feedback database: table(s) {', '.join(missing)} are "
+                        "missing, so its campaigns or labels would read as empty; restore the file from a backup.")
             migrate(tx.execute, version)
             tx.executescript_safe(SCHEMA_SQL)
             if version == 1 and tx.execute("PRAGMA foreign_key_check").fetchone() is not None:
