@@ -234,9 +234,9 @@ class ForkServer:
 
     def run(self, category: str, case: str, args: Sequence[str], cwd: Path, check: Check | None = None,
             env: dict[str, str] | None = None, inputs: Sequence[Path] = (),
-            timeout: float = CASE_TIMEOUT_S) -> Outcome:
+            timeout: float = CASE_TIMEOUT_S, keep: bool = True) -> Outcome:
         """Run ``trafficrlhf ARGS`` in a forked child in ``cwd``; classify (with ``check`` for exit 0) and
-        record the outcome."""
+        record the outcome (unless ``keep`` is false: a reference run, not a case)."""
         assert self.proc is not None, "start() the server first"
         with self.lock:
             out, err = Path(self.scratch) / "stdout", Path(self.scratch) / "stderr"
@@ -250,7 +250,8 @@ class ForkServer:
         outcome = Outcome(category, case, "trafficrlhf " + " ".join(_quote(a) for a in args), reply["code"],
                           stdout, stderr, reply["peak_mb"], reply["seconds"], input_bytes=folder_bytes(inputs))
         classify(outcome, check, reply["timed_out"])
-        record(outcome)
+        if keep:
+            record(outcome)
         return outcome
 
 
