@@ -27,8 +27,12 @@ def experiment_group() -> None:
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads [default: torch's].")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
                                                 "of refusing them).")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Run the evaluations' rollouts, the campaigns' candidates and the alignments' samples on N Ray "
+                   "workers started for the run (pip install 'trafficrlhf-sdk[ray]'); the numbers are the same.")
+@click.option("--ray-address", default=None, help="Run them on an existing Ray cluster at this address instead.")
 def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str | None, scenes: int | None,
-                  threads: int | None, overwrite: bool) -> None:
+                  threads: int | None, overwrite: bool, workers: int, ray_address: str | None) -> None:
     """Tables 1-4 and Figure 3 of the paper (arXiv 2309.00709) on nuScenes val scenes, with stand-in annotators
     and learned reward models: markdown, JSON and PNG per table, with commands, seeds and wall times."""
     from trafficrlhf_sdk.config_files import read_toml
@@ -51,6 +55,8 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
     for key, value in (("scenes", scenes), ("threads", threads)):
         if value is not None:
             fields[key] = value
+    if workers or ray_address:
+        fields["execution"] = {"workers": workers, "ray_address": ray_address}
     try:
         config = PaperConfig.quick(**fields) if quick else PaperConfig(**fields)
     except ValidationError as exc:

@@ -17,6 +17,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 from trafficrlhf_sdk.alignment.config import AlignConfig
 from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.parallel import ExecutionConfig
 from trafficrlhf_sdk.reward.config import RewardConfig
 
 __all__ = ["GUIDANCES", "TABLES", "PaperConfig", "resolve_path"]
@@ -80,6 +81,9 @@ class PaperConfig(BaseModel):
     batch_size: int = Field(50, ge=1, description="Scenes simulated per policy batch.")
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
     progress: bool = Field(True, description="Progress bars for simulation and alignment.")
+    execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Where the evaluations' "
+                                       "rollouts, the campaigns' candidates and the alignments' samples run: "
+                                       "in-process or on Ray workers (the numbers are the same).")
     guidance: str | None = Field("no_collision", description="Guidance of Tables 2-4 (sampling, alignment, "
                                                              "evaluation).")
     guidances: tuple[str, ...] = Field(GUIDANCES, min_length=1, description="Guidances of Table 1.")

@@ -106,7 +106,7 @@ def evaluate(run: ExperimentRun, label: str, model: str, checkpoint: str | None,
     request = EvaluationRequest(model=model, checkpoint=checkpoint, guidance=guidance,
                                 model_options=model_options or {}, source=cfg.source, split="val", root=cfg.root,
                                 num_scenes=cfg.scenes, seeds=(cfg.seed,), batch_size=cfg.batch_size,
-                                rollouts=cfg.rollouts)
+                                rollouts=cfg.rollouts, execution=cfg.execution)
     folder = os.path.join(run.out_dir, "evaluations", _slug(f"{label}__{guidance}__{'+'.join(sorted(rewards))}"))
 
     def scenes() -> Any:
@@ -134,7 +134,8 @@ def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, rew
     recipe = AlignRecipe(model=model, checkpoint=checkpoint, reward_model=reward_model,
                          model_options=model_options or {}, reward_aggregation=aggregation,  # type: ignore[arg-type]
                          align=settings)
-    done = run.count(align_step(os.path.join(run.out_dir, "models", name), recipe, after=after, **run.steps))
+    done = run.count(align_step(os.path.join(run.out_dir, "models", name), recipe, after=after,
+                                execution=cfg.execution, **run.steps))
     if not done.cached:
         run.log(f"aligned {name} ({model} from {checkpoint or 'its bundled weights'} against {reward_model}) in "
                 f"{done['wall_time_s']:.0f} s ({done['epochs']} epochs)")
@@ -157,7 +158,8 @@ def labelled_campaign(run: ExperimentRun, folder: str, name: str, model: str, nu
                               source=cfg.source, split=split, root=cfg.root, num_contexts=num_contexts,
                               num_candidates=candidates, candidate_seconds=seconds, seed=cfg.seed,
                               candidate_models=candidate_models)
-    made = run.count(generate_step(os.path.join(folder, "campaigns", name), db, campaign, **run.steps))
+    made = run.count(generate_step(os.path.join(folder, "campaigns", name), db, campaign, execution=cfg.execution,
+                                   **run.steps))
     if not made.cached:
         run.log(f"campaign {name}: {made['contexts']} {split} contexts x {candidates} candidates of {seconds:g} s "
                 f"({', '.join(dict.fromkeys(candidate_models or [model]))})")

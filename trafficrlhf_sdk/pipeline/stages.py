@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from trafficrlhf_sdk.evaluation.runs import EvaluationRequest
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
     from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotatorConfig
+    from trafficrlhf_sdk.parallel import ExecutionConfig
     from trafficrlhf_sdk.reward.config import RewardConfig
 
 __all__ = ["align_step", "evaluate_step", "generate_step", "label_step", "rank_step", "reward_model_step"]
@@ -46,8 +47,10 @@ _HOW_NOT_WHAT = ("progress_bar", "resume", "resume_allow_changes", "output_dir")
 
 # ----------------------------------------------------------------------------------------------------- feedback
 def generate_step(folder: str, db: str, campaign: CampaignConfig, *, after: Sequence[StepResult] = (),
-                  overwrite: bool = False, log: Log | None = None) -> StepResult:
-    """Campaign ``campaign.name`` in feedback database ``db``: its contexts with N candidates each.
+                  overwrite: bool = False, log: Log | None = None, execution: ExecutionConfig | None = None
+                  ) -> StepResult:
+    """Campaign ``campaign.name`` in feedback database ``db``: its contexts with N candidates each, made in-process
+    or on ``execution``'s Ray workers (the same candidates).
 
     A generation stopped midway is completed: the campaign gets the contexts it lacks (each context is seeded by
     the campaign's seed and its scene, so the candidates are those of an uninterrupted run). Outputs: ``db``,
@@ -64,9 +67,9 @@ def generate_step(folder: str, db: str, campaign: CampaignConfig, *, after: Sequ
                 _check_campaign(store.campaign(campaign.name).config, campaign, db)
                 extend_campaign(store, campaign.name, scene_ids=campaign.scene_ids,
                                 num_contexts=None if campaign.scene_ids else campaign.num_contexts,
-                                root=campaign.root)
+                                root=campaign.root, execution=execution)
             else:
-                create_campaign(store, campaign)
+                create_campaign(store, campaign, execution=execution)
             contexts = len(store.context_keys(store.campaign(campaign.name)))
         finally:
             store.close()
@@ -207,7 +210,7 @@ def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Seq
 
 # ---------------------------------------------------------------------------------------------------- alignment
 def align_step(folder: str, recipe: AlignRecipe, *, after: Sequence[StepResult] = (), overwrite: bool = False,
-               log: Log | None = None) -> StepResult:
+               log: Log | None = None, execution: ExecutionConfig | None = None) -> StepResult:
     """``recipe``'s model aligned against its reward into ``folder``
     (:func:`~trafficrlhf_sdk.alignment.recipe.run_recipe`). Inside the step, alignment keeps its own finer
     resume: a run stopped midway continues from its newest epoch checkpoint in ``folder/checkpoints``
@@ -220,7 +223,8 @@ def align_step(folder: str, recipe: AlignRecipe, *, after: Sequence[StepResult] 
 
         checkpoints = os.path.join(folder, "checkpoints")
         resume = os.path.isdir(checkpoints) and any(n.startswith("checkpoint-") for n in os.listdir(checkpoints))
-        summary = run_recipe(recipe, folder, **({"resume": True} if resume else {}))
+        summary = run_recipe(recipe, folder, execution=execution if execution is not None and execution.uses_ray
+                             else None, **({"resume": True} if resume else {}))
         return {**summary, "folder": folder}
 
     return run_step("align", folder, inputs, work, after=after, overwrite=overwrite, log=log)
