@@ -6,7 +6,8 @@ when the marker expression names it::
 
     pytest -m hostile tests/hostile
 
-``python -m tests.hostile.table`` runs the large form and rewrites the table in docs/reference/hostile-inputs.md.
+``python tests/hostile/hostile_table.py`` runs the large form and rewrites the table in
+docs/reference/hostile-inputs.md.
 """
 
 from __future__ import annotations
