@@ -388,6 +388,38 @@ STEPS: dict[str, Callable[[ExperimentRun], dict[str, Any]]] = {
 
 
 # --------------------------------------------------------------------------------------------------------- runner
+def _produce(run: ExperimentRun, name: str, results: dict[str, Any]) -> None:
+    """Run table ``name``'s steps and write its result files (kept as they are when no step had work left);
+    its result goes into ``results``."""
+    import torch
+
+    config, out_dir, log = run.config, run.out_dir, run.log
+    folder = os.path.join(out_dir, name)
+    path = os.path.join(folder, "result.json")
+    log(f"{name}: starting")
+    tic, ran = time.perf_counter(), run.ran
+    produced = STEPS[name](run)
+    if run.ran == ran and os.path.isfile(path):
+        log(f"{name}: every step done before ({path}); skipped")
+        with open(path, encoding="utf-8") as handle:
+            results[name] = json.load(handle)
+        return
+    produced.update(command=_command(config, name), seed=config.seed, rollouts=config.rollouts,
+                    scenes=config.scenes, wall_time_s=time.perf_counter() - tic, threads=torch.get_num_threads(),
+                    machine=platform.machine(), cpus=os.cpu_count(), config=config.model_dump(mode="json"),
+                    label=config.label)
+    os.makedirs(folder, exist_ok=True)
+    if name == "figure3":
+        plot_figure3(os.path.join(folder, "result.png"), produced["figure"], produced["runs"], produced["title"])
+    else:
+        labels, series = produced.pop("plot")
+        plot_bars(os.path.join(folder, "result.png"), labels, series, produced["title"])
+    write_result(folder, produced, produced["markdown"], produced["comparisons"], produced.get("notes", ()))
+    with open(path, encoding="utf-8") as handle:
+        results[name] = json.load(handle)
+    log(f"{name}: done in {produced['wall_time_s']:.0f} s -> {folder}")
+
+
 def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = print,
               overwrite: bool = False) -> dict[str, Any]:
     """Produce ``config.only`` in ``out_dir`` and write ``out_dir/summary.md``; returns ``{name: result}`` for every
@@ -404,31 +436,11 @@ def run_paper(config: PaperConfig, out_dir: str, log: Callable[[str], None] = pr
     run = ExperimentRun(config, out_dir, log, overwrite)
     began = time.perf_counter()
     results: dict[str, Any] = {}
-    for name in config.only:
-        folder = os.path.join(out_dir, name)
-        path = os.path.join(folder, "result.json")
-        log(f"{name}: starting")
-        tic, ran = time.perf_counter(), run.ran
-        produced = STEPS[name](run)
-        if run.ran == ran and os.path.isfile(path):
-            log(f"{name}: every step done before ({path}); skipped")
-            with open(path, encoding="utf-8") as handle:
-                results[name] = json.load(handle)
-            continue
-        produced.update(command=_command(config, name), seed=config.seed, rollouts=config.rollouts,
-                        scenes=config.scenes, wall_time_s=time.perf_counter() - tic, threads=torch.get_num_threads(),
-                        machine=platform.machine(), cpus=os.cpu_count(), config=config.model_dump(mode="json"),
-                        label=config.label)
-        os.makedirs(folder, exist_ok=True)
-        if name == "figure3":
-            plot_figure3(os.path.join(folder, "result.png"), produced["figure"], produced["runs"], produced["title"])
-        else:
-            labels, series = produced.pop("plot")
-            plot_bars(os.path.join(folder, "result.png"), labels, series, produced["title"])
-        write_result(folder, produced, produced["markdown"], produced["comparisons"], produced.get("notes", ()))
-        with open(path, encoding="utf-8") as handle:
-            results[name] = json.load(handle)
-        log(f"{name}: done in {produced['wall_time_s']:.0f} s -> {folder}")
+    from trafficrlhf_sdk.parallel import ray_session
+
+    with ray_session(config.execution):  # one Ray for every step of the run (nothing in-process)
+        for name in config.only:
+            _produce(run, name, results)
     total = time.perf_counter() - began
     parts = [f"# Paper experiments ({config.label})", "",
              f"This call: {total:.0f} s on {os.cpu_count()} CPUs ({torch.get_num_threads()} torch threads).", ""]
