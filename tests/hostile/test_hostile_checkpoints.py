@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 from conftest import ROOT, one_scene_root
-from hostile_harness import ForkServer, assert_handled, draw
+from hostile_harness import ForkServer, assert_handled, draw, record
 from hypothesis import strategies as st
 from test_hostile_cli import check_evaluate
 
@@ -214,10 +214,12 @@ def test_hostile_checkpoint(target: str, operation: str, argument: object, fork_
         outcome = fork_server.run("checkpoints", described, args, workdir, check_evaluate, inputs=[folder])
     else:
         outcome = fork_server.run("reward models", described, ["rm", "info", folder], workdir, check_rm_info,
-                                  inputs=[folder])
+                                  inputs=[folder], keep=False)
         if outcome.kind == "correct" and operation in ("scale", "overwrite", "truncate", "sparse"):
+            # weights that load must also score: the case's outcome is that of the evaluation
             args = ["evaluate", "--model", "constant_velocity", "--reward-model", folder, "--root", root,
                     "--scenes", "1", "--duration", "1", "--json"]
             outcome = fork_server.run("reward models", described + " (evaluate)", args, workdir, check_evaluate,
-                                      inputs=[folder])
+                                      inputs=[folder], keep=False)
+        record(outcome)
     assert_handled(outcome)

@@ -101,6 +101,10 @@ COMMANDS = {
                        ("--split", "--root", "--scenes", "SOURCE"), "inspect"),
     "render scene": Command(("render", "scene", "nuscenes_pred", SCENE, "--root", "{root}", "-o", "{out}.png"),
                             ("--split", "--step", "--dpi", "-o", "SCENE"), "png"),
+    "render compare": Command(("render", "compare", "--model", "constant_velocity", "--model", "constant_velocity",
+                               "--root", "{root}", "--scenes", "1", "--out", "{out}"),
+                              ("--scenes", "--scene-id", "--worst", "--seed", "--batch-size", "--duration",
+                               "--frame-hz", "--speed", "--dpi", "--out", "--guidance", "--model-option"), "compare"),
     "rm info": Command(("rm", "info"), ("MODEL_DIR",), "architectures"),
     "compare": Command(("compare",), ("FOLDERS",), None),
     "checkpoint-digest": Command(("checkpoint-digest",), ("FOLDERS",), None),
@@ -145,6 +149,8 @@ HAND = [  # the cases of the issue, and command lines no single replacement prod
     ("align", ("align", "--checkpoint", "ctg-small", "--reward-model", "{missing}", "--out", "{out}",
                "--epochs", "1", "--scenes", "1"), None),
     ("align", ("align", "--config", "{file}", "--out", "{out}"), None),
+    ("align", ("align", "--config", "{file}", "--checkpoint", "ctg", "--reward-model", "{missing}", "--out", "{out}"),
+     None),  # a recipe of only an [align] table: the reward model of the command line still counts
     ("average", ("average", "{dir}", "{dir}", "--out", "{out}", "--weights", "nan,1"), None),
     ("extrapolate", ("extrapolate", "{dir}", "--base", "{dir}", "--factor", "1e309", "--out", "{out}"), None),
     ("report", ("report", "{missing}"), None),
@@ -156,13 +162,13 @@ HAND = [  # the cases of the issue, and command lines no single replacement prod
 
 KNOWN: dict[str, str] = {}
 
-SMALL = {"evaluate", "inspect", "render scene", "rm info", "feedback status"}
+SMALL = {"evaluate", "inspect", "render scene", "render compare", "rm info", "feedback status"}
 
 
 def _params(large: bool) -> list:
     params, seen_small = [], set()
     for index, (command, option, value) in enumerate(GENERATED):
-        is_small = command in SMALL and command not in seen_small and option not in ("--out", "-o")
+        is_small = command in SMALL and command not in seen_small and option not in ("--out", "-o", "--scenes")
         if is_small:
             seen_small.add(command)
         if large or is_small:
@@ -212,7 +218,14 @@ def test_hostile_command_line(command: str, args: tuple[str, ...], check: str | 
             return f"no PNG at {target}"
         return None
 
-    checks = {"evaluate": check_evaluate, "inspect": check_inspect, "png": check_png,
+    def check_compare(stdout: str, stderr: str) -> str | None:
+        out = Path(filled[filled.index("--out") + 1])
+        summary = (out if out.is_absolute() else workdir / out) / "side_by_side.json"
+        if not summary.is_file():
+            return f"no {summary}"
+        return None if "failure rate" in stdout else "no failure rates printed"
+
+    checks = {"evaluate": check_evaluate, "inspect": check_inspect, "png": check_png, "compare": check_compare,
               "architectures": check_architectures, None: None}
     outcome = fork_server.run(CATEGORY, f"{command}: {' '.join(args)[:160]}", filled, workdir, checks[check],
                               inputs=[root])
