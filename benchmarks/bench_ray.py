@@ -2,7 +2,7 @@
 generation with CTG, the same seeds in both modes. **Asserts** the results are identical, then prints both wall
 times and the speed-up (Ray start-up included: a local Ray is started for each Ray run).
 
-Run: .venv/bin/python benchmarks/bench_ray.py candidates --scenes 50 --workers 2
+Run: .venv/bin/python benchmarks/bench_ray.py candidates --scenes 300 --split train --seconds 4 --workers 2
      .venv/bin/python benchmarks/bench_ray.py evaluate --scenes 100 --rollouts 8 --workers 2
 Needs ``pip install 'trafficrlhf-sdk[ray]'``. Set OMP_NUM_THREADS=1: each mode then uses one thread per process
 (in-process: one core; Ray: one per worker).
@@ -40,12 +40,12 @@ def bench_evaluate(scenes: int, rollouts: int, workers: int) -> None:
     print("   identical: values, per-scene values and rollout states")
 
 
-def bench_candidates(scenes: int, workers: int) -> None:
+def bench_candidates(scenes: int, workers: int, split: str, seconds: float) -> None:
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign
     from trafficrlhf_sdk.feedback.store import FeedbackStore
 
-    config = CampaignConfig(name="bench", model="ctg", guidance="no_collision", num_contexts=scenes,
-                            model_options={"checkpoint": "ctg-4s"})
+    config = CampaignConfig(name="bench", model="ctg", guidance="no_collision", num_contexts=scenes, split=split,
+                            candidate_seconds=seconds, model_options={"checkpoint": "ctg-4s"})
     stores = {}
     with tempfile.TemporaryDirectory() as folder:
         for label, execution in (("in-process", None), (f"ray x{workers}", ExecutionConfig(workers=workers))):
@@ -67,12 +67,14 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=50)
     parser.add_argument("--rollouts", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--split", default="val", help="candidates: the split of the contexts.")
+    parser.add_argument("--seconds", type=float, default=5.0, help="candidates: seconds per candidate.")
     args = parser.parse_args()
     header(f"in-process vs {args.workers} Ray workers: {args.what}, {args.scenes} scenes")
     if args.what == "evaluate":
         bench_evaluate(args.scenes, args.rollouts, args.workers)
     else:
-        bench_candidates(args.scenes, args.workers)
+        bench_candidates(args.scenes, args.workers, args.split, args.seconds)
     print(f"   peak RSS of the driver {peak_rss_mb():.0f} MB")
 
 
