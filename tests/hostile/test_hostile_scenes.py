@@ -8,7 +8,9 @@ endings. Map rasters: the PNG truncated, transposed, flipped, resized, in anothe
 size or replaced by other bytes; the meta file (origin x, origin y, pixels per metre) with a hostile value or its
 origin shifted. Every case runs ``evaluate --model constant_velocity`` on the scene; a run that exits 0 must
 score at least one agent with finite rates, and (for a map edit) the logged data must still fit its map: the log
-failing on its own map means the map no longer describes the scene, which only an error may report.
+failing on its own map means the map no longer describes the scene, which only an error may report. The map
+edits and some label edits also run ``feedback create``, which must store the scene exactly when ``evaluate``
+scores it correctly.
 """
 
 from __future__ import annotations
@@ -245,4 +247,50 @@ def test_hostile_scene(kind: str, operation: str, argument: object, fork_server:
     outcome = fork_server.run("nuScenes labels" if kind == "label" else "map rasters",
                               f"{kind}: {operation} {argument!r}"[:200], args, workdir,
                               check_evaluate if kind == "label" else check_map_run, inputs=[root])
+    assert_handled(outcome)
+
+
+FIRST_WHOLE_FILE = next(i for i, (operation, _) in enumerate(LABELS) if operation == "whole file")
+
+
+def _create_params(large: bool) -> list:
+    """The same edits, for ``feedback create``: every map edit and the label edits of whole files and copies."""
+    params = []
+    for kind, edits in (("label", LABELS), ("map", MAPS)):
+        for index, (operation, argument) in enumerate(edits):
+            if kind == "label" and operation not in ("whole file", "copy tracks", "cell", "bytes"):
+                continue
+            small = (kind, index) in (("map", len(MAPS) - 2), ("label", FIRST_WHOLE_FILE))  # shifted 50 m, a file
+            if not (large or small):
+                continue
+            case_id = f"create-{kind}-{operation}-{index}"
+            marks = [pytest.mark.hostile] if large else []
+            if case_id in KNOWN:
+                marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
+            params.append(pytest.param(kind, operation, argument, id=case_id + ("-L" if large else ""), marks=marks))
+    return params
+
+
+@pytest.mark.parametrize(("kind", "operation", "argument"), _create_params(False) + _create_params(True))
+def test_hostile_scene_in_a_feedback_campaign(kind: str, operation: str, argument: object, fork_server: ForkServer,
+                                              nuscenes_root: Path, tmp_path: Path, workdir: Path) -> None:
+    """``feedback create`` stores a scene only where ``evaluate`` scores it: the two agree on every edit (a scene
+    evaluate refuses, or scores wrongly, must not become annotation items)."""
+    root = one_scene_root(tmp_path, nuscenes_root)
+    (edit_labels if kind == "label" else edit_map)(root, operation, argument)
+    category = "nuScenes labels" if kind == "label" else "map rasters"
+    described = f"{kind}: {operation} {argument!r}"[:180]
+    reference = fork_server.run(category, described, ["evaluate", "--model", "constant_velocity", "--root", root,
+                                                      "--scenes", "1", "--json"], workdir,
+                                check_evaluate if kind == "label" else check_map_run, keep=False)
+    scene_is_sound = reference.kind == "correct"
+
+    def check(stdout: str, stderr: str) -> str | None:
+        if not scene_is_sound:
+            return f"stored a scene that evaluate finds wrong ({reference.why[:120]})"
+        return None if "added 1 contexts" in stdout else "no context added"
+
+    args = ["feedback", "create", "--db", tmp_path / "feedback.db", "--name", "c", "--model", "constant_velocity",
+            "--root", root, "--scenes", "1", "--candidates", "2"]
+    outcome = fork_server.run(category, f"feedback create, {described}", args, workdir, check, inputs=[root])
     assert_handled(outcome)
