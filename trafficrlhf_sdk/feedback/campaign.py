@@ -146,7 +146,9 @@ def generate_candidates_batch(policy: Any, scenes: Sequence[ScenarioTensor], see
 
     An adapter that offers ``scene_generators`` rolls all contexts out as one batch, each context's copies
     drawing from its own seed (:meth:`~trafficrlhf_sdk.models.adapter.TrafficModelAdapter.seed_scenes`), so each
-    result equals the context's own run; other policies run the contexts one after the other."""
+    result equals the context's own run; other policies run the contexts one after the other. (Equal to the last
+    bit where the context alone gives the model 16 rows or more per call, e.g. CTG with guidance: 5 samples x 5
+    copies per agent; on CPU the matrix kernels of smaller calls may round the last bit differently.)"""
     if len(scenes) == 1 or not getattr(policy, "scene_generators", False):
         out = []
         for scene, seed in zip(scenes, seeds):
