@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from trafficrlhf_sdk.alignment.config import AlignConfig
 from trafficrlhf_sdk.config_files import ONLY_SET_FIELDS, set_fields
 from trafficrlhf_sdk.errors import TrafficRLHFError
+from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.pipeline.step import StepResult
 from trafficrlhf_sdk.reward.config import RewardConfig
 
@@ -88,6 +89,9 @@ class RLHFConfig(BaseModel):
     source: str = Field("nuscenes_pred", description="Scenario source (its 'train' split).")
     root: str | None = Field(None, description="Data directory of the source.")
     seed: int = Field(0, description="Seed of campaigns, annotators, reward models and alignment.")
+    execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Where the candidates and the "
+                                       "alignment's samples are made: in-process or on Ray workers (the same "
+                                       "numbers); `trafficrlhf rlhf --workers N`.")
 
 
 def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print, poll_s: float = 10.0,
@@ -104,6 +108,13 @@ def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print, p
     train = source.scene_ids("train")
     if config.contrast_scenes:
         train = train[: max(0, len(train) - config.contrast_scenes)]  # the contrast logs stay out of campaigns
+    with ray_session(config.execution):  # one Ray for every step of the run (nothing in-process)
+        return _rounds(config, out_dir, db, train, log, poll_s, overwrite)
+
+
+def _rounds(config: RLHFConfig, out_dir: str, db: str, train: list[str], log: Callable[[str], None],
+            poll_s: float, overwrite: bool) -> dict[str, Any]:
+    """The loop's rounds over the ``train`` scenes left for campaigns (see :func:`rlhf`)."""
     rounds: list[dict[str, Any]] = []
     labels: list[StepResult] = []  # every round's labelling so far: the reward model reads them all
     reward: StepResult | None = None
@@ -154,7 +165,8 @@ def _generate(config: RLHFConfig, db: str, r: int, policy: str | None, scenes: l
                                   source=config.source, split="train", root=config.root, scene_ids=part,
                                   num_candidates=config.candidates, contexts=config.contexts,
                                   candidate_seconds=config.seconds, seed=config.seed + 1000 * r + len(made))
-        done = generate_step(os.path.join(folder, "campaigns", name), db, campaign, **steps)
+        done = generate_step(os.path.join(folder, "campaigns", name), db, campaign, execution=config.execution,
+                             **steps)
         if not done.cached:
             steps["log"](f"round {r}: {done['contexts']} contexts of {name} ({config.model}, "
                          f"{'guidance ' + guidance if guidance else 'no guidance'}, {policy or 'bundled weights'})")
@@ -235,7 +247,8 @@ def _align(config: RLHFConfig, r: int, reward: StepResult, folder: str, steps: d
     recipe = AlignRecipe(model=config.model, checkpoint=config.checkpoint, model_options=config.model_options,
                          reward_model=reward["folder"], align=fields, reward_aggregation=config.reward_aggregation,
                          reward_pessimism=config.reward_pessimism)
-    aligned = align_step(os.path.join(folder, "aligned"), recipe, after=[reward], **steps)
+    aligned = align_step(os.path.join(folder, "aligned"), recipe, after=[reward], execution=config.execution,
+                         **steps)
     if not aligned.cached:
         summary = aligned.outputs
         steps["log"](f"round {r}: aligned {summary['model']} for {summary['epochs']} epochs in "

@@ -16,7 +16,12 @@ from trafficrlhf_sdk.cli.app import cli
 @click.option("--rounds", type=click.IntRange(min=1), default=None, help="Rounds [default: the config's, 2].")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
                                                 "of refusing them).")
-def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None, overwrite: bool) -> None:
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Make the candidates and the alignment's samples on N Ray workers started for the run (pip "
+                   "install 'trafficrlhf-sdk[ray]'); the numbers are the same.")
+@click.option("--ray-address", default=None, help="Make them on an existing Ray cluster at this address instead.")
+def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None, overwrite: bool, workers: int,
+                 ray_address: str | None) -> None:
     """Rounds of: candidates from the current policy, labels (stand-in annotators or people), a reward model
     retrained on every round's labels, and alignment of the base model against it."""
     from trafficrlhf_sdk.config_files import read_toml
@@ -31,6 +36,8 @@ def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None, over
         fields = read_toml(config_path)
     if rounds is not None:
         fields["rounds"] = rounds
+    if workers or ray_address:
+        fields["execution"] = {"workers": workers, "ray_address": ray_address}
     try:
         config = RLHFConfig(**fields)
     except ValidationError as exc:
