@@ -19,13 +19,7 @@ from pathlib import Path
 
 import pytest
 from hostile_harness import ForkServer
-
-from trafficrlhf_sdk.scenario import default_data_root
-
-ROOT = Path(__file__).resolve().parents[2]
-NUSCENES = Path(default_data_root()) / "nuscenes_pred"
-SCENARIONET = Path(default_data_root()) / "nuscenes_mini_scenarionet"
-SCENE = "scene-0002"
+from hostile_inputs import NUSCENES, SCENE
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -57,26 +51,6 @@ def nuscenes_root() -> Path:
     if not (NUSCENES / "label" / "val" / f"{SCENE}.txt").is_file():
         pytest.skip(f"real data not found under {NUSCENES} (set TRAFFICRLHF_DATA to the shared data folder)")
     return NUSCENES
-
-
-def one_scene_root(tmp_path: Path, nuscenes: Path = NUSCENES, scene: str = SCENE) -> Path:
-    """A nuscenes_pred data root with one val scene (labels, map PNG, meta) copied from the real data."""
-    root = tmp_path / "nuscenes_pred"
-    (root / "label" / "val").mkdir(parents=True)
-    (root / "maps").mkdir()
-    shutil.copy(nuscenes / "label" / "val" / f"{scene}.txt", root / "label" / "val")
-    for name in (f"{scene}.png", f"meta_{scene}.txt"):
-        shutil.copy(nuscenes / "maps" / name, root / "maps")
-    return root
-
-
-@pytest.fixture(scope="session")
-def mini_pickle() -> Path:
-    """One real nuScenes-mini ScenarioNet pickle (skips when absent)."""
-    files = sorted(SCENARIONET.glob("*.pkl")) if SCENARIONET.is_dir() else []
-    if not files:
-        pytest.skip(f"nuScenes-mini ScenarioNet data not found under {SCENARIONET}")
-    return min(files, key=lambda p: p.stat().st_size)
 
 
 @pytest.fixture

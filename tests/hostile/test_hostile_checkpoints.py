@@ -18,10 +18,9 @@ import struct
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, one_scene_root
 from hostile_harness import ForkServer, assert_handled, draw, record
+from hostile_inputs import ROOT, check_evaluate, one_scene_root
 from hypothesis import strategies as st
-from test_hostile_cli import check_evaluate
 
 from trafficrlhf_sdk.models.checkpoint import sha256_file
 

@@ -10,13 +10,12 @@ controlled agent and finite rates, ``inspect`` counts the scene, ``render scene`
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from conftest import SCENE, one_scene_root
 from hostile_harness import ForkServer, assert_handled, draw, run_executable
+from hostile_inputs import SCENE, check_evaluate, one_scene_root
 from hypothesis import strategies as st
 
 CATEGORY = "CLI arguments"
@@ -28,37 +27,6 @@ VALUES = ["", " ", "-1", "0", "-0", "1", "2.5", "1e309", "-1e309", "nan", "NaN",
           "{root}", "=", "k=", "=v", "k=v", "plan_samples=1e9", "plan_samples=-3", "stationary_rule=[1]"]
 
 Check = "Callable[[str, str], str | None]"
-
-
-def _rates(value: object) -> list[object]:
-    """Every ``failure_rate`` in a JSON result (per-scene lists flattened, their NaN-as-None left out)."""
-    if isinstance(value, dict):
-        found: list[object] = []
-        for key, item in value.items():
-            if key != "failure_rate":
-                found += _rates(item)
-            elif isinstance(item, list):
-                found += [x for x in item if x is not None]
-            else:
-                found.append(item)
-        return found
-    if isinstance(value, list):
-        return [x for v in value for x in _rates(v)]
-    return []
-
-
-def check_evaluate(stdout: str, stderr: str) -> str | None:
-    """``evaluate --json``: at least one scene and one controlled agent, finite failure rates in [0, 1]."""
-    try:
-        result = json.loads(stdout)
-    except json.JSONDecodeError:
-        return "stdout is not JSON"
-    if result.get("num_scenes", 0) < 1 or result.get("num_controlled_agents", 0) < 1:
-        return f"{result.get('num_scenes')} scenes, {result.get('num_controlled_agents')} controlled agents"
-    rates = _rates(result)
-    if not rates or not all(isinstance(r, float) and math.isfinite(r) and 0 <= r <= 1 for r in rates):
-        return f"failure rates {rates[:4]!r}"
-    return None
 
 
 def check_architectures(stdout: str, stderr: str) -> str | None:

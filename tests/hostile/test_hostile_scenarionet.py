@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hostile_harness import ForkServer, assert_handled, draw
+from hostile_inputs import check_evaluate
 from hypothesis import strategies as st
-from test_hostile_cli import check_evaluate
 
 ORIGIN = np.array([500.0, 800.0])
 LENGTH = 120

@@ -22,10 +22,9 @@ import zlib
 from pathlib import Path
 
 import pytest
-from conftest import SCENE, one_scene_root
 from hostile_harness import ForkServer, assert_handled, draw
+from hostile_inputs import SCENE, check_evaluate, one_scene_root
 from hypothesis import strategies as st
-from test_hostile_cli import check_evaluate
 
 TOKENS = ["nan", "NaN", "inf", "-inf", "1e308", "-1e308", "1e-320", "abc", "0", "-0", "-1", "+5", "1.5", "1e6",
           "-1e6", "99999999999", "0x1p3", "1_000", "\u0663", "\uff11", "9" * 500, "Car", "Pedestrian", "\u202e1",
