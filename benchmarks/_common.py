@@ -52,6 +52,12 @@ MAX_IDLE_LOAD = 0.5
 """The largest 1-minute load average before a run for its figures to count as measured alone."""
 
 
+def busy_beyond_own(load: float) -> bool:
+    """Whether a load average seen during a run says other jobs ran too: above one per CPU (the most a run's own
+    processes reach, Ray workers included) plus :data:`MAX_IDLE_LOAD`."""
+    return load > (os.cpu_count() or 1) + MAX_IDLE_LOAD
+
+
 def header(title: str) -> None:
     """Apply ``--threads``, print what runs where and the load average now, and at exit the load average then,
     with a verdict: a run that started on a busy machine is marked UNDER LOAD and its figures are not to be
@@ -64,9 +70,10 @@ def header(title: str) -> None:
 
     def verdict() -> None:
         after = os.getloadavg()[0]
-        alone = before <= MAX_IDLE_LOAD
+        alone = before <= MAX_IDLE_LOAD and not busy_beyond_own(after)
         print(f"== load average before {before:.2f}, after {after:.2f}: "
-              + ("measured alone" if alone else f"UNDER LOAD (> {MAX_IDLE_LOAD} before): discard these figures"))
+              + ("measured alone" if alone else f"UNDER LOAD (before > {MAX_IDLE_LOAD}, or after above one per CPU "
+                 f"+ {MAX_IDLE_LOAD}): discard these figures"))
 
     atexit.register(verdict)
 
