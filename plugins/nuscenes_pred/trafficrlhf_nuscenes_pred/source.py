@@ -236,6 +236,21 @@ class NuScenesPredSource(ScenarioSource):
         states, valid = _upsample(np.stack([kx, ky, kspeed, kyaw], -1), present, factor)
         states[..., 3] = (states[..., 3] + np.pi) % (2 * np.pi) - np.pi
 
+        first = {int(t): i for i, t in reversed(list(enumerate(a_idx)))}
+        extent = np.array([[table.length[first[a]], table.width[first[a]]] for a in range(len(tracks))])
+        types = np.array([int(AgentType.from_name(table.category[first[a]])) for a in range(len(tracks))])
+        meta = os.path.join(self.root, "maps", f"meta_{scene_id}.txt")
+        # the whole logged track against the map, whatever window of it is loaded (a short window holds few
+        # positions, and its share says little about the map)
+        whole = torch.from_numpy(valid)[None]
+        check_on_map(ScenarioTensor(states=torch.from_numpy(states).float()[None] * whole[..., None], valid=whole,
+                                    extent=torch.from_numpy(extent).float()[None],
+                                    agent_type=torch.from_numpy(types).long()[None],
+                                    controlled=torch.zeros(whole.shape[:2], dtype=torch.bool), dt=self.config.dt,
+                                    map=scene_map),
+                     self.config.min_on_map_share, label_path,
+                     f"the origin 'x_min y_min' (or the scale) in {meta}, or the map image beside it")
+
         t_total = states.shape[1]
         if self.config.max_future_s is not None:
             t_total = min(t_total, self.config.history_steps + 1 + round(self.config.max_future_s / self.config.dt))
@@ -244,9 +259,6 @@ class NuScenesPredSource(ScenarioSource):
         if current >= t_total:
             raise DataFormatError(f"scene {scene_id!r} is shorter than the {self.config.history_s} s of history.")
 
-        first = {int(t): i for i, t in reversed(list(enumerate(a_idx)))}
-        extent = np.array([[table.length[first[a]], table.width[first[a]]] for a in range(len(tracks))])
-        types = np.array([int(AgentType.from_name(table.category[first[a]])) for a in range(len(tracks))])
         valid_t = torch.from_numpy(valid)[None]
         scene = ScenarioTensor(
             states=torch.from_numpy(states).float()[None] * valid_t[..., None],
@@ -263,9 +275,6 @@ class NuScenesPredSource(ScenarioSource):
             source=self.name,
             extras={"split": split, "native_dt": KEYFRAME_DT},
         )
-        meta = os.path.join(self.root, "maps", f"meta_{scene_id}.txt")
-        check_on_map(scene, self.config.min_on_map_share, label_path,
-                     f"the origin 'x_min y_min' (or the scale) in {meta}, or the map image beside it")
         return scene
 
     def _load_map(self, scene_id: str) -> tuple[MapRaster, tuple[float, float]]:
