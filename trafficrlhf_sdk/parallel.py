@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
-__all__ = ["ExecutionConfig", "derive_seed", "ray_session", "run_tasks"]
+__all__ = ["ExecutionConfig", "derive_seed", "iter_tasks", "ray_session", "run_tasks"]
 
 T = TypeVar("T")
 
@@ -102,9 +102,19 @@ def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
     ``fn`` must be a module-level function (Ray ships it by reference) and must seed any randomness from its
     task, never rely on state left by an earlier task: tasks run on different workers in any order.
     """
+    return list(iter_tasks(fn, shared, tasks, execution))
+
+
+def iter_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
+               execution: ExecutionConfig | None = None) -> Iterator[T]:
+    """:func:`run_tasks` as an iterator: each result, in task order, as soon as it and those before it are done,
+    so a caller can store results while the workers compute the rest (the Ray session lasts until the iterator
+    is exhausted or closed)."""
     execution = execution or ExecutionConfig()
     if not execution.uses_ray or not tasks:
-        return [fn(shared, task) for task in tasks]
+        for task in tasks:
+            yield fn(shared, task)
+        return
     with ray_session(execution) as ray:
         from ray.util import ActorPool
 
@@ -114,4 +124,4 @@ def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
         actor = ray.remote(num_cpus=execution.threads_per_worker)(_Worker)
         shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
         pool = ActorPool([actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)])
-        return list(pool.map(lambda a, task: a.run.remote(task), list(tasks)))
+        yield from pool.map(lambda a, task: a.run.remote(task), list(tasks))

@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from trafficrlhf_sdk.errors import DataFormatError, TrafficRLHFError
 from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
-from trafficrlhf_sdk.parallel import ExecutionConfig, run_tasks
+from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks, run_tasks
 from trafficrlhf_sdk.plugins import build_policy, get_scenario_source, list_plugins, registry
 from trafficrlhf_sdk.scenario.map import crop_map
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -295,12 +295,11 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
     todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
     skipped = [s for s in scene_ids if (cfg["source"], cfg["split"], s) in present]
-    if execution is not None and execution.uses_ray:  # scale-out: generate on Ray workers, store here
-        made = campaign_candidates(campaign, source, todo, execution)
-        parts: Any = (made.pop(scene_id) for scene_id in todo)
-    else:  # in-process, a few contexts at a time (each stored as soon as it is made), the model built once
-        shared = _shared_payload(campaign, source)
-        parts = (part for chunk in _task_chunks(shared, todo) for part in _candidates_task(shared, chunk))
+    # a few contexts per task, in-process or on Ray workers (the model built once); each context is stored here,
+    # as soon as its task is done, while the workers make the next ones
+    shared = _shared_payload(campaign, source)
+    chunks = iter_tasks(_candidates_task, shared, _task_chunks(shared, todo), execution)
+    parts = (part for chunk in chunks for part in chunk)
     added = []
     for scene_id, (context, cands, cand_valid, logged, logged_valid) in zip(todo, parts):
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
