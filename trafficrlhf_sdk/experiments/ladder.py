@@ -69,9 +69,11 @@ class LadderConfig(BaseModel):
                                         description="Stand-in profiles that label every context.")
     agreement_seed: int = Field(0, ge=0, description="Campaign seed of the val contexts of the agreement check.")
     reward: RewardConfig = Field(default_factory=lambda: RewardConfig(learning_rate=1e-3, weight_decay=0.0,
-                                                                      max_epochs=60, contrast_weight=1.0),
+                                                                      max_epochs=60),
                                  description="How the learned reward model trains.")
-    contrast_scenes: int = Field(120, ge=0, description="Contrast pairs from the logs of the last N train scenes.")
+    contrast_scenes: int = Field(0, ge=0, description="Contrast pairs from the logs of the last N train scenes (0: "
+                                 "none; the reward model then learns the stand-ins' labels alone, which row (c) "
+                                 "measures).")
     probe_scenes: int = Field(40, ge=0, description="Val scenes the reward model's probes run on.")
     scenes: int = Field(100, ge=1, description="Val scenes of the closed-loop evaluation.")
     seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Evaluation seeds.")
