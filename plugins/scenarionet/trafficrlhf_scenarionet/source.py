@@ -254,8 +254,9 @@ class ScenarioNetSource(ScenarioSource):
         if not cfg.rasterize_map:
             return self._tensor(tracks, points.min(0) - cfg.margin_m, None, scene_id, split, data)
         origin = points.min(0) - cfg.margin_m  # world position of pixel corner (0, 0) = scene frame origin
-        shape = tuple(int(v) for v in np.maximum(np.ceil((points.max(0) + cfg.margin_m - origin) * ppm), 1))
-        _check_raster_size(shape, cfg, tracks, path)
+        span = np.maximum(np.ceil((points.max(0) + cfg.margin_m - origin) * ppm), 1)  # float: inf for far points
+        _check_raster_size(tuple(float(v) for v in span), cfg, tracks, path)
+        shape = tuple(int(v) for v in span)
         features = parse_map_features(data["map_features"], path)
         raster = rasterize(features, origin, shape, ppm, cfg.lane_width_m)  # type: ignore[arg-type]
         focus = tracks.xy[0, current] if tracks.valid[0, current] else points.mean(0)
@@ -303,9 +304,10 @@ class ScenarioNetSource(ScenarioSource):
         )
 
 
-def _check_raster_size(shape: tuple[int, ...], cfg: ScenarioNetConfig, tracks: Tracks, path: str) -> None:
+def _check_raster_size(shape: tuple[float, ...], cfg: ScenarioNetConfig, tracks: Tracks, path: str) -> None:
     """Refuse a map raster of more than ``cfg.max_map_pixels`` pixels before it is allocated, naming the agent
-    position farthest from the others (a wrong coordinate makes the raster span it)."""
+    position farthest from the others (a wrong coordinate makes the raster span it; ``shape`` is in float, so a
+    span too large for an integer is refused rather than overflowing)."""
     pixels = math.prod(shape)
     if pixels <= cfg.max_map_pixels:
         return
