@@ -17,11 +17,9 @@ import pickle
 import re
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import textwrap
-import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,6 +31,7 @@ from trafficrlhf_sdk.cli import main
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 from trafficrlhf_sdk.models.checkpoint import record_weights_digest, sha256_file
 from trafficrlhf_sdk.scenario import default_data_root
+from trafficrlhf_sdk.testing.images import png_declaring
 
 ROOT = Path(__file__).resolve().parent.parent
 CTG_SMALL = ROOT / "reference_models" / "ctg" / "checkpoints" / "ctg_small"
@@ -250,15 +249,6 @@ def duplicate_row(root: Path) -> None:
     path = root / "label" / "val" / f"{SCENE}.txt"
     lines = path.read_text().splitlines()
     path.write_text("\n".join([*lines, lines[0]]) + "\n")
-
-
-def png_declaring(width: int, height: int) -> bytes:
-    """A tiny PNG whose header declares ``width`` x ``height`` pixels."""
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + \
-        chunk(b"IEND", b"")
 
 
 def blank_map(root: Path) -> None:

@@ -18,7 +18,7 @@ import struct
 from pathlib import Path
 
 import pytest
-from hostile_harness import ForkServer, assert_handled, draw, record
+from hostile_harness import case_param, ForkServer, assert_handled, draw, record
 from hostile_inputs import ROOT, check_evaluate, one_scene_root
 from hypothesis import strategies as st
 
@@ -193,10 +193,7 @@ def _params(large: bool) -> list:
         if not (large or is_small):
             continue
         case_id = f"{target}-{operation}-{index}"
-        marks = [pytest.mark.hostile] if large else []
-        if case_id in KNOWN:
-            marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-        params.append(pytest.param(target, operation, argument, id=case_id + ("-L" if large else ""), marks=marks))
+        params.append(case_param(target, operation, argument, case_id=case_id, large=large, known=KNOWN))
     return params
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from hostile_harness import ForkServer, assert_handled, draw, run_executable
+from hostile_harness import ForkServer, case_param, assert_handled, draw, run_executable
 from hostile_inputs import SCENE, check_evaluate, one_scene_root
 from hypothesis import strategies as st
 
@@ -141,18 +141,12 @@ def _params(large: bool) -> list:
             seen_small.add(command)
         if large or is_small:
             case_id = f"{command}-{option}-{index}"
-            marks = [pytest.mark.hostile] if large else []
-            if case_id in KNOWN:
-                marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-            params.append(pytest.param(command, _build(command, option, value), COMMANDS[command].check,
-                                       id=case_id + ("-L" if large else ""), marks=marks))
+            params.append(case_param(command, _build(command, option, value), COMMANDS[command].check,
+                                     case_id=case_id, large=large, known=KNOWN))
     for index, (command, args, check) in enumerate(HAND):
         case_id = f"{command}-hand-{index}"
         if large or index in (0, 1, 6, 13):
-            marks = [pytest.mark.hostile] if large else []
-            if case_id in KNOWN:
-                marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-            params.append(pytest.param(command, args, check, id=case_id + ("-L" if large else ""), marks=marks))
+            params.append(case_param(command, args, check, case_id=case_id, large=large, known=KNOWN))
     return params
 
 

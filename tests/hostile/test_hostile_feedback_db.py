@@ -20,7 +20,7 @@ import sqlite3
 from pathlib import Path
 
 import pytest
-from hostile_harness import ForkServer, assert_handled, draw
+from hostile_harness import case_param, ForkServer, assert_handled, draw
 from hypothesis import strategies as st
 
 SQL_EDITS = [
@@ -193,10 +193,7 @@ def _params(large: bool) -> list:
         if not (large or is_small):
             continue
         case_id = f"db-{command}-{operation}-{index}"
-        marks = [pytest.mark.hostile] if large else []
-        if case_id in KNOWN:
-            marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-        params.append(pytest.param(operation, argument, command, id=case_id + ("-L" if large else ""), marks=marks))
+        params.append(case_param(operation, argument, command, case_id=case_id, large=large, known=KNOWN))
     return params
 
 

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import pytest
-from hostile_harness import PEAK_LIMIT_MB, Outcome, assert_handled, draw, record
+from hostile_harness import case_param, PEAK_LIMIT_MB, Outcome, assert_handled, draw, record
 from hypothesis import strategies as st
 
 CATEGORY = "HTTP requests"
@@ -310,10 +310,7 @@ def _params(large: bool) -> list:
         if not (large or small):
             continue
         case_id = f"http-{kind}-{index}"
-        marks = [pytest.mark.hostile] if large else []
-        if case_id in KNOWN:
-            marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-        params.append(pytest.param(kind, value, id=case_id + ("-L" if large else ""), marks=marks))
+        params.append(case_param(kind, value, case_id=case_id, large=large, known=KNOWN))
     return params
 
 

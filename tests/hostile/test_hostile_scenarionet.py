@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hostile_harness import ForkServer, assert_handled, draw
+from hostile_harness import case_param, ForkServer, assert_handled, draw
 from hostile_inputs import check_evaluate
 from hypothesis import strategies as st
 
@@ -171,10 +171,7 @@ def _params(large: bool) -> list:
         if not (large or is_small):
             continue
         case_id = f"scenarionet-{operation}-{index}"
-        marks = [pytest.mark.hostile] if large else []
-        if case_id in KNOWN:
-            marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-        params.append(pytest.param(operation, argument, id=case_id + ("-L" if large else ""), marks=marks))
+        params.append(case_param(operation, argument, case_id=case_id, large=large, known=KNOWN))
     return params
 
 

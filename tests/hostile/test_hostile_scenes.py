@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import json
 import random
-import struct
-import zlib
 from pathlib import Path
 
 import pytest
-from hostile_harness import ForkServer, assert_handled, draw
+from hostile_harness import case_param, ForkServer, assert_handled, draw
 from hostile_inputs import SCENE, check_evaluate, one_scene_root
+from trafficrlhf_sdk.testing.images import png_declaring
 from hypothesis import strategies as st
 
 TOKENS = ["nan", "NaN", "inf", "-inf", "1e308", "-1e308", "1e-320", "abc", "0", "-0", "-1", "+5", "1.5", "1e6",
@@ -128,15 +127,6 @@ def edit_labels(root: Path, operation: str, argument: object) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def png_declaring(width: int, height: int) -> bytes:
-    """A small PNG whose header declares ``width`` x ``height`` pixels."""
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + \
-        chunk(b"IEND", b"")
-
-
 def edit_map(root: Path, operation: str, argument: object) -> None:
     from PIL import Image
 
@@ -231,10 +221,7 @@ def _params(large: bool) -> list:
             if not (large or is_small):
                 continue
             case_id = f"{kind}-{operation}-{index}"
-            marks = [pytest.mark.hostile] if large else []
-            if case_id in KNOWN:
-                marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-            params.append(pytest.param(kind, operation, argument, id=case_id + ("-L" if large else ""), marks=marks))
+            params.append(case_param(kind, operation, argument, case_id=case_id, large=large, known=KNOWN))
     return params
 
 
@@ -264,10 +251,7 @@ def _create_params(large: bool) -> list:
             if not (large or small):
                 continue
             case_id = f"create-{kind}-{operation}-{index}"
-            marks = [pytest.mark.hostile] if large else []
-            if case_id in KNOWN:
-                marks.append(pytest.mark.xfail(strict=True, reason=KNOWN[case_id]))
-            params.append(pytest.param(kind, operation, argument, id=case_id + ("-L" if large else ""), marks=marks))
+            params.append(case_param(kind, operation, argument, case_id=case_id, large=large, known=KNOWN))
     return params
 
 
