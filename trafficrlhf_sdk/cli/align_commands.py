@@ -6,7 +6,7 @@ from typing import Any
 
 import click
 
-from trafficrlhf_sdk.cli.app import cli, parse_key_values
+from trafficrlhf_sdk.cli.app import cli, parse_key_values, ray_options
 
 __all__ = ["align_command"]
 
@@ -37,10 +37,7 @@ def _comma_list(text: str | None) -> tuple[str, ...] | None:
               help="Traffic-model option while training (JSON value), repeatable.")
 @click.option("--scenes", "num_scenes", type=click.IntRange(min=1), default=None,
               help="Use the first N long-enough train scenes [default: all].")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Draw each epoch's samples on N Ray workers started for the run (pip install "
-                   "'trafficrlhf-sdk[ray]'); 0 samples in-process. The samples are the same either way.")
-@click.option("--ray-address", default=None, help="Draw them on an existing Ray cluster at this address instead.")
+@ray_options("each epoch's samples")
 @click.option("--root", default=None, help="Data directory of the source.")
 @click.option("--seed", type=int, default=None, help="Seed of every generator [default: 0].")
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads.")

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Sequence
-from typing import NoReturn
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn, TypeVar
 
 import click
 import pydantic
@@ -27,8 +27,10 @@ import pydantic
 from trafficrlhf_sdk.version import __version__
 from trafficrlhf_sdk.errors import TrafficRLHFError
 
+F = TypeVar("F", bound=Callable[..., Any])
+
 __all__ = ["EXIT_INTERNAL", "EXIT_INTERRUPTED", "EXIT_USER_ERROR", "cli", "format_error", "get_cli", "main",
-           "parse_key_values"]
+           "parse_key_values", "ray_options"]
 
 PROG_NAME = "trafficrlhf"
 EXIT_INTERNAL = 1
@@ -104,6 +106,19 @@ def parse_key_values(pairs: Sequence[str], option: str) -> dict[str, object]:
         except json.JSONDecodeError:
             options[key] = value
     return options
+
+
+def ray_options(what: str) -> Callable[[F], F]:
+    """``--workers`` and ``--ray-address`` for a command that can run ``what`` (e.g. "each epoch's samples") on
+    Ray; the numbers are the same as in-process."""
+    def decorate(command: F) -> F:
+        command = click.option("--ray-address", default=None, help=f"Run {what} on an existing Ray cluster at this "
+                               "address (e.g. auto or HOST:6379) instead of a local one.")(command)
+        return click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+                            help=f"Run {what} on N Ray workers started for the run (pip install "
+                                 "'trafficrlhf-sdk[ray]'); 0 runs in-process. The numbers are the same either "
+                                 "way.")(command)
+    return decorate
 
 
 def _fail(message: str, code: int) -> NoReturn:

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from trafficrlhf_sdk.cli.app import cli, parse_key_values
+from trafficrlhf_sdk.cli.app import cli, parse_key_values, ray_options
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.evaluation.compare import SHARED_ROWS
 
@@ -90,11 +90,7 @@ def _fmt(value: float | None) -> str:
                    "0.5 s apart); scenes shorter than 3 s + DURATION are skipped (and counted). The paper's protocol "
                    "is 10 s; a shorter one makes short scenes usable (e.g. ScenarioNet exports), but its numbers "
                    "compare only with runs of the same duration.")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Run the (rollout, batch) simulations on N Ray workers started for the run (pip install "
-                   "'trafficrlhf-sdk[ray]'); 0 runs in-process. Same seeds give the same numbers either way.")
-@click.option("--ray-address", default=None,
-              help="Run on an existing Ray cluster at this address (e.g. auto or HOST:6379) instead of a local one.")
+@ray_options("the (rollout, batch) simulations")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON instead of a table.")
 def evaluate_command(model: str | None, source: str, split: str, root: str | None, num_scenes: int,
                      scene_id: tuple[str, ...], guidance: str | None,

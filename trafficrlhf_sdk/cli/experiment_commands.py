@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from trafficrlhf_sdk.cli.app import cli
+from trafficrlhf_sdk.cli.app import cli, ray_options
 
 
 @cli.group("experiment")
@@ -27,10 +27,7 @@ def experiment_group() -> None:
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads [default: torch's].")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
                                                 "of refusing them).")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Run the evaluations' rollouts, the campaigns' candidates and the alignments' samples on N Ray "
-                   "workers started for the run (pip install 'trafficrlhf-sdk[ray]'); the numbers are the same.")
-@click.option("--ray-address", default=None, help="Run them on an existing Ray cluster at this address instead.")
+@ray_options("the evaluations' rollouts, the campaigns' candidates and the alignments' samples")
 def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str | None, scenes: int | None,
                   threads: int | None, overwrite: bool, workers: int, ray_address: str | None) -> None:
     """Tables 1-4 and Figure 3 of the paper (arXiv 2309.00709) on nuScenes val scenes, with stand-in annotators

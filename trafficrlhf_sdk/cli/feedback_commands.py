@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from trafficrlhf_sdk.cli.app import cli, parse_key_values
+from trafficrlhf_sdk.cli.app import cli, parse_key_values, ray_options
 from trafficrlhf_sdk.config_files import read_text
 from trafficrlhf_sdk.errors import DatabaseFileError, TrafficRLHFError
 
@@ -70,10 +70,7 @@ def feedback() -> None:
 @click.option("--labels-per-item", type=click.IntRange(min=1), default=None,
               help="Annotators per item (default: every annotator labels every item).")
 @click.option("--extend", is_flag=True, help="Add contexts to an existing campaign (its stored settings are kept).")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Generate candidates on N Ray workers started for the run (pip install 'trafficrlhf-sdk[ray]'); "
-                   "0 generates in-process. The candidates are the same either way.")
-@click.option("--ray-address", default=None, help="Generate on an existing Ray cluster at this address instead.")
+@ray_options("the candidates' generation")
 def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: str | None,
                    model_options: tuple[str, ...],
                    source: str, split: str, root: str | None, num_contexts: int | None, scene_ids: tuple[str, ...],

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from trafficrlhf_sdk.cli.app import cli
+from trafficrlhf_sdk.cli.app import cli, ray_options
 
 
 @cli.command("rlhf")
@@ -16,10 +16,7 @@ from trafficrlhf_sdk.cli.app import cli
 @click.option("--rounds", type=click.IntRange(min=1), default=None, help="Rounds [default: the config's, 2].")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
                                                 "of refusing them).")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Make the candidates and the alignment's samples on N Ray workers started for the run (pip "
-                   "install 'trafficrlhf-sdk[ray]'); the numbers are the same.")
-@click.option("--ray-address", default=None, help="Make them on an existing Ray cluster at this address instead.")
+@ray_options("the candidates and the alignment's samples")
 def rlhf_command(config_path: str | None, out_dir: str, rounds: int | None, overwrite: bool, workers: int,
                  ray_address: str | None) -> None:
     """Rounds of: candidates from the current policy, labels (stand-in annotators or people), a reward model
