@@ -31,7 +31,7 @@ winner and loser came from (``PreferenceDataset.context_keys[i]["models"]``). Th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Literal
 
 import torch
@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from trafficrlhf_sdk.errors import DataFormatError, TrafficRLHFError
 from trafficrlhf_sdk.feedback.settings import AnnotationSettings
 from trafficrlhf_sdk.feedback.store import Campaign, FeedbackStore, _shuffle_key
-from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks, run_tasks
+from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks
 from trafficrlhf_sdk.plugins import build_policy, get_scenario_source, list_plugins, registry
 from trafficrlhf_sdk.scenario.map import crop_map
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
@@ -49,7 +49,8 @@ from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 from trafficrlhf_sdk.version import __version__
 
 __all__ = ["CampaignConfig", "CampaignReport", "campaign_candidates", "campaign_policy", "context_seed",
-           "create_campaign", "crop_map", "extend_campaign", "generate_candidates"]
+           "create_campaign", "crop_map", "extend_campaign", "generate_candidates",
+           "generate_candidates_batch", "iter_candidates"]
 
 MAX_CANDIDATES = 9  # keys 1..9 pick a candidate in the app
 CONTEXTS_PER_ROLLOUT = 8  # contexts whose candidates one batched rollout makes (models with scene_generators)
@@ -295,11 +296,7 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
     present = {(k["source"], k["split"], k["scene_id"]) for k in store.context_keys(campaign)}
     todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
     skipped = [s for s in scene_ids if (cfg["source"], cfg["split"], s) in present]
-    # a few contexts per task, in-process or on Ray workers (the model built once); each context is stored here,
-    # as soon as its task is done, while the workers make the next ones
-    shared = _shared_payload(campaign, source)
-    chunks = iter_tasks(_candidates_task, shared, _task_chunks(shared, todo), execution)
-    parts = (part for chunk in chunks for part in chunk)
+    parts = iter_candidates(campaign, source, todo, execution)  # each stored as soon as it is made
     added = []
     for scene_id, (context, cands, cand_valid, logged, logged_valid) in zip(todo, parts):
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
@@ -389,7 +386,13 @@ def campaign_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str
     logged_valid)}``, as :func:`create_campaign` makes them, computed on ``execution`` (Ray workers; in-process
     without). The model is built once and shipped once with the source; each task re-seeds it with its context's
     seed. Storing stays with the caller (one writer to the database)."""
+    return dict(zip(scene_ids, iter_candidates(campaign, source, scene_ids, execution)))
+
+
+def iter_candidates(campaign: Campaign, source: Any, scene_ids: Sequence[str],
+                    execution: ExecutionConfig | None = None) -> Iterator[tuple[Any, ...]]:
+    """:func:`campaign_candidates` as an iterator over ``scene_ids``, in order: a few contexts per task,
+    in-process or on Ray workers, each yielded as soon as its task is done while the workers make the next."""
     shared = _shared_payload(campaign, source)
-    chunks = _task_chunks(shared, list(scene_ids))
-    made = [part for chunk in run_tasks(_candidates_task, shared, chunks, execution) for part in chunk]
-    return dict(zip(scene_ids, made))
+    for chunk in iter_tasks(_candidates_task, shared, _task_chunks(shared, list(scene_ids)), execution):
+        yield from chunk
