@@ -76,8 +76,10 @@ class RLHFConfig(BaseModel):
     reward: Annotated[RewardConfig, ONLY_SET_FIELDS] = Field(
         default_factory=lambda: RewardConfig(ensemble_size=3, max_epochs=30),
         description="RewardConfig fields of the reward model (table [reward]; `seed` defaults to this config's).")
-    contrast_scenes: int = Field(120, ge=0, description="Recorded train scenes (from the end of the split) whose "
-                                 "logs give automatic contrast pairs; 0: none.")
+    contrast_scenes: int = Field(0, ge=0, description="Recorded train scenes (from the end of the split) whose "
+                                 "logs give automatic contrast pairs; 0: none, the reward model learns the labels "
+                                 "alone (pairs the annotators do not hold cost the alignment ladder's row (c) "
+                                 "most of its gain).")
     probe_scenes: int = Field(50, ge=0, description="Held-out val scenes the reward model is probed on; 0: none.")
     align: Annotated[AlignConfig, ONLY_SET_FIELDS] = Field(
         default_factory=AlignConfig, description="AlignConfig fields of the alignment stage (table [align]; "

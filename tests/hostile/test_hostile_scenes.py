@@ -203,11 +203,7 @@ LABELS += [("copy tracks", 300)]  # the issue's reproduction: 1,500 tracks of du
 MAPS = draw(MAP_EDITS, 70, 73)
 MAPS += [("shift origin", (1, 50)), ("png transform", "transpose")]  # the reproductions
 
-KNOWN = {  # open failures, each recorded with its command; strict: a fix turns them into passes to un-mark
-    "map-shift origin-57": "map origin shifted 10 m: evaluate exits 0 while the logged data fails on 75 % of its "
-                           "agents (the on-map share still passes)",
-    "create-map-shift origin-57": "the same scene: feedback create stores it (its whole log's on-map share passes)",
-}
+KNOWN: dict[str, str] = {}  # open failures (strict xfail), each with its command; none at present
 
 
 def _params(large: bool) -> list:

@@ -10,8 +10,9 @@ from collections.abc import Sequence
 from typing import Any
 
 from trafficrlhf_sdk.errors import DataNotFoundError
+from trafficrlhf_sdk.evaluation.compare import change_interval_table
 
-__all__ = ["write_report"]
+__all__ = ["run_folders", "write_report"]
 
 METRIC_ROWS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
                ("offroad_rate", "off-road rate"), ("realism_ctg", "realism dev. (ctg)"),
@@ -24,6 +25,27 @@ def _json(path: str) -> dict[str, Any]:
                                 "`trafficrlhf align` and `trafficrlhf evaluate --out`.")
     with open(path, encoding="utf-8") as handle:
         return json.load(handle)
+
+
+def run_folders(folder: str) -> list[str]:
+    """The results folders of one evaluation folder: its ``seed_<S>`` folders in seed order (``trafficrlhf evaluate
+    --seeds``), or the folder itself."""
+    seeds = [name for name in os.listdir(folder) if name.startswith("seed_") and name[5:].isdigit()
+             and os.path.isfile(os.path.join(folder, name, "results.json"))] if os.path.isdir(folder) else []
+    return [os.path.join(folder, name) for name in sorted(seeds, key=lambda n: int(n[5:]))] or [folder]
+
+
+def _pooled(folders: list[str]) -> dict[str, Any]:
+    """One evaluation's results pooled over its seeds: the mean of each metric, with ``seeds`` and ``per_seed``."""
+    results = [_json(os.path.join(folder, "results.json")) for folder in folders]
+    pooled = dict(results[0])
+    keys = set().union(*(r["metrics"] for r in results))
+    values = {k: [r["metrics"].get(k) for r in results] for k in keys}
+    pooled["metrics"] = {k: (sum(v) / len(v) if all(isinstance(x, (int, float)) for x in v) else None)
+                         for k, v in values.items()}
+    pooled["per_seed"] = values
+    pooled["seeds"] = [r.get("metadata", {}).get("seed") for r in results]
+    return pooled
 
 
 def _plot_curve(history: list[dict[str, float]], path: str) -> str:
@@ -74,12 +96,15 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
                  align_dir: str | None = None, title: str = "TrafficRLHF loop") -> str:
     """Write ``out_dir/report.md`` with PNGs beside it; returns its path.
 
-    ``runs``: ``(label, folder)`` pairs of ``trafficrlhf evaluate --out`` folders, the base first;
+    ``runs``: ``(label, folder)`` pairs of ``trafficrlhf evaluate --out`` folders, the base first; a folder of
+    several seeds (``--seeds``) is pooled: the mean of each metric, and each run's change against the base with a
+    paired bootstrap interval over scenes (:func:`~trafficrlhf_sdk.evaluation.compare.change_interval_table`);
     ``reward_model_dir``: a reward model saved by ``trafficrlhf rm train``; ``align_dir``: a ``trafficrlhf align``
     output folder (``align_history.json``). Drawings of each run's worst scenes (``--render-worst``) are linked.
     """
     os.makedirs(out_dir, exist_ok=True)
-    results = {label: _json(os.path.join(folder, "results.json")) for label, folder in runs}
+    folders = {label: run_folders(folder) for label, folder in runs}
+    results = {label: _pooled(folders[label]) for label, _ in runs}
     lines = [f"# {title}", ""]
     if reward_model_dir is not None:
         card = _json(os.path.join(reward_model_dir, "config.json"))
@@ -112,10 +137,13 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
                   + (f", {summary['wall_time_s']:.0f} s on {summary['threads']} threads" if summary else "") + ".",
                   "", f"![training curve]({os.path.basename(curve)})", ""]
     names = list(results)
-    lines += ["## Closed-loop evaluation", "",
-              f"{next(iter(results.values()))['num_scenes']} scenes, 10 s from the log, replanning at 2 Hz.", "",
-              "| metric | " + " | ".join(names) + " | logged |", "|---" * (len(names) + 2) + "|"]
     first = next(iter(results.values()))
+    seeds = first["seeds"]
+    over = (f"; the mean over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1 else
+            f"; seed {seeds[0]}" if seeds[0] is not None else "")
+    lines += ["## Closed-loop evaluation", "",
+              f"{first['num_scenes']} scenes, 10 s from the log, replanning at 2 Hz{over}.", "",
+              "| metric | " + " | ".join(names) + " | logged |", "|---" * (len(names) + 2) + "|"]
     for key, name in METRIC_ROWS:
         cells = [results[n]["metrics"].get(key) for n in names]
         logged = first.get("logged", {}).get(key)
@@ -123,9 +151,14 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
         lines.append(f"| {name} | " + " | ".join(fmt) + " |")
     chart = _plot_metrics(results, os.path.join(out_dir, "metrics.png"))
     lines += ["", f"![metrics]({os.path.basename(chart)})", ""]
+    base_label = names[0]
+    for label in names[1:]:
+        lines += [f"### {label} against {base_label}", "",
+                  change_interval_table(folders[base_label] + folders[label]), ""]
     drawings = []
     for label, folder in runs:
-        worst = os.path.join(folder, "worst_scenes")
+        worst = next((os.path.join(f, "worst_scenes") for f in [folder, *folders[label]]
+                      if os.path.isdir(os.path.join(f, "worst_scenes"))), "")
         pngs = sorted(f for f in os.listdir(worst) if f.endswith(".png")) if os.path.isdir(worst) else []
         if pngs:
             target = os.path.join(out_dir, f"worst_{label.replace(' ', '_')}.png")
