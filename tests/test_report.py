@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.evaluation.report import run_folders, write_report
 
 SCENES = [f"scene-{i:04d}" for i in range(12)]
@@ -59,5 +60,5 @@ def test_a_single_run_folder_is_read_as_one_seed(tmp_path: Path) -> None:
 
 def test_a_missing_results_file_names_the_folder(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
-    with pytest.raises(Exception, match="results.json"):
+    with pytest.raises(DataNotFoundError, match=r"results\.json"):
         write_report(str(tmp_path / "r"), [("base", str(tmp_path / "empty"))])

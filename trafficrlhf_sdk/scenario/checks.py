@@ -22,8 +22,8 @@ from trafficrlhf_sdk.scenario.agents import AgentType
 if TYPE_CHECKING:
     from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["MAX_AGENTS", "MAX_REGISTRATION_GAIN", "MIN_ON_MAP_SHARE", "MOVING_SPEED_MPS", "check_agent_count", "check_on_map",
-           "on_map_share"]
+__all__ = ["MAX_AGENTS", "MAX_REGISTRATION_GAIN", "MIN_ON_MAP_SHARE", "MOVING_SPEED_MPS", "check_agent_count",
+           "check_on_map", "on_map_share"]
 
 # Real scenes measure 0.907 to 1 (660 nuScenes prediction scenes) and 0.935 to 1 (10 ScenarioNet nuScenes-mini
 # scenes); docs/reference/limits.md gives the distribution.
