@@ -93,6 +93,10 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
         failure = saved[key]["evaluation"]["metrics"]["failure_rate"]
         assert 0 <= failure <= 1 and math.isfinite(failure)
     assert 0 <= saved["agreement"]["start"]["agreement"] <= 1 or saved["agreement"]["start"]["pairs"] == 0
+    # every evaluation names its scenes, so the rows can be compared scene by scene (the table's interval)
+    named = json.loads((out / "evaluations" / "row_c" / "seed_0" / "results.json").read_text())["metadata"]
+    assert len(named["scene_ids"]) == 2 and named["model"] == "ctg" and named["seed"] == 0
+    assert "| 95 % interval |" in (out / "ladder.md").read_text()
     again = run_ladder(config, str(out), log=lambda _: None)
     assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
     assert rows["c"]["reward"] == again["c"]["reward"]

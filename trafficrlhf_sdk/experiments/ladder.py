@@ -193,14 +193,16 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
     lines = [f"# Alignment ladder ({config.recipe})", "",
              f"{config.scenes} val scenes, seeds {', '.join(map(str, config.seeds))}; every row runs the same "
              "fine-tuning recipe from the same start, only the reward differs.", "",
-             "| row | failure (change) | collision | off-road | realism ctg / body | speed / log | stopped |",
-             "|---|---|---|---|---|---|---|"]
+             "| row | failure (change) | 95 % interval | collision | off-road | realism ctg / body | speed / log | "
+             "stopped |", "|---|---|---|---|---|---|---|---|"]
     for key, row in plain.items():
         if key == "agreement":
             continue
         m = row["evaluation"]["metrics"]
         change = "" if key == "base" else f" ({100 * (m['failure_rate'] / max(base['failure_rate'], 1e-9) - 1):+.1f} %)"
+        interval = "" if key == "base" else _failure_interval(out_dir, "base", f"row_{key}")
         lines.append(f"| {'' if key == 'base' else f'({key}) '}{row['label']} | {m['failure_rate']:.4f}{change} | "
+                     f"{interval} | "
                      f"{m.get('collision_rate', float('nan')):.4f} | {m.get('offroad_rate', float('nan')):.4f} | "
                      f"{m.get('realism_ctg', float('nan')):.4f} / {m.get('realism_body', float('nan')):.4f} | "
                      f"{m.get('speed_ratio', float('nan')):.3f} | {m.get('stopped_share', float('nan')):.3f} |")
@@ -212,6 +214,23 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
     with open(os.path.join(out_dir, "ladder.md"), "w") as fh:
         fh.write("\n".join(lines) + "\n")
     _plot(plain, os.path.join(out_dir, "ladder.png"))
+
+
+def _failure_interval(out_dir: str, before: str, after: str) -> str:
+    """The failure rate's change from evaluation ``before`` to ``after`` (each pooled over its seeds) as a 95 %
+    paired bootstrap interval over scenes; empty when their results do not name their scenes."""
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+    from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, pooled_per_scene
+    from trafficrlhf_sdk.evaluation.compare import read_results
+    from trafficrlhf_sdk.evaluation.report import run_folders
+
+    try:
+        runs = [[read_results(f) for f in run_folders(os.path.join(out_dir, "evaluations", label))]
+                for label in (before, after)]
+        ci = paired_change_interval(*(pooled_per_scene(r, "failure_rate") for r in runs))
+    except (TrafficRLHFError, ValueError, ZeroDivisionError):
+        return ""
+    return f"{100 * ci.low:+.1f} % to {100 * ci.high:+.1f} %"
 
 
 def _plot(rows: dict[str, Any], path: str) -> None:

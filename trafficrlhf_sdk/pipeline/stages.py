@@ -240,7 +240,8 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
 
     ``reward_models`` maps a name to a reward (a folder): the reward cost under each is computed on the same
     rollouts. ``load`` returns the request's scenes, called only when the step runs (several evaluations on the
-    same scenes can share one loaded batch); None loads them from the request's source. ``metrics`` keeps only
+    same scenes can share one loaded batch), or ``(scenes, scene_ids)``; None loads them from the request's source.
+    Each run's ``results.json`` names its scenes where they are known, so runs can be compared scene by scene. ``metrics`` keeps only
     those names in the outputs (None: all).
 
     Outputs: ``metrics`` and ``logged`` (the mean over the seeds; a single seed's values as they are),
@@ -266,11 +267,14 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
                                                 "guidance": request.guidance, "seed": seed})
 
         began = time.perf_counter()
-        scenes = load() if load is not None else request.load(log)[0]
+        loaded_scenes = load() if load is not None else request.load(log)
+        scenes, scene_ids = loaded_scenes if isinstance(loaded_scenes, tuple) else (loaded_scenes, None)
         config = EvaluationConfig(simulation=request.simulation, batch_size=request.batch_size,
                                   rollouts=request.rollouts)
         execution = request.execution if request.execution.uses_ray else None
-        runs = evaluate_seeds(build, scenes, request.seeds, config, progress=progress, execution=execution)
+        metadata = {} if scene_ids is None else request.metadata(request.model, scene_ids, request.guidance)
+        runs = evaluate_seeds(build, scenes, request.seeds, config, progress=progress, execution=execution,
+                              metadata=metadata)
         loaded = {name: load_reward(path) for name, path in rewards.items()}
         per_seed = []
         for seed, report in zip(request.seeds, runs.reports):
