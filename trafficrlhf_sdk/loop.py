@@ -13,8 +13,8 @@ preferences where the newest policy drives):
    of them are labelled;
 3. **label**: by stand-in annotator profiles, or by people in the browser app (``people=True``: the loop waits
    until every served item has a label, and can be stopped and resumed meanwhile);
-4. **reward model**: retrained on every round's labels plus automatic contrast pairs from recorded driving,
-   saved with its model card and probe results;
+4. **reward model**: retrained on every round's labels (plus automatic contrast pairs from recorded driving
+   with ``contrast_scenes``), saved with its model card and probe results;
 5. **align**: the base model (every round starts from it, which is robust to a reward model's errors) is aligned
    against the new reward model with the alignment recipe.
 
@@ -214,7 +214,7 @@ def _label(config: RLHFConfig, db: str, r: int, campaigns: list[StepResult], fol
 
 def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult], folder: str,
                   steps: dict[str, Any]) -> StepResult:
-    """The round's reward model, trained on every round's labels so far plus contrast pairs, probed."""
+    """The round's reward model, trained on every round's labels so far (and any contrast pairs), probed."""
     from trafficrlhf_sdk.pipeline.stages import reward_model_step
 
     settings = RewardConfig(**{"seed": config.seed + r, "progress": False, **set_fields(config.reward)})

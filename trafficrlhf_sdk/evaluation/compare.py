@@ -7,8 +7,8 @@ import os
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
-__all__ = ["change_interval_table", "comparison_table", "meta_metric_table", "read_results", "run_label",
-           "scene_change_table"]
+__all__ = ["change_interval_table", "comparison_table", "interval_table", "meta_metric_table", "read_results",
+           "run_label", "scene_change_table"]
 
 SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
@@ -176,9 +176,16 @@ def change_interval_table(folders: list[str], level: float = 0.95, resamples: in
     every run's folder has ``scene_histograms.npz``
     (:func:`~trafficrlhf_sdk.evaluation.breakdown.paired_realism_interval`).
     ``target``: a relative change such as -0.7; adds the share of the failure-rate draws at or below it."""
+    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--interval")
+    return interval_table(first, before_runs, last, after_runs, level, resamples, target)
+
+
+def interval_table(first: str, before_runs: list[dict], last: str, after_runs: list[dict], level: float = 0.95,
+                   resamples: int = 10_000, target: float | None = None) -> str:
+    """:func:`change_interval_table` of two policies already grouped: ``before_runs`` and ``after_runs`` are
+    :func:`read_results` dicts of the same scenes (each policy's seeds), ``first`` and ``last`` their names."""
     from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, paired_realism_interval, pooled_per_scene
 
-    (first, before_runs), (last, after_runs) = _first_and_last(folders, "--interval")
     seeds = f"{len(before_runs)} / {len(after_runs)} seed(s)"
     extra = "" if target is None else f" share of draws <= {100 * target:+.0f} % |"
     lines = [f"{first} -> {last} ({seeds}); {100 * level:.0f} % paired bootstrap interval over scenes", "",

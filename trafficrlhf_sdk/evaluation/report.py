@@ -9,8 +9,8 @@ import shutil
 from collections.abc import Sequence
 from typing import Any
 
-from trafficrlhf_sdk.errors import DataNotFoundError
-from trafficrlhf_sdk.evaluation.compare import change_interval_table
+from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.evaluation.compare import interval_table, read_results
 
 __all__ = ["run_folders", "write_report"]
 
@@ -102,6 +102,11 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
     ``reward_model_dir``: a reward model saved by ``trafficrlhf rm train``; ``align_dir``: a ``trafficrlhf align``
     output folder (``align_history.json``). Drawings of each run's worst scenes (``--render-worst``) are linked.
     """
+    slugs = [label.replace(" ", "_") for label, _ in runs]
+    repeated = sorted({label for (label, _), slug in zip(runs, slugs) if slugs.count(slug) > 1})
+    if repeated:
+        raise TrafficRLHFError(f"runs: the label(s) {', '.join(map(repr, repeated))} name more than one run (labels "
+                               "differing only in spaces and underscores count as one); give each run its own label.")
     os.makedirs(out_dir, exist_ok=True)
     folders = {label: run_folders(folder) for label, folder in runs}
     results = {label: _pooled(folders[label]) for label, _ in runs}
@@ -138,9 +143,12 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
                   "", f"![training curve]({os.path.basename(curve)})", ""]
     names = list(results)
     first = next(iter(results.values()))
-    seeds = first["seeds"]
-    over = (f"; the mean over seeds {', '.join(map(str, seeds))}" if len(seeds) > 1 else
-            f"; seed {seeds[0]}" if seeds[0] is not None else "")
+    seed_sets = {label: ", ".join(map(str, r["seeds"])) for label, r in results.items() if r["seeds"] != [None]}
+    shared = next(iter(seed_sets.values())) if len(set(seed_sets.values())) == 1 else None
+    over = ("" if not seed_sets else
+            f"; seed {shared}" if shared is not None and "," not in shared else
+            f"; each value the mean over seeds {shared}" if shared is not None else
+            "; seeds " + "; ".join(f"{label}: {seeds}" for label, seeds in seed_sets.items()))
     lines += ["## Closed-loop evaluation", "",
               f"{first['num_scenes']} scenes, 10 s from the log, replanning at 2 Hz{over}.", "",
               "| metric | " + " | ".join(names) + " | logged |", "|---" * (len(names) + 2) + "|"]
@@ -153,8 +161,12 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
     lines += ["", f"![metrics]({os.path.basename(chart)})", ""]
     base_label = names[0]
     for label in names[1:]:
-        lines += [f"### {label} against {base_label}", "",
-                  change_interval_table(folders[base_label] + folders[label]), ""]
+        try:
+            table = interval_table(base_label, [read_results(f) for f in folders[base_label]], label,
+                                   [read_results(f) for f in folders[label]])
+        except TrafficRLHFError as error:  # e.g. results without per-scene values, or of other scenes
+            table = f"No interval: {error}"
+        lines += [f"### {label} against {base_label}", "", table, ""]
     drawings = []
     for label, folder in runs:
         worst = next((os.path.join(f, "worst_scenes") for f in [folder, *folders[label]]

@@ -52,6 +52,7 @@ class ExperimentRun:
     overwrite: bool = False
     ran: int = 0
     _scenes: Any = None
+    _scene_ids: list[str] | None = None
 
     @property
     def scenes(self) -> Any:
@@ -62,8 +63,15 @@ class ExperimentRun:
             source = get_scenario_source(self.config.source, **self._root())
             ids = source.scene_ids("val")[: self.config.scenes]
             self.log(f"loading {len(ids)} val scenes of {self.config.source}")
-            self._scenes = source.load_batch("val", scene_ids=ids)
+            self._scenes, self._scene_ids = source.load_batch("val", scene_ids=ids), list(ids)
         return self._scenes
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The names of :attr:`scenes`, in their order."""
+        self.scenes  # noqa: B018 (loads them once)
+        assert self._scene_ids is not None
+        return self._scene_ids
 
     def _root(self) -> dict[str, Any]:
         return {"root": self.config.root} if self.config.root else {}
@@ -112,7 +120,7 @@ def evaluate(run: ExperimentRun, label: str, model: str, checkpoint: str | None,
     def scenes() -> Any:
         run.log(f"evaluating {label} ({guidance or 'no guidance'}) on {cfg.scenes} val scenes, {cfg.rollouts} "
                 "rollout(s) each")
-        return run.scenes
+        return run.scenes, run.scene_ids
 
     return run.count(evaluate_step(folder, request, reward_models=rewards, load=scenes, metrics=SUMMARY_METRICS,
                                    progress=cfg.progress, after=after, **run.steps))

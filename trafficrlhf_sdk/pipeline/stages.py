@@ -239,10 +239,10 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
     ``folder/seed_<S>``.
 
     ``reward_models`` maps a name to a reward (a folder): the reward cost under each is computed on the same
-    rollouts. ``load`` returns the request's scenes, called only when the step runs (several evaluations on the
-    same scenes can share one loaded batch), or ``(scenes, scene_ids)``; None loads them from the request's source.
-    Each run's ``results.json`` names its scenes where they are known, so runs can be compared scene by scene. ``metrics`` keeps only
-    those names in the outputs (None: all).
+    rollouts. ``load`` returns the request's scenes, or ``(scenes, scene_ids)``, called only when the step runs
+    (several evaluations on the same scenes can share one loaded batch); None loads them from the request's
+    source. Each run's ``results.json`` names its scenes where they are known, so runs compare scene by scene.
+    ``metrics`` keeps only those names in the outputs (None: all).
 
     Outputs: ``metrics`` and ``logged`` (the mean over the seeds; a single seed's values as they are),
     ``reward_cost`` (name -> mean cost), ``seeds`` (each seed's metrics), ``num_scenes``,
@@ -256,6 +256,8 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
                                f"reward_models={{'rm': {request.reward_model!r}}} instead.")
 
     def work() -> dict[str, Any]:
+        import torch
+
         from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig
         from trafficrlhf_sdk.evaluation.runs import evaluate_seeds
         from trafficrlhf_sdk.metrics.reward_cost import RewardCostMetric
@@ -267,14 +269,18 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
                                                 "guidance": request.guidance, "seed": seed})
 
         began = time.perf_counter()
+        torch.manual_seed(request.seeds[0])
+        first = build(request.seeds[0])  # the model and the guidance in effect, named in each results.json
+        model = request.model or str(getattr(first, "name", None) or type(first).__name__)
+        guidance = getattr(getattr(first, "options", None), "guidance", request.guidance)
         loaded_scenes = load() if load is not None else request.load(log)
         scenes, scene_ids = loaded_scenes if isinstance(loaded_scenes, tuple) else (loaded_scenes, None)
         config = EvaluationConfig(simulation=request.simulation, batch_size=request.batch_size,
                                   rollouts=request.rollouts)
         execution = request.execution if request.execution.uses_ray else None
-        metadata = {} if scene_ids is None else request.metadata(request.model, scene_ids, request.guidance)
-        runs = evaluate_seeds(build, scenes, request.seeds, config, progress=progress, execution=execution,
-                              metadata=metadata)
+        metadata = {} if scene_ids is None else request.metadata(model, scene_ids, guidance or None)
+        runs = evaluate_seeds(lambda seed: first if seed == request.seeds[0] else build(seed), scenes, request.seeds,
+                              config, progress=progress, execution=execution, metadata=metadata)
         loaded = {name: load_reward(path) for name, path in rewards.items()}
         per_seed = []
         for seed, report in zip(request.seeds, runs.reports):

@@ -83,8 +83,9 @@ def check_on_map(scene: ScenarioTensor, min_share: float, where: str, fix: str) 
     up to ``REGISTRATION_REACH_M`` would put ``MAX_REGISTRATION_GAIN`` more of them on it (a misregistered map).
 
     ``where`` names the scene (its file) and ``fix`` says which file holds the map's origin and scale. The message
-    gives the share measured, the origin move that fits best (searched within 64 m) and the option that accepts
-    the scene anyway. ``min_share`` 0 turns both checks off.
+    gives the share measured, the origin move that fits best (searched within 64 m below ``min_share``, within
+    ``REGISTRATION_REACH_M`` for a misregistered map) and the option that accepts the scene anyway. ``min_share``
+    0 turns both checks off.
     """
     if min_share <= 0:
         return
