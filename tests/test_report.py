@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
-from trafficrlhf_sdk.evaluation.report import run_folders, write_report
+from trafficrlhf_sdk.evaluation.compare import run_folders
+from trafficrlhf_sdk.evaluation.report import write_report
 
 SCENES = [f"scene-{i:04d}" for i in range(12)]
 

@@ -8,7 +8,7 @@ import os
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
 
 __all__ = ["change_interval_table", "comparison_table", "interval_table", "meta_metric_table", "read_results",
-           "run_label", "scene_change_table"]
+           "run_folders", "run_label", "scene_change_table"]
 
 SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
@@ -73,6 +73,14 @@ def read_results(folder: str) -> dict:
         raise DataFormatError(f"{path}: invalid JSON ({exc}).") from exc
     result["_folder"] = folder  # where scene_histograms.npz lies, read only by --interval
     return result
+
+
+def run_folders(folder: str) -> list[str]:
+    """The results folders of one evaluation folder: its ``seed_<S>`` folders in seed order (``trafficrlhf evaluate
+    --seeds``), or the folder itself."""
+    seeds = [name for name in os.listdir(folder) if name.startswith("seed_") and name[5:].isdigit()
+             and os.path.isfile(os.path.join(folder, name, "results.json"))] if os.path.isdir(folder) else []
+    return [os.path.join(folder, name) for name in sorted(seeds, key=lambda n: int(n[5:]))] or [folder]
 
 
 def _scene_counts(runs: list[dict]) -> list[dict] | None:

@@ -10,9 +10,9 @@ from collections.abc import Sequence
 from typing import Any
 
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
-from trafficrlhf_sdk.evaluation.compare import interval_table, read_results
+from trafficrlhf_sdk.evaluation.compare import interval_table, read_results, run_folders
 
-__all__ = ["run_folders", "write_report"]
+__all__ = ["write_report"]
 
 METRIC_ROWS = (("failure_rate", "failure rate"), ("collision_rate", "collision rate"),
                ("offroad_rate", "off-road rate"), ("realism_ctg", "realism dev. (ctg)"),
@@ -27,17 +27,8 @@ def _json(path: str) -> dict[str, Any]:
         return json.load(handle)
 
 
-def run_folders(folder: str) -> list[str]:
-    """The results folders of one evaluation folder: its ``seed_<S>`` folders in seed order (``trafficrlhf evaluate
-    --seeds``), or the folder itself."""
-    seeds = [name for name in os.listdir(folder) if name.startswith("seed_") and name[5:].isdigit()
-             and os.path.isfile(os.path.join(folder, name, "results.json"))] if os.path.isdir(folder) else []
-    return [os.path.join(folder, name) for name in sorted(seeds, key=lambda n: int(n[5:]))] or [folder]
-
-
-def _pooled(folders: list[str]) -> dict[str, Any]:
-    """One evaluation's results pooled over its seeds: the mean of each metric, with ``seeds`` and ``per_seed``."""
-    results = [_json(os.path.join(folder, "results.json")) for folder in folders]
+def _pooled(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """One evaluation's results (one per seed) pooled: the mean of each metric, with ``seeds`` and ``per_seed``."""
     pooled = dict(results[0])
     keys = set().union(*(r["metrics"] for r in results))
     values = {k: [r["metrics"].get(k) for r in results] for k in keys}
@@ -98,7 +89,7 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
 
     ``runs``: ``(label, folder)`` pairs of ``trafficrlhf evaluate --out`` folders, the base first; a folder of
     several seeds (``--seeds``) is pooled: the mean of each metric, and each run's change against the base with a
-    paired bootstrap interval over scenes (:func:`~trafficrlhf_sdk.evaluation.compare.change_interval_table`);
+    paired bootstrap interval over scenes (:func:`~trafficrlhf_sdk.evaluation.compare.interval_table`);
     ``reward_model_dir``: a reward model saved by ``trafficrlhf rm train``; ``align_dir``: a ``trafficrlhf align``
     output folder (``align_history.json``). Drawings of each run's worst scenes (``--render-worst``) are linked.
     """
@@ -109,7 +100,8 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
                                "differing only in spaces and underscores count as one); give each run its own label.")
     os.makedirs(out_dir, exist_ok=True)
     folders = {label: run_folders(folder) for label, folder in runs}
-    results = {label: _pooled(folders[label]) for label, _ in runs}
+    seed_runs = {label: [read_results(f) for f in folders[label]] for label, _ in runs}
+    results = {label: _pooled(seed_runs[label]) for label, _ in runs}
     lines = [f"# {title}", ""]
     if reward_model_dir is not None:
         card = _json(os.path.join(reward_model_dir, "config.json"))
@@ -162,8 +154,7 @@ def write_report(out_dir: str, runs: Sequence[tuple[str, str]], reward_model_dir
     base_label = names[0]
     for label in names[1:]:
         try:
-            table = interval_table(base_label, [read_results(f) for f in folders[base_label]], label,
-                                   [read_results(f) for f in folders[label]])
+            table = interval_table(base_label, seed_runs[base_label], label, seed_runs[label])
         except TrafficRLHFError as error:  # e.g. results without per-scene values, or of other scenes
             table = f"No interval: {error}"
         lines += [f"### {label} against {base_label}", "", table, ""]

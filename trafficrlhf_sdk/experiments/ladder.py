@@ -221,8 +221,7 @@ def _failure_interval(out_dir: str, before: str, after: str) -> str:
     paired bootstrap interval over scenes; empty when their results do not name their scenes."""
     from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, pooled_per_scene
-    from trafficrlhf_sdk.evaluation.compare import read_results
-    from trafficrlhf_sdk.evaluation.report import run_folders
+    from trafficrlhf_sdk.evaluation.compare import read_results, run_folders
 
     try:
         runs = [[read_results(f) for f in run_folders(os.path.join(out_dir, "evaluations", label))]
