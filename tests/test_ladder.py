@@ -77,6 +77,28 @@ def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[
     assert not (tmp_path / "out").exists()
 
 
+def test_config_recipe_is_run_and_model_cannot_contradict_it(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.cli import main
+    from trafficrlhf_sdk.experiments import ladder
+
+    seen: list[str] = []
+    monkeypatch.setattr(ladder, "run_ladder", lambda config, out, **kw: seen.append(config.recipe) or {"base": {}})
+    config = tmp_path / "ladder.toml"
+    config.write_text('recipe = "my-recipe.toml"\n')
+    with pytest.raises(SystemExit) as exit_info:
+        main(["experiment", "ladder", "--config", str(config), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 0 and seen == ["my-recipe.toml"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(["experiment", "ladder", "--model", "bits", "--config", str(config), "--out", str(tmp_path / "o2")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--model bits" in err and "my-recipe.toml" in err
+    (tmp_path / "plain.toml").write_text("scenes = 3\n")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["experiment", "ladder", "--model", "bits", "--config", str(tmp_path / "plain.toml"), "--out",
+              str(tmp_path / "o3")])
+    assert exit_info.value.code == 0 and seen[-1] == "docs/recipes/bits-ladder.toml"
+
+
 @pytest.mark.slow
 @pytest.mark.data
 def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:

@@ -64,8 +64,9 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
 
 
 @experiment_group.command("ladder")
-@click.option("--model", default="ctg", show_default=True,
-              help="The model whose shipped ladder recipe (docs/recipes/<model>-ladder.toml) every row runs.")
+@click.option("--model", default=None,
+              help="The model whose shipped ladder recipe (docs/recipes/<model>-ladder.toml) every row runs "
+                   "[default: ctg, unless --config names a recipe].")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=str),
               help="Folder of the run: ladder.{md,json,png} and every step (feedback, reward model, rows, "
                    "evaluations); rerun with the same --out to resume.")
@@ -74,15 +75,21 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
 @click.option("--reward-model", default=None, help="A learned reward-model folder for rows (c) and (d) instead of "
                                                    "training one on stand-in labels.")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings.")
-def ladder_command(model: str, out_dir: str, config_path: str | None, reward_model: str | None,
+def ladder_command(model: str | None, out_dir: str, config_path: str | None, reward_model: str | None,
                    overwrite: bool) -> None:
     """The alignment ladder: one model and fine-tuning recipe, rewarded by (a) the built-in failure reward, (b) the
     stand-in's judgment, (c) a reward model learned from its labels, (d) (c) with alpha = 0; each row evaluated in
     closed loop, so the gap each link of the feedback chain loses is measured."""
-    from trafficrlhf_sdk.config_files import load_config
+    from trafficrlhf_sdk.config_files import load_config, read_toml
     from trafficrlhf_sdk.experiments.ladder import LadderConfig, run_ladder
 
-    fields: dict[str, object] = {"recipe": f"docs/recipes/{model}-ladder.toml"}
+    fields: dict[str, object] = {}
+    own = read_toml(config_path, "--config").get("recipe") if config_path is not None else None
+    if own is None:
+        fields["recipe"] = f"docs/recipes/{model or 'ctg'}-ladder.toml"
+    elif model is not None:
+        raise click.UsageError(f"--model {model} and --config {config_path!r} (recipe = {own!r}) both choose the "
+                               "recipe; drop --model to run the config's recipe, or its `recipe` line.")
     if reward_model is not None:
         fields["reward_model"] = reward_model
     config = (load_config(LadderConfig, config_path, **fields) if config_path is not None
