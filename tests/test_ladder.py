@@ -66,6 +66,57 @@ def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypat
     assert (tmp_path / "out" / "ladder.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.pipeline as pipeline
+
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE)
+    calls: list[tuple[str, object]] = []
+
+    def fake_generate(folder, db, campaign, **_):  # type: ignore[no-untyped-def]
+        calls.append(("generate", campaign))
+        return StepResult("generate", folder, "x", {"campaign": campaign.name, "contexts": campaign.num_contexts})
+
+    def fake_label(folder, db, campaign, annotators, **_):  # type: ignore[no-untyped-def]
+        return StepResult("label", folder, "x", {"campaign": campaign})
+
+    def fake_reward(folder, config, db, campaigns, **_):  # type: ignore[no-untyped-def]
+        calls.append(("reward", list(campaigns)))
+        return StepResult("reward_model", folder, "x", {"folder": folder})
+
+    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
+        calls.append(("align", (folder, row.reward_model)))
+        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+
+    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": 0.1, "speed_ratio": 1.0}})
+
+    for name, fake in (("generate_step", fake_generate), ("label_step", fake_label),
+                       ("reward_model_step", fake_reward), ("align_step", fake_align),
+                       ("evaluate_step", fake_evaluate)):
+        monkeypatch.setattr(pipeline, name, fake)
+    out = tmp_path / "out"
+    config = LadderConfig(recipe=str(recipe), campaigns=((5, 1),), rounds=2, round_contexts=3, agreement_contexts=0)
+    run_ladder(config, str(out), log=lambda _: None)
+    campaigns = [c for kind, c in calls if kind == "generate"]
+    first, second = campaigns  # type: ignore[misc]
+    round_0 = str(out / "reward_model")
+    policy = str(out / "rounds" / "round_0" / "aligned")
+    assert first.contexts == "log" and first.model_options["checkpoint"] == "ctg-4s"  # type: ignore[attr-defined]
+    assert (second.contexts, second.num_contexts, second.seed) == ("closed_loop", 3, 11)  # type: ignore[attr-defined]
+    assert second.model_options["checkpoint"] == policy  # type: ignore[attr-defined]
+    assert [c for kind, c in calls if kind == "reward"] == [["ladder-train-0"], ["ladder-train-0", "ladder-round-1"]]
+    aligned = dict(c for kind, c in calls if kind == "align")  # type: ignore[misc]
+    last = str(out / "rounds" / "round_1" / "reward_model")
+    assert aligned[policy] == round_0 and aligned[str(out / "rows" / "c")] == last
+    assert aligned[str(out / "rows" / "d")] == last
+    assert "round 1's" in (out / "ladder.md").read_text()
+    (tmp_path / "rm").mkdir()
+    with pytest.raises(Exception, match="rounds=2"):
+        run_ladder(config.model_copy(update={"reward_model": str(tmp_path / "rm")}), str(tmp_path / "o2"),
+                   log=lambda _: None)
+
+
 def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_sdk.cli import main
 

@@ -18,6 +18,12 @@ scenes and seeds as the base. For the reward model the ladder also measures its 
 stand-in on candidates of the policy itself, at the start (the base) and at the end (row (c)'s model): the share of
 candidate pairs of the same context it orders as the judgment does.
 
+With ``rounds`` above 1 the learned path iterates as the RLHF loop does (a reward model is accurate near the
+data it saw, and the fine-tuned policy drives where the first one saw none): round ``r`` aligns the base against
+round ``r - 1``'s reward model, draws ``round_contexts`` train contexts from that policy's own closed-loop driving,
+cut shortly before its failures (``CampaignConfig.contexts = 'closed_loop'``), has the same stand-ins label them,
+and retrains the reward model on every label so far; rows (c) and (d) use the last round's reward model.
+
 Everything runs as steps of :mod:`trafficrlhf_sdk.pipeline` under the output folder, so an interrupted ladder
 resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` and ``ladder.png``.
 """
@@ -31,6 +37,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import resolve_path
 from trafficrlhf_sdk.reward.config import RewardConfig
 
@@ -74,6 +81,12 @@ class LadderConfig(BaseModel):
     contrast_scenes: int = Field(0, ge=0, description="Contrast pairs from the logs of the last N train scenes (0: "
                                  "none; the reward model then learns the stand-ins' labels alone, which row (c) "
                                  "measures).")
+    rounds: int = Field(1, ge=1, description="Rounds of the learned path: each round after the first labels "
+                        "closed-loop contexts of the policy aligned against the previous round's reward model and "
+                        "retrains it on every label so far (see the module docstring). Needs a learned reward model "
+                        "trained here (no `reward_model`) above 1.")
+    round_contexts: int = Field(442, ge=1, description="Train contexts labelled in each round after the first (the "
+                                "first N long-enough train scenes).")
     probe_scenes: int = Field(40, ge=0, description="Val scenes the reward model's probes run on.")
     scenes: int = Field(100, ge=1, description="Val scenes of the closed-loop evaluation.")
     seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Evaluation seeds.")
@@ -108,7 +121,10 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     learned: list[Any] = []
     if reward_model is None:
         reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
-                                                    reward_model_step, PROFILES)
+                                                    reward_model_step, align_step, PROFILES)
+    elif config.rounds > 1:
+        raise TrafficRLHFError(f"rounds={config.rounds} retrains the reward model on the ladder's own labels each "
+                               f"round, but reward_model={reward_model!r} is given; drop one of them.")
     else:
         reward_model = resolve_path(reward_model)
     for key, (label, spec) in LADDER_ROWS.items():
@@ -127,26 +143,47 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
 
 
 def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str, steps: dict[str, Any],
-                        generate_step: Any, label_step: Any, reward_model_step: Any,
+                        generate_step: Any, label_step: Any, reward_model_step: Any, align_step: Any,
                         profiles: dict[str, Any]) -> tuple[str, list[Any]]:
-    """The product path: the base model's candidates on train contexts, stand-in labels, a reward model."""
+    """The product path: the base model's candidates on train contexts, stand-in labels, a reward model; with
+    ``rounds`` above 1, then each round's closed-loop contexts of the policy the previous reward model aligned."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
 
+    annotators = {name: profiles[name] for name in config.annotators}
     labelled, names = [], []
-    for i, (contexts, seed) in enumerate(config.campaigns):
-        campaign = CampaignConfig(name=f"ladder-train-{i}", model=recipe.model, guidance=recipe.align.guidance,
-                                  model_options={**recipe.model_options, "checkpoint": recipe.checkpoint},
-                                  split="train", num_contexts=contexts, num_candidates=config.candidates,
-                                  candidate_seconds=config.seconds, seed=seed)
+
+    def label(campaign: CampaignConfig, after: list[Any]) -> None:
         folder = os.path.join(out_dir, "feedback", campaign.name)
-        generated = generate_step(os.path.join(folder, "generate"), db, campaign, **steps)
-        labelled.append(label_step(os.path.join(folder, "label"), db, campaign.name,
-                                   {name: profiles[name] for name in config.annotators}, after=[generated], **steps))
+        generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=after, **steps)
+        labelled.append(label_step(os.path.join(folder, "label"), db, campaign.name, annotators, after=[generated],
+                                   **steps))
         names.append(campaign.name)
-    trained = reward_model_step(os.path.join(out_dir, "reward_model"), config.reward, db, names,
-                                contrast_scenes=config.contrast_scenes, probe_scenes=config.probe_scenes,
-                                candidate_seconds=config.seconds, after=labelled,
-                                title=f"{recipe.model} reward model of the alignment ladder", **steps)
+
+    for i, (contexts, seed) in enumerate(config.campaigns):
+        label(CampaignConfig(name=f"ladder-train-{i}", model=recipe.model, guidance=recipe.align.guidance,
+                             model_options={**recipe.model_options, "checkpoint": recipe.checkpoint},
+                             split="train", num_contexts=contexts, num_candidates=config.candidates,
+                             candidate_seconds=config.seconds, seed=seed), [])
+    trained = None
+    for r in range(config.rounds):
+        if r > 0:  # the previous round's policy drives; its contexts are cut shortly before its own failures
+            assert trained is not None
+            row = recipe.model_copy(update={"reward_model": trained["folder"]})
+            policy = align_step(os.path.join(out_dir, "rounds", f"round_{r - 1}", "aligned"), row, after=[trained],
+                                **steps)
+            label(CampaignConfig(name=f"ladder-round-{r}", model=recipe.model, guidance=recipe.align.guidance,
+                                 model_options={**recipe.model_options, "checkpoint": policy["folder"]},
+                                 split="train", num_contexts=config.round_contexts, num_candidates=config.candidates,
+                                 candidate_seconds=config.seconds, seed=config.campaigns[-1][1] + 10 * r,
+                                 contexts="closed_loop"), [policy])
+        folder = os.path.join(out_dir, "reward_model") if r == 0 else \
+            os.path.join(out_dir, "rounds", f"round_{r}", "reward_model")
+        trained = reward_model_step(folder, config.reward, db, list(names), contrast_scenes=config.contrast_scenes,
+                                    probe_scenes=config.probe_scenes, candidate_seconds=config.seconds,
+                                    after=list(labelled),
+                                    title=f"{recipe.model} reward model of the alignment ladder"
+                                          + (f" (round {r})" if r else ""), **steps)
+    assert trained is not None
     return trained["folder"], [trained]
 
 
@@ -192,7 +229,9 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
     base = plain["base"]["evaluation"]["metrics"]
     lines = [f"# Alignment ladder ({config.recipe})", "",
              f"{config.scenes} val scenes, seeds {', '.join(map(str, config.seeds))}; every row runs the same "
-             "fine-tuning recipe from the same start, only the reward differs.", "",
+             "fine-tuning recipe from the same start, only the reward differs"
+             + (f"; the learned reward model is round {config.rounds - 1}'s (closed-loop contexts of the policy "
+                "each round aligned)." if config.rounds > 1 and not config.reward_model else "."), "",
              "| row | failure (change) | 95 % interval | collision | off-road | realism ctg / body | speed / log | "
              "stopped |", "|---|---|---|---|---|---|---|---|"]
     for key, row in plain.items():
@@ -219,7 +258,6 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
 def _failure_interval(out_dir: str, before: str, after: str) -> str:
     """The failure rate's change from evaluation ``before`` to ``after`` (each pooled over its seeds) as a 95 %
     paired bootstrap interval over scenes; empty when their results do not name their scenes."""
-    from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.evaluation.breakdown import paired_change_interval, pooled_per_scene
     from trafficrlhf_sdk.evaluation.compare import read_results, run_folders
 
