@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from trafficrlhf_sdk.experiments import EXPECTED, PUBLISHED, SOURCE, TABLES, PaperConfig, compare_change
+from trafficrlhf_sdk.experiments.published import published_change
 from trafficrlhf_sdk.experiments.report import clean_json, direction_rows, fmt, markdown_table, plot_bars, write_result
 
 finite = st.floats(-1e6, 1e6, allow_nan=False)
@@ -47,7 +48,15 @@ def test_compare_change_with_a_missing_value_and_the_directions() -> None:
     assert EXPECTED["realism_ctg"].direction == -1 and EXPECTED["realism_meta"].direction == 1
     assert EXPECTED["reward_cost"].direction == -1 and EXPECTED["failure_rate"].direction == 0
     assert "2309.00709" in SOURCE
-    assert PUBLISHED == {}  # no table of the paper could be read from a source: no number is made up
+    # the paper's own numbers (Tables 1-4), filed by the labels the experiments give their comparisons
+    assert PUBLISHED["no_collision: CTG → CTG + RM"]["failure_rate"] == (0.271, 0.054)
+    assert published_change("no_collision: CTG → CTG + RM", "failure_rate") == pytest.approx(-0.8007, abs=1e-4)
+    assert published_change("BITS: without → with RM", "reward_cost") == pytest.approx((9.5 - 12.4) / 12.4)
+    assert published_change("speed_limit: CTG → CTG + RM", "reward_cost") is None  # Table 1 prints no cost
+    assert published_change("no such comparison", "failure_rate") is None
+    rows = direction_rows([("CTG: without → with RM", {"failure_rate": 0.1}, {"failure_rate": 0.05})],
+                          ["failure_rate"])
+    assert rows[0]["relative"] == pytest.approx(-0.5) and rows[0]["paper_relative"] == pytest.approx(-0.8007, abs=1e-4)
 
 
 @given(value=st.recursive(st.floats() | st.integers() | st.text(max_size=3) | st.none(),
@@ -71,7 +80,7 @@ def test_direction_rows_and_written_result(tmp_path) -> None:
     saved = json.loads(open(paths[0]).read())
     assert saved["value"] is None and saved["paper_source"] == SOURCE and len(saved["comparison"]) == 3
     text = open(paths[1]).read()
-    assert "| CTG | realism dev. (paper) | 0.1000 | 0.0800 | -20.0 % | lower | yes |" in text
+    assert "| CTG | realism dev. (paper) | 0.1000 | 0.0800 | -20.0 % | n/a | lower | yes |" in text
     assert "- a note" in text and "--only table2" in text
     png = plot_bars(str(tmp_path / "t.png"), ["A", "A + RM"], {"failure_rate": [0.2, None]}, "t")
     assert open(png, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
