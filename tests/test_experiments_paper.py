@@ -59,6 +59,25 @@ def test_compare_change_with_a_missing_value_and_the_directions() -> None:
     assert rows[0]["relative"] == pytest.approx(-0.5) and rows[0]["paper_relative"] == pytest.approx(-0.8007, abs=1e-4)
 
 
+def test_published_numbers_are_filed_under_the_labels_the_tables_compare() -> None:
+    """The paper's numbers reach a table only through the comparison labels paper.py builds; a label changed on
+    one side would silently print "n/a" instead of the paper's change."""
+    import inspect
+
+    from trafficrlhf_sdk.experiments import GUIDANCES, paper
+
+    cfg = PaperConfig()
+    labels = {f"{g}: CTG → CTG + RM" for g in GUIDANCES}
+    labels |= {f"{m}: without → with RM" for m in ("CTG", "BITS", "TrafficGen")}
+    labels |= {f"CTG → CTG + RM ({variant})" for variant in cfg.table3_groups}
+    labels |= {f"{m} → + RM ({backbone})" for m in ("BITS", "TrafficGen") for backbone in cfg.backbones}
+    assert set(PUBLISHED) == labels
+    source = inspect.getsource(paper)  # the label patterns this test rebuilds are the ones the tables use
+    for pattern in ('f"{guidance}: CTG → CTG + RM"', 'f"{m}: without → with RM"', 'f"CTG → CTG + RM ({variant})"',
+                    'f"{model_name} → + RM ({backbone})"'):
+        assert pattern in source, pattern
+
+
 @given(value=st.recursive(st.floats() | st.integers() | st.text(max_size=3) | st.none(),
                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner,
                                                                                        max_size=3), max_leaves=10))

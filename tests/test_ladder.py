@@ -6,6 +6,7 @@ import json
 import math
 
 import pytest
+from pydantic import ValidationError
 
 from trafficrlhf_sdk.experiments.ladder import LADDER_ROWS, LadderConfig, run_ladder
 from trafficrlhf_sdk.pipeline.step import StepResult
@@ -111,10 +112,17 @@ def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, 
     assert aligned[policy] == round_0 and aligned[str(out / "rows" / "c")] == last
     assert aligned[str(out / "rows" / "d")] == last
     assert "round 1's" in (out / "ladder.md").read_text()
-    (tmp_path / "rm").mkdir()
-    with pytest.raises(Exception, match="rounds=2"):
-        run_ladder(config.model_copy(update={"reward_model": str(tmp_path / "rm")}), str(tmp_path / "o2"),
-                   log=lambda _: None)
+    calls.clear()
+    with pytest.raises(ValidationError, match=r"rounds=2 trains the reward model here.*--reward-model"):
+        LadderConfig(recipe=str(recipe), rounds=2, reward_model=str(tmp_path / "rm"))
+    # the campaign seed of round r is the largest of the campaigns' + 10 r, so it never repeats one of theirs
+    config3 = config.model_copy(update={"campaigns": ((4, 21), (4, 1)), "rounds": 3})
+    run_ladder(config3, str(tmp_path / "o3"), log=lambda _: None)
+    seeds = [c.seed for kind, c in calls if kind == "generate"]  # type: ignore[attr-defined]
+    assert seeds == [21, 1, 31, 41]
+    aligned3 = dict(c for kind, c in calls if kind == "align")  # type: ignore[misc]
+    assert aligned3[str(tmp_path / "o3" / "rounds" / "round_1" / "aligned")] == \
+        str(tmp_path / "o3" / "rounds" / "round_1" / "reward_model")
 
 
 def test_config_rejects_unknown_keys(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]

@@ -89,7 +89,7 @@ def ladder_command(model: str | None, out_dir: str, config_path: str | None, rew
         fields["recipe"] = f"docs/recipes/{model or 'ctg'}-ladder.toml"
     elif model is not None:
         raise click.UsageError(f"--model {model} and --config {config_path!r} (recipe = {own!r}) both choose the "
-                               "recipe; drop --model to run the config's recipe, or its `recipe` line.")
+                               "recipe; drop --model to run the config's recipe, or remove the config's `recipe` line.")
     if reward_model is not None:
         fields["reward_model"] = reward_model
     config = (load_config(LadderConfig, config_path, **fields) if config_path is not None

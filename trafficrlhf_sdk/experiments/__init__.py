@@ -9,6 +9,7 @@
 
 from trafficrlhf_sdk.experiments.config import GUIDANCES, TABLES, PaperConfig
 from trafficrlhf_sdk.experiments.paper import run_paper
-from trafficrlhf_sdk.experiments.published import EXPECTED, PUBLISHED, SOURCE, compare_change
+from trafficrlhf_sdk.experiments.published import EXPECTED, PUBLISHED, SOURCE, compare_change, published_change
 
-__all__ = ["EXPECTED", "GUIDANCES", "PUBLISHED", "SOURCE", "TABLES", "PaperConfig", "compare_change", "run_paper"]
+__all__ = ["EXPECTED", "GUIDANCES", "PUBLISHED", "SOURCE", "TABLES", "PaperConfig", "compare_change",
+           "published_change", "run_paper"]

@@ -35,7 +35,7 @@ import os
 from collections.abc import Callable
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import resolve_path
@@ -63,7 +63,8 @@ class LadderConfig(BaseModel):
     recipe: str = Field(description="The fine-tuning recipe every row shares (a TOML `AlignRecipe`; its reward is "
                                     "replaced row by row), relative to the working directory or the repository.")
     reward_model: str | None = Field(None, description="A learned reward-model folder for rows (c) and (d); None: "
-                                     "train one on stand-in labels of the base model's candidates (below).")
+                                     "train one on stand-in labels of the base model's candidates (below) and, "
+                                     "with `rounds` above 1, of each round's policy.")
     campaigns: tuple[tuple[int, int], ...] = Field(
         ((200, 1), (400, 11), (442, 21)), min_length=1,
         description="The labelled train campaigns of the learned reward model, as (contexts, campaign seed): each "
@@ -83,16 +84,26 @@ class LadderConfig(BaseModel):
                                  "measures).")
     rounds: int = Field(1, ge=1, description="Rounds of the learned path: each round after the first labels "
                         "closed-loop contexts of the policy aligned against the previous round's reward model and "
-                        "retrains it on every label so far (see the module docstring). Needs a learned reward model "
-                        "trained here (no `reward_model`) above 1.")
-    round_contexts: int = Field(442, ge=1, description="Train contexts labelled in each round after the first (the "
-                                "first N long-enough train scenes).")
+                        "retrains it on every label so far (see the module docstring). Above 1 the reward model is "
+                        "trained here, so `reward_model` must be unset.")
+    round_contexts: int = Field(442, ge=1, description="Train contexts labelled in each round after the first: the "
+                                "first N train scenes long enough for the closed-loop drive before the candidates "
+                                "(fewer when fewer are); campaign seed of round r: the largest of `campaigns` + "
+                                "10 r. Unused with `rounds` = 1.")
     probe_scenes: int = Field(40, ge=0, description="Val scenes the reward model's probes run on.")
     scenes: int = Field(100, ge=1, description="Val scenes of the closed-loop evaluation.")
     seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1, description="Evaluation seeds.")
     rollouts: int = Field(1, ge=1, description="Rollouts per scene (2 or more add the realism meta-metric).")
     agreement_contexts: int = Field(60, ge=0, description="Val contexts of the policy's own candidates on which "
                                     "the reward model's agreement with the stand-in is measured (0: skip).")
+
+    @model_validator(mode="after")
+    def _check(self) -> LadderConfig:
+        if self.rounds > 1 and self.reward_model is not None:
+            raise ValueError(f"rounds={self.rounds} trains the reward model here each round, but reward_model "
+                             f"(--reward-model) = {self.reward_model!r} is given; set rounds = 1 to use that model, "
+                             "or leave reward_model unset.")
+        return self
 
 
 def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = print,
@@ -122,9 +133,6 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     if reward_model is None:
         reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
                                                     reward_model_step, align_step, PROFILES)
-    elif config.rounds > 1:
-        raise TrafficRLHFError(f"rounds={config.rounds} retrains the reward model on the ladder's own labels each "
-                               f"round, but reward_model={reward_model!r} is given; drop one of them.")
     else:
         reward_model = resolve_path(reward_model)
     for key, (label, spec) in LADDER_ROWS.items():
@@ -165,6 +173,7 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
                              split="train", num_contexts=contexts, num_candidates=config.candidates,
                              candidate_seconds=config.seconds, seed=seed), [])
     trained = None
+    round_seed = max(seed for _, seed in config.campaigns)
     for r in range(config.rounds):
         if r > 0:  # the previous round's policy drives; its contexts are cut shortly before its own failures
             assert trained is not None
@@ -174,7 +183,7 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
             label(CampaignConfig(name=f"ladder-round-{r}", model=recipe.model, guidance=recipe.align.guidance,
                                  model_options={**recipe.model_options, "checkpoint": policy["folder"]},
                                  split="train", num_contexts=config.round_contexts, num_candidates=config.candidates,
-                                 candidate_seconds=config.seconds, seed=config.campaigns[-1][1] + 10 * r,
+                                 candidate_seconds=config.seconds, seed=round_seed + 10 * r,
                                  contexts="closed_loop"), [policy])
         folder = os.path.join(out_dir, "reward_model") if r == 0 else \
             os.path.join(out_dir, "rounds", f"round_{r}", "reward_model")

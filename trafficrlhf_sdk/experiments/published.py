@@ -24,6 +24,7 @@ __all__ = ["EXPECTED", "PUBLISHED", "SOURCE", "Expectation", "compare_change", "
 SOURCE = ("Cao, Ivanovic, Xiao, Pavone: Reinforcement Learning with Human Feedback for Realistic Traffic "
           "Simulation, ICRA 2024, arXiv 2309.00709")
 
+
 def _pair(table: str, real: tuple[float, float], fail: tuple[float, float],
           cost: tuple[float, float] | None = None) -> dict[str, Any]:
     values: dict[str, Any] = {"table": table, "realism_ctg": real, "failure_rate": fail}
