@@ -16,6 +16,7 @@ from trafficrlhf_sdk.cli.app import EXIT_USER_ERROR, main
 from trafficrlhf_sdk.config_files import load_config, set_fields
 from trafficrlhf_sdk.errors import DataFormatError
 from trafficrlhf_sdk.experiments.config import PaperConfig
+from trafficrlhf_sdk.experiments.ladder import LadderConfig
 from trafficrlhf_sdk.loop import RLHFConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,13 +25,15 @@ SHIPPED = sorted(p for folder in ("scripts", "docs", "reference_models", "benchm
 
 
 def config_kind(path: Path) -> type[BaseModel]:
-    """Which model a TOML file holds: a recipe names its reward model, an experiment file sets PaperConfig fields
-    a loop has not, anything else is a loop."""
+    """Which model a TOML file holds: a recipe names its reward model, an experiment or ladder file sets
+    PaperConfig or LadderConfig fields a loop has not, anything else is a loop."""
     data = tomllib.loads(path.read_text(encoding="utf-8"))
     if "reward_model" in data:
         return AlignRecipe
     if set(data) - set(RLHFConfig.model_fields) and set(data) <= set(PaperConfig.model_fields):
         return PaperConfig
+    if set(data) - set(RLHFConfig.model_fields) and set(data) <= set(LadderConfig.model_fields):
+        return LadderConfig
     return RLHFConfig
 
 
@@ -42,8 +45,10 @@ def test_the_shipped_files_were_found() -> None:
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_shipped_toml_loads(path: Path) -> None:
     kind = config_kind(path)
-    config = AlignRecipe.load(str(path)) if kind is AlignRecipe else load_config(kind, str(path))
     data = tomllib.loads(path.read_text(encoding="utf-8"))
+    # a ladder config without a recipe runs the one `--model` names (the CLI's default: CTG's)
+    default = {"recipe": "docs/recipes/ctg-ladder.toml"} if kind is LadderConfig and "recipe" not in data else {}
+    config = AlignRecipe.load(str(path)) if kind is AlignRecipe else load_config(kind, str(path), **default)
     dumped = config.model_dump()
     for table in ("align", "reward"):  # nested tables keep exactly the keys the file sets
         if isinstance(data.get(table), dict):
