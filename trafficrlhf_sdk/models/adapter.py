@@ -162,14 +162,6 @@ class TrafficModelAdapter(abc.ABC):
     def parameter_groups(self) -> dict[str, list[torch.nn.Parameter]]:
         """Trainable parameter groups by name (e.g. ``encoder``, ``decoder``); frozen parts are not offered."""
 
-    def selection_scores(self, context: ScenarioTensor, output: SampleOutput,
-                         guidance: GuidanceSet | None = None) -> tuple[torch.Tensor, int] | None:
-        """How :meth:`plan` would rank the samples of ``output`` (drawn from ``context``): ``(scores (B, S, A),
-        k)``, higher executed first, for a planner that draws ``k`` samples and executes the best scored (per
-        agent, or one index per scene when the scores are equal over a scene's agents). None (the default): the
-        planner executes what :meth:`sample` draws, with no selection to credit."""
-        return None
-
     def transition_kl(self, context: ScenarioTensor, trace: PolicyTrace,
                       reference: TrafficModelAdapter) -> torch.Tensor | None:
         """The KL from this model to ``reference`` (the same adapter class, frozen) on the traced samples, in

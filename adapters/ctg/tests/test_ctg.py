@@ -137,39 +137,6 @@ def test_guidance_lowers_its_loss(adapter, scenes) -> None:  # type: ignore[no-u
 
 
 @needs_data
-@pytest.mark.parametrize("guidance", ["speed_limit", "no_collision", None])
-def test_selection_scores_rank_first_the_sample_plan_executes(scenes, guidance) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_ctg import CTGAdapter
-
-    from trafficrlhf_sdk.simulation.guidance import NoCollisionGuidance
-
-    planner = CTGAdapter(seed=0, plan_samples=5)
-    # losses that differ between samples on these scenes: a low limit, and a 15 m buffer around every agent
-    planner.guidance = {"speed_limit": GuidanceSet([SpeedLimitGuidance(limit=2.0)]),
-                        "no_collision": GuidanceSet([NoCollisionGuidance(buffer_m=15.0)]), None: None}[guidance]
-    planner.reset(scenes)
-    drawn = []
-    sample = planner.sample
-    planner.sample = lambda *args, **kwargs: drawn.append(sample(*args, **kwargs)) or drawn[-1]  # type: ignore[method-assign]
-    executed = planner.plan(scenes, planner.horizon).states  # (B, A, H, 4)
-    scores, k = planner.selection_scores(scenes, drawn[0], planner.guidance)
-    assert scores.shape == drawn[0].futures.shape[:3]
-    if guidance is None:
-        assert k == 1 and not scores.any()
-        return
-    controlled = scenes.controlled
-    assert k == 5 and (scores[:, :, controlled.any(0)] <= 0).all(), "minus a loss"
-    best = scores.argmax(1)  # (B, A)
-    assert (best[controlled] > 0).any(), "every agent executes sample 0: the check below would be vacuous"
-    chosen = drawn[0].futures.gather(1, best[:, None, :, None, None].expand(-1, 1, -1, planner.horizon, 4))[:, 0]
-    torch.testing.assert_close(executed[controlled], chosen[controlled].cpu())
-    if guidance == "no_collision":  # scene-level: one score per scene and sample, shared by its controlled agents
-        for b in range(scenes.num_scenes):
-            shared = scores[b][:, controlled[b]]
-            assert torch.equal(shared, shared[:, :1].expand_as(shared))
-
-
-@needs_data
 def test_stationary_agents_are_held(adapter, scenes) -> None:  # type: ignore[no-untyped-def]
     now = scenes.current_index
     states = scenes.states.clone()

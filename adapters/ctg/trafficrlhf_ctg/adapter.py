@@ -411,23 +411,6 @@ class CTGAdapter(TrafficModelAdapter):
             log_prob=self._scatter(log_prob, agents, torch.zeros(b, a, s, k, device=dev)),
         )
 
-    def selection_scores(self, context: ScenarioTensor, output: SampleOutput,
-                         guidance: GuidanceSet | None = None) -> tuple[torch.Tensor, int]:
-        """``(scores (B, S, A), k)``: how :meth:`plan` ranks the samples of ``output`` (higher executed first).
-
-        With a guidance the planner draws ``plan_samples`` futures and executes the lowest guidance loss, so the
-        score is minus that loss; for a scene-level guidance (``no_collision``) it is the scene's total over its
-        controlled agents, the same for each of them, as
-        :func:`~trafficrlhf_sdk.simulation.guidance.select_samples` sums it. Without a guidance the planner executes its
-        one sample: zeros and ``k = 1``."""
-        if guidance is None:
-            return torch.zeros_like(output.futures[..., 0, 0]), 1
-        controlled = context.controlled[:, None].to(output.futures.dtype)  # (B, 1, A)
-        loss = guidance.loss(output.futures.detach(), context.current_index, context)  # (B, S, A)
-        if guidance.scene_level:
-            loss = (loss * controlled).sum(-1, keepdim=True).expand_as(loss)
-        return -loss * controlled, self.options.plan_samples
-
     def reset(self, scenario: ScenarioTensor) -> None:
         """Fit the guidance and record which agents are stationary at the rollout start."""
         super().reset(scenario)
