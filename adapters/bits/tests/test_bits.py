@@ -12,6 +12,7 @@ import os
 import pytest
 import torch
 
+from trafficrlhf_sdk.models.adapter import PolicyTrace
 from trafficrlhf_sdk.scenario import AgentType, MapRaster, ScenarioTensor, default_data_root
 from trafficrlhf_sdk.testing.check_adapter import check_adapter
 
@@ -175,6 +176,37 @@ def test_plan_picks_the_best_bits_score(adapter) -> None:  # type: ignore[no-unt
     chosen = off.plan(scene, 20).states[0, :2, :, :2]  # the two moving cars
     lookup = scene.map.lookup(chosen.reshape(1, -1, 2)).reshape(2, 20)  # type: ignore[union-attr]
     assert lookup.all()
+
+
+def test_train_on_selection_samples_what_plan_executes(adapter) -> None:  # type: ignore[no-untyped-def]
+    """Each sample is BITS's choice among a goal set; its log-probability is the set's; same draw as plan()."""
+    from trafficrlhf_bits import BITSAdapter
+    from trafficrlhf_sdk.simulation.guidance import GuidanceSet
+
+    scene = synthetic_scene()
+    k = 4
+    model = BITSAdapter(seed=0, plan_samples=k, train_on_selection=True, guidance="no_collision")
+    guidance = GuidanceSet.parse("no_collision")
+    guidance.fit(scene)
+    out = model.sample(scene, 3, guidance, generator=torch.Generator().manual_seed(5))
+    cell = out.trace.tensors["cell"]
+    assert out.futures.shape == (1, 3, 4, 20, 4) and cell.shape == (1, 3, 4, k)
+    # the set's log-probability = the sum of its goals' (each under the masked goal distribution)
+    single = BITSAdapter(seed=0)
+    single.model.load_state_dict(model.model.state_dict())
+    flat = PolicyTrace({"cell": cell.permute(0, 1, 3, 2).reshape(1, 3 * k, 4),
+                        "drivable": out.trace.tensors["drivable"].repeat_interleave(k, 1)}, out.trace.agents, 30)
+    per_goal = single.log_prob(scene, flat).reshape(1, 3, k, 4).sum(2)
+    torch.testing.assert_close(out.log_prob, per_goal.detach(), atol=1e-4, rtol=1e-5)
+    recomputed = model.log_prob(scene, out.trace.detach())
+    assert recomputed.requires_grad
+    torch.testing.assert_close(recomputed.detach(), out.log_prob, atol=1e-5, rtol=1e-5)
+    # one group with plan()'s generator state executes exactly plan()'s choice
+    model.reset(scene)
+    planned = model.plan(scene, 20).states
+    model.reset(scene)
+    again = model._sample_selected(scene, 1, model.guidance, model._generator).futures[:, 0]
+    torch.testing.assert_close(again, planned)
 
 
 def test_guided_plan_runs_every_guidance(adapter) -> None:  # type: ignore[no-untyped-def]

@@ -12,6 +12,11 @@
   ``0.01 progress - 15 collision - 1 drivable`` (collision against the other agents' most-likely-goal
   predictions, drivable = share of box centre and corners off the drivable layer), minus the guidance loss when
   a guidance is set; the best sample per agent (per scene for scene-level guidances) is executed.
+* With ``train_on_selection``, ``sample`` runs that selection too: each of its samples is the executed choice
+  among ``plan_samples`` goals, traced as the whole set (``cell (B, S, A, K)``), and ``log_prob`` sums the set's
+  goal log-probabilities. The selection is a fixed function of the set (and of the other agents' sets for
+  scene-level guidance), so this is the policy gradient of what ``plan`` executes; without it PPO trains single
+  goals while the planner keeps picking the most progressive one.
 * Only the goal network is offered for training (``goal_encoder``, ``goal_decoder``); the policy's parameters
   have ``requires_grad=False`` and are never offered.
 * Stationary agents (|v| <= ``stationary_speed``) are held still, as the ``ctg`` adapter and upstream do, decided
@@ -65,6 +70,10 @@ class BITSOptions(AdapterOptions):
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
     selection_weights: tuple[float, float, float] = Field(
         (0.01, 15.0, 1.0), description="BITS selection weights: progress, collision, drivable area (tbsim).")
+    train_on_selection: bool = Field(
+        False, description="sample() returns what plan() executes: each sample is BITS's choice among "
+                           "`plan_samples` goals; the action is the whole goal set (log-probability: the sum over "
+                           "its goals), so PPO optimizes the executed plan rather than single goals.")
 
 
 class _Draw(NamedTuple):
@@ -175,9 +184,26 @@ class BITSAdapter(TrafficModelAdapter):
         All randomness comes from ``generator``.
         """
         self._check_dt(context)
+        if self.options.train_on_selection:
+            return self._sample_selected(context, num_samples, guidance, generator)
         agents = context.controlled & context.valid[:, :, context.current_index]
         draw = self._draw(context, agents, num_samples, generator)
         return self._output(context, agents, draw, num_samples, guidance)
+
+    def _sample_selected(self, context: ScenarioTensor, groups: int, guidance: GuidanceSet | None,
+                         generator: torch.Generator | None) -> SampleOutput:
+        """``groups`` executed plans per agent, each chosen among ``plan_samples`` goals as :meth:`plan` does."""
+        k = self.options.plan_samples
+        out, choice = self._selection(context, groups, guidance, generator)  # choice (B, G, A) in 0..k-1
+        b, _, a, h, _ = out.futures.shape
+        futures = out.futures.reshape(b, groups, k, a, h, 4)
+        futures = futures.gather(2, choice[:, :, None, :, None, None].expand(b, groups, 1, a, h, 4))[:, :, 0]
+        cells = out.trace.tensors["cell"].reshape(b, groups, k, a).permute(0, 1, 3, 2)  # (B, G, A, K)
+        drivable = out.trace.tensors["drivable"].reshape(b, groups, k, a, -1)[:, :, 0]
+        trace = PolicyTrace(tensors={"cell": cells, "drivable": drivable}, agents=out.trace.agents,
+                            now=out.trace.now, info={**out.trace.info, "selection": True})
+        return SampleOutput(futures=futures, trace=trace,
+                            log_prob=out.log_prob.reshape(b, groups, k, a).sum(2))
 
     def _output(self, context: ScenarioTensor, agents: torch.Tensor, draw: _Draw, s: int,
                 guidance: GuidanceSet | None) -> SampleOutput:
@@ -213,12 +239,13 @@ class BITSAdapter(TrafficModelAdapter):
                              "context the sample was drawn from.")
         agents = trace.agents.to(context.device)
         cell = trace.tensors["cell"]
-        b, s, a = cell.shape
-        rows = cell.transpose(1, 2)[agents]  # (N, S)
+        b, s, a = cell.shape[:3]
+        k = cell.shape[3] if cell.dim() == 4 else 1  # goal sets (train_on_selection): K goals per sample
+        rows = cell.reshape(b, s, a, k).transpose(1, 2)[agents].reshape(-1, s * k)  # (N, S*K)
         mask = trace.tensors["drivable"][:, 0][agents]  # (N, cells): the same for every sample
         feats = select_rows(agent_features(context, self.cfg, agents), agents)
         out = self.model.goal_net(feats)
-        log_p = self.model.masked_log_probs(out.logits, mask).gather(1, rows)
+        log_p = self.model.masked_log_probs(out.logits, mask).gather(1, rows).reshape(-1, s, k).sum(-1)
         return self._scatter(log_p, agents, torch.zeros(b, a, s, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
@@ -285,28 +312,32 @@ class BITSAdapter(TrafficModelAdapter):
         return cost + guidance.loss(futures, context.current_index, context), guidance.scene_level
 
     @torch.no_grad()
-    def _selection(self, context: ScenarioTensor, guidance: GuidanceSet | None,
+    def _selection(self, context: ScenarioTensor, groups: int, guidance: GuidanceSet | None,
                    generator: torch.Generator | None) -> tuple[SampleOutput, torch.Tensor]:
-        """BITS's selection: ``plan_samples`` goals per controlled agent and the index ``(B, A)`` of the one
-        executed. Scores ``0.01 progress - 15 collision - 1 drivable`` against the other agents' most-likely goals,
-        minus the guidance loss when one is set (scene-level guidances choose one index per scene)."""
+        """BITS's selection, ``groups`` times over: ``groups * plan_samples`` goals per controlled agent (group g
+        holds samples ``g*K .. g*K+K-1``) and the index ``(B, G, A)`` in ``0..K-1`` of the chosen one per group.
+
+        Scores ``0.01 progress - 15 collision - 1 drivable`` against the other agents' most-likely goals, minus the
+        guidance loss when one is set (scene-level guidances choose one index per scene and group)."""
         now, k = context.current_index, self.options.plan_samples
         b, a, h = context.num_scenes, context.num_agents, self.horizon
         valid_now = context.valid[:, :, now]
         agents = context.controlled & valid_now
         # one goal-network pass over every agent present now: samples for the controlled ones, and the most
         # likely goal of each as the prediction the others are checked against (BITS's predictor role)
-        draw = self._draw(context, valid_now, k, generator, modes=True)
+        draw = self._draw(context, valid_now, groups * k, generator, modes=True)
         modes = torch.zeros(b, a, h, 4, device=context.device)
         modes[valid_now] = draw.futures[:, -1]
         sub = agents[valid_now]  # which present agents are controlled
         draw_c = _Draw(*(t[sub] for t in draw))
-        out = self._output(context, agents, draw_c, k, guidance)
-        progress = draw_c.local[:, :k, -1, 0]
+        out = self._output(context, agents, draw_c, groups * k, guidance)
+        progress = draw_c.local[:, : groups * k, -1, 0]
         progress = torch.where(draw_c.held[:, None], torch.zeros_like(progress), progress)
-        terms = self.selection_terms(context, draw_c.futures[:, :k], progress, agents, valid_now, modes)
+        terms = self.selection_terms(context, draw_c.futures[:, : groups * k], progress, agents, valid_now, modes)
         cost, scene_level = self._selection_cost(context, agents, terms, out.futures, guidance)
-        return out, select_samples(cost, agents, scene_level)
+        # every (scene, group) pair is one selection among K: fold the groups into the batch
+        choice = select_samples(cost.reshape(b * groups, k, a), agents.repeat_interleave(groups, 0), scene_level)
+        return out, choice.reshape(b, groups, a)
 
     def reset(self, scenario: ScenarioTensor) -> None:
         """Fit the guidance and record which agents are stationary at the rollout start."""
@@ -321,7 +352,7 @@ class BITSAdapter(TrafficModelAdapter):
         context = context.to(self.options.device)
         self._check_dt(context)
         with self._hold.planning():
-            out, choice = self._selection(context, self.guidance, self._generator)
+            out, choice = self._selection(context, 1, self.guidance, self._generator)
         h = self.horizon
-        chosen = out.futures.gather(1, choice[:, None, :, None, None].expand(-1, -1, -1, h, 4))[:, 0]
+        chosen = out.futures.gather(1, choice[:, :, :, None, None].expand(-1, -1, -1, h, 4))[:, 0]
         return Plan(extend_constant_velocity(chosen, horizon, context.dt).cpu())
