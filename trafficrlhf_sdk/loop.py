@@ -92,9 +92,8 @@ class RLHFConfig(BaseModel):
     root: str | None = Field(None, description="Data directory of the source.")
     seed: int = Field(0, description="Seed of campaigns, annotators, reward models and alignment.")
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Where the candidates and the "
-                                       "alignment's samples are made: in-process or on Ray workers (the same "
-                                       "candidates; on Ray the alignment draws its samples in seeded chunks, "
-                                       "another draw of the recipe); `trafficrlhf rlhf --workers N`.")
+                                       "alignment's samples are made: in-process or on Ray workers, with the same "
+                                       "numbers; `trafficrlhf rlhf --workers N`.")
 
 
 def rlhf(config: RLHFConfig, out_dir: str, log: Callable[[str], None] = print, poll_s: float = 10.0,

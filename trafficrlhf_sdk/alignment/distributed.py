@@ -1,11 +1,10 @@
 """PPO rollout collection in chunks of contexts, in-process or on Ray workers (:func:`distribute_rollouts`).
 
-The trainer's sampling step draws ``samples_per_context`` futures for every context of an epoch in one batched
-call. :func:`distribute_rollouts` makes an :class:`~trafficrlhf_sdk.alignment.AlignTrainer` split the contexts
-into chunks instead; each chunk is sampled with its own generator, seeded from the epoch's sampling generator and
-the chunk, so the outputs are the same whether the chunks run in this process or on Ray workers. The epoch's
-model (its current weights) and the contexts are put in the object store once per epoch; each task carries only
-its chunk's bounds.
+The trainer draws ``samples_per_context`` futures for an epoch's contexts in chunks (:func:`sample_in_chunks`);
+each chunk is sampled with its own generator, seeded from the epoch's sampling generator and the chunk's first
+context, so the outputs are the same whether the chunks run in this process or on Ray workers, and `--workers` is
+a speed switch only. On Ray, the epoch's model (its current weights) and the contexts are put in the object store
+once per epoch; each task carries only its chunk's bounds.
 """
 
 from __future__ import annotations
@@ -60,15 +59,9 @@ def sample_in_chunks(model: Any, guidance: Any, contexts: ScenarioTensor, sample
     return _concat(run_tasks(_sample_chunk, shared, bounds, execution))
 
 
-def distribute_rollouts(trainer: Any, execution: ExecutionConfig | None, chunk_size: int = 8) -> Any:
-    """Make ``trainer`` (an :class:`~trafficrlhf_sdk.alignment.AlignTrainer`) collect each epoch's samples with
-    :func:`sample_in_chunks` on ``execution`` (None: in-process chunks). The chunk seeds come from the epoch's own
-    sampling generator, so a run repeats exactly, and in-process and Ray runs agree. Returns ``trainer``."""
-
-    def sample(contexts: ScenarioTensor, generator: torch.Generator, samples: int | None = None) -> SampleOutput:
-        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
-        count = samples or trainer.config.samples_per_context
-        return sample_in_chunks(trainer.model, trainer.guidance, contexts, count, seed, execution, chunk_size)
-
-    trainer._sample = sample
+def distribute_rollouts(trainer: Any, execution: ExecutionConfig | None) -> Any:
+    """Make ``trainer`` (an :class:`~trafficrlhf_sdk.alignment.AlignTrainer`) run each epoch's sample chunks on
+    ``execution`` (None: in this process). The chunk seeds come from the epoch's own sampling generator, so a run
+    repeats exactly, and in-process and Ray runs agree. Returns ``trainer``."""
+    trainer.execution = execution
     return trainer

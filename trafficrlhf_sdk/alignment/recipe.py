@@ -79,9 +79,8 @@ class AlignRecipe(BaseModel):
 def run_recipe(recipe: AlignRecipe, output_dir: str, execution: Any = None, **overrides: Any) -> dict[str, Any]:
     """Build the model and reward of ``recipe``, align, save the model and its history in ``output_dir`` and
     return a summary (also written as ``align_summary.json``). ``execution``: a
-    :class:`~trafficrlhf_sdk.parallel.ExecutionConfig`: each epoch's samples are drawn in chunks with seeds
-    derived from the epoch's, on its Ray workers or in this process (the same numbers either way); None draws
-    them in one piece, in this process. ``overrides``: AlignConfig fields."""
+    :class:`~trafficrlhf_sdk.parallel.ExecutionConfig` whose Ray workers draw each epoch's sample chunks (None:
+    this process; the same numbers either way). ``overrides``: AlignConfig fields."""
     import torch
 
     from trafficrlhf_sdk.alignment.trainer import AlignTrainer

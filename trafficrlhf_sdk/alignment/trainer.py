@@ -41,6 +41,7 @@ import torch
 
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
+from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
@@ -159,6 +160,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
+        self.execution: Any = None  # an ExecutionConfig: where each epoch's sample chunks run (distribute_rollouts)
 
     # ------------------------------------------------------------------ data
     @staticmethod
@@ -189,14 +191,12 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
 
     # ------------------------------------------------------------------ rollout
     def _sample(self, contexts: ScenarioTensor, generator: torch.Generator, samples: int | None = None) -> Any:
-        guidance = self.guidance
-        samples = samples or self.config.samples_per_context
-        if guidance is not None:
-            guidance.fit(contexts)
-            with torch.enable_grad():
-                return self.model.sample(contexts, samples, guidance, generator)
-        with torch.no_grad():
-            return self.model.sample(contexts, samples, None, generator)
+        """``samples`` futures per context, drawn in chunks of contexts with seeds derived from ``generator``
+        (:func:`~trafficrlhf_sdk.alignment.distributed.sample_in_chunks`), in this process or on the Ray workers
+        of ``self.execution``: the same numbers either way."""
+        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
+        return sample_in_chunks(self.model, self.guidance, contexts, samples or self.config.samples_per_context,
+                                seed, self.execution)
 
     def _rollout(self, epoch: int) -> SampledEpoch:
         contexts, logged = self._contexts(epoch)

@@ -83,8 +83,7 @@ class PaperConfig(BaseModel):
     progress: bool = Field(True, description="Progress bars for simulation and alignment.")
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Where the evaluations' "
                                        "rollouts, the campaigns' candidates and the alignments' samples run: "
-                                       "in-process or on Ray workers (the same evaluations and candidates; on Ray an "
-                                       "alignment draws its samples in seeded chunks, another draw of its recipe).")
+                                       "in-process or on Ray workers, with the same numbers.")
     guidance: str | None = Field("no_collision", description="Guidance of Tables 2-4 (sampling, alignment, "
                                                              "evaluation).")
     guidances: tuple[str, ...] = Field(GUIDANCES, min_length=1, description="Guidances of Table 1.")
