@@ -126,6 +126,36 @@ def test_contrast_dataset_prefers_the_log_and_trains_a_reward_model() -> None:
     assert result.model is not None and "val_accuracy" in result.metrics
 
 
+def test_judged_contrast_items_prefer_what_each_annotator_picks_not_the_log() -> None:
+    """With annotators, a contrast item is labelled like a campaign item: the pick (here noise-free: the most
+    realistic option by the annotator's own judgment) is preferred to every other option, the log included."""
+    from trafficrlhf_sdk.feedback.judgment import judge_scenarios
+    from trafficrlhf_sdk.feedback.synthetic import SyntheticAnnotatorConfig
+
+    scenes = _scenes(4)
+    kinds = ("faster", "jerky", "off_lane")
+    strict = SyntheticAnnotatorConfig(beta=None, epsilon=0.0, none_threshold=0.0)
+    lenient = SyntheticAnnotatorConfig(beta=None, epsilon=0.0, none_threshold=0.0, weight_accel=0.0,
+                                       weight_jerk=0.0, weight_stop_go=0.0, weight_pace=0.0, weight_lane=0.0)
+    data = contrast_dataset(scenes, kinds, annotators={"strict": strict, "lenient": lenient})
+    assert data.annotators == ("strict", "lenient") and data.metadata["judged_by"] == ["strict", "lenient"]
+    options = [perturb_future(scenes, kind)[0] for kind in kinds] + [scenes]
+    for n, config in enumerate((strict, lenient)):
+        realism = torch.stack([judge_scenarios(o, o.controlled, config.judgment()).realism for o in options], 1)
+        for c in range(scenes.num_scenes):
+            mine = data.pairs[(data.pair_annotator == n) & (data.pairs[:, 0] == c)]
+            assert len(mine) == len(options) - 1 and len(set(mine[:, 1].tolist())) == 1  # one pick per item
+            pick = int(mine[0, 1])
+            assert realism[c, pick] == realism[c].max()
+            assert sorted(mine[:, 2].tolist()) == [j for j in range(len(options)) if j != pick]
+    assert len(set(data.pair_label.tolist())) == 2 * scenes.num_scenes  # one label per item and annotator
+    # the strict judge sees the stop-and-go of `jerky`, so the log beats it; the lenient one cannot
+    jerky_beaten = data.pairs[:, 2] == kinds.index("jerky")
+    assert (data.pairs[jerky_beaten & (data.pair_annotator == 0), 1] == len(kinds)).all()
+    again = contrast_dataset(scenes, kinds, annotators={"strict": strict, "lenient": lenient})
+    assert torch.equal(again.pairs, data.pairs)
+
+
 def test_tie_pairs_reach_the_loss_as_soft_labels_and_survive_filtering() -> None:
     from dataclasses import replace
 

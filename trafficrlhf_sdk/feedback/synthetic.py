@@ -34,7 +34,8 @@ from trafficrlhf_sdk.feedback.records import TIE_SLOT
 from trafficrlhf_sdk.feedback.store import Annotator, Campaign, ContextRecord, FeedbackStore
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["PROFILES", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "judge_realism"]
+__all__ = ["PROFILES", "SyntheticAnnotator", "SyntheticAnnotatorConfig", "annotator_generator", "judge_realism",
+           "noisy_choice"]
 
 
 class SyntheticAnnotatorConfig(JudgmentConfig):
@@ -81,6 +82,32 @@ def judge_realism(record: ContextRecord, config: JudgmentConfig | None = None,
     return judge_scenarios(batch, record.controlled[None].expand(batch.num_scenes, -1), config)
 
 
+def noisy_choice(realism: torch.Tensor, config: SyntheticAnnotatorConfig, generator: torch.Generator,
+                 allow_tie: bool = False) -> int | None:
+    """What an annotator with ``config``'s noise answers for an item whose options have realism ``(N,)``: the
+    index chosen, None for "none realistic", or :data:`~trafficrlhf_sdk.feedback.schema.TIE_SLOT` for "equally
+    realistic" (when ``allow_tie``); the steps of the module docstring, every draw from ``generator``."""
+    if float(realism.max()) <= config.none_threshold:
+        return None
+    if allow_tie and config.tie_margin > 0 and float(realism.max() - realism.min()) <= config.tie_margin:
+        return TIE_SLOT
+    if config.beta is None:
+        best = int(torch.argmax(realism))
+    else:
+        probs = torch.softmax(config.beta * realism.double(), 0)
+        best = int(torch.multinomial(probs, 1, generator=generator))
+    if config.epsilon > 0 and float(torch.rand((), generator=generator)) < config.epsilon:
+        others = [k for k in range(len(realism)) if k != best]
+        best = others[int(torch.randint(len(others), (), generator=generator))]
+    return best
+
+
+def annotator_generator(seed: int, name: str, item: object) -> torch.Generator:
+    """The generator of annotator ``name``'s draws for ``item`` (an item id or key), seeded by all three."""
+    digest = hashlib.sha256(f"{seed}:{name}:{item}".encode()).digest()
+    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "big") >> 1)
+
+
 class SyntheticAnnotator:
     """Labels items of a campaign like a person would, through :class:`FeedbackStore`.
 
@@ -99,26 +126,12 @@ class SyntheticAnnotator:
             self.annotator, _ = store.add_annotator(name)
 
     def _generator(self, context_id: int) -> torch.Generator:
-        digest = hashlib.sha256(f"{self.config.seed}:{self.annotator.name}:{context_id}".encode()).digest()
-        return torch.Generator().manual_seed(int.from_bytes(digest[:8], "big") >> 1)
+        return annotator_generator(self.config.seed, self.annotator.name, context_id)
 
     def choose(self, realism: torch.Tensor, generator: torch.Generator, allow_tie: bool = False) -> int | None:
         """The candidate index chosen from realism scores ``(N,)``, None for "none realistic", or
         :data:`~trafficrlhf_sdk.feedback.schema.TIE_SLOT` for "equally realistic" (when ``allow_tie``)."""
-        cfg = self.config
-        if float(realism.max()) <= cfg.none_threshold:
-            return None
-        if allow_tie and cfg.tie_margin > 0 and float(realism.max() - realism.min()) <= cfg.tie_margin:
-            return TIE_SLOT
-        if cfg.beta is None:
-            best = int(torch.argmax(realism))
-        else:
-            probs = torch.softmax(cfg.beta * realism.double(), 0)
-            best = int(torch.multinomial(probs, 1, generator=generator))
-        if cfg.epsilon > 0 and float(torch.rand((), generator=generator)) < cfg.epsilon:
-            others = [k for k in range(len(realism)) if k != best]
-            best = others[int(torch.randint(len(others), (), generator=generator))]
-        return best
+        return noisy_choice(realism, self.config, generator, allow_tie)
 
     def label(self, campaign: Campaign | str, limit: int | None = None,
               on_label: Callable[[int, int | None], None] | None = None) -> dict[str, int]:

@@ -71,7 +71,8 @@ class TrainedRewardModel:
 
 
 def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None, campaigns: Sequence[str] = (),
-                   annotators: Sequence[str] = (), contrast_scenes: int | None = None, half: bool = False,
+                   annotators: Sequence[str] = (), contrast_scenes: int | None = None,
+                   contrast_annotators: Sequence[str] = (), half: bool = False,
                    test_campaign: str | None = None, test_annotators: Sequence[str] = (), tie_tolerance: float = 0.0,
                    title: str | None = None, notes: Sequence[str] = (), commands: Sequence[str] = (),
                    log: Callable[[dict[str, float]], None] | None = None,
@@ -83,7 +84,10 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     ``training_log.json``.
 
     ``store`` is the feedback database ``campaigns`` come from (needed by ``test_campaign``, read from the same
-    database). ``contrast_scenes`` N adds contrast pairs from the last N train scenes' logs. ``half`` stores
+    database). ``contrast_scenes`` N adds contrast items from the last N train scenes' logs, labelled by the
+    stand-in profiles named in ``contrast_annotators`` (:data:`~trafficrlhf_sdk.feedback.synthetic.PROFILES`),
+    or, when none is named, as "log ≻ perturbation" (:func:`~trafficrlhf_sdk.reward.contrast.contrast_dataset`).
+    ``half`` stores
     float16 weights, rounded before testing so the card's test metrics are those of the saved weights.
     ``on_start`` hears the trainer's ``dataset_info`` (pairs, contexts, featurizing time) before training;
     ``log`` hears each epoch's row.
@@ -112,8 +116,15 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
         source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
     contrast = None
     if contrast_scenes:
+        from trafficrlhf_sdk.feedback.synthetic import PROFILES
+
+        unknown = sorted(set(contrast_annotators) - set(PROFILES))
+        if unknown:
+            raise TrafficRLHFError(f"contrast annotators {unknown} are not stand-in profiles; use some of "
+                                   f"{', '.join(PROFILES)}.")
+        judges = {name: PROFILES[name] for name in contrast_annotators} or None
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
-                                                     future_steps=future_steps))
+                                                     future_steps=future_steps), annotators=judges)
     checkpoints = os.path.join(out_dir, CHECKPOINTS_FOLDER)
     if resume is None:
         from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints

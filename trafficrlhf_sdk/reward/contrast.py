@@ -29,7 +29,7 @@ are the steps after ``current_index``.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -172,39 +172,73 @@ def recorded_windows(source: str = "nuscenes_pred", split: str = "val", num_scen
 
 
 def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATIONS,
-                     strength: float = DEFAULT_STRENGTH, split: str = "train") -> Any:
-    """A :class:`~trafficrlhf_sdk.feedback.PreferenceDataset` of the pairs "log ≻ log perturbed as ``kind``" for
-    every context of ``scenes`` (``current_index`` = the start of the futures) and kind that changes an agent;
-    futures ``(K, len(kinds) + 1, A, H, 4)`` with the log last, annotator :data:`CONTRAST_ANNOTATOR`."""
+                     strength: float = DEFAULT_STRENGTH, split: str = "train",
+                     annotators: Mapping[str, Any] | None = None) -> Any:
+    """A :class:`~trafficrlhf_sdk.feedback.PreferenceDataset` of contrast items: every context of ``scenes``
+    (``current_index`` = the start of the futures) with, as options, its logged future and that future perturbed
+    as each of ``kinds`` that changes an agent; futures ``(K, len(kinds) + 1, A, H, 4)`` with the log last.
+
+    ``annotators`` None: the pairs "log ≻ each perturbation", annotator :data:`CONTRAST_ANNOTATOR` (an assumption:
+    the log is more realistic). ``annotators`` (name -> a
+    :class:`~trafficrlhf_sdk.feedback.SyntheticAnnotatorConfig`, e.g. stand-in profiles): each annotator labels
+    each item as a campaign item, from what the item shows, with its own noise (best of the options, or "none
+    realistic": no pairs); its pick is preferred to every other option. A perturbation the judgment does not
+    notice then gives no pair "log ≻ it", and one it finds more realistic is preferred to the log."""
     from trafficrlhf_sdk.feedback.preference import PreferenceDataset
 
     now = scenes.current_index
-    futures, valids, changed = [], [], []
+    futures, valids, changed, options = [], [], [], []
     for kind in kinds:
         moved, agents = perturb_future(scenes, kind, strength)
         futures.append(moved.states[:, :, now + 1:])
         valids.append(scenes.valid[:, :, now + 1:])
         changed.append(agents.any(-1))
+        options.append(moved)
     futures.append(scenes.states[:, :, now + 1:])
     valids.append(scenes.valid[:, :, now + 1:])
+    options.append(scenes)
     futures_t = torch.stack(futures, 1).float()
     valid_t = torch.stack(valids, 1)
     log_slot = len(kinds)
-    pairs = [(c, log_slot, j) for c in range(scenes.num_scenes) for j in range(len(kinds)) if changed[j][c]]
+    shown = torch.stack([*changed, torch.ones_like(changed[0])], 1).cpu()  # (K, kinds + 1): the item's options
+    ids = scenes.scene_ids or tuple(str(c) for c in range(scenes.num_scenes))
+    if annotators is None:
+        names: tuple[str, ...] = (CONTRAST_ANNOTATOR,)
+        pairs = [(c, log_slot, j, 0) for c in range(scenes.num_scenes) for j in range(len(kinds)) if shown[c, j]]
+    else:
+        from trafficrlhf_sdk.feedback.judgment import judge_scenarios
+        from trafficrlhf_sdk.feedback.synthetic import annotator_generator, noisy_choice
+
+        names = tuple(annotators)
+        pairs = []
+        for n, (name, config) in enumerate(annotators.items()):
+            judgment = config.judgment()
+            realism = torch.stack([judge_scenarios(o, o.controlled, judgment).realism for o in options], 1).cpu()
+            for c in range(scenes.num_scenes):
+                slots = shown[c].nonzero().flatten().tolist()
+                if len(slots) < 2:
+                    continue
+                generator = annotator_generator(config.seed, name, f"contrast/{ids[c]}/{now}")
+                pick = noisy_choice(realism[c, slots], config, generator)
+                if pick is not None:
+                    pairs += [(c, slots[pick], j, n) for j in slots if j != slots[pick]]
     if not pairs:
         raise TrafficRLHFError("no perturbation changed any agent of these scenes (no controlled agent drives "
-                               f"faster than {MOVING_SPEED} m/s at current_index); pass scenes with moving traffic.")
-    pair_t = torch.tensor(pairs, dtype=torch.long)
+                               f"faster than {MOVING_SPEED} m/s at current_index), or no annotator found any "
+                               "option realistic; pass scenes with moving traffic.")
+    table = torch.tensor(pairs, dtype=torch.long)
+    # one label per pair for the assumption; per (context, annotator) when annotators pick
+    labels = torch.arange(len(pairs)) if annotators is None else table[:, 0] * len(names) + table[:, 3]
     keys = tuple({"campaign": "contrast", "source": scenes.source, "split": (scenes.extras or {}).get("split"),
-                  "scene_id": scenes.scene_ids[c], "context_id": f"contrast/{scenes.scene_ids[c]}/{now}",
+                  "scene_id": ids[c], "context_id": f"contrast/{ids[c]}/{now}",
                   "models": [f"log:{kind}" for kind in kinds] + ["log"]}
                  for c in range(scenes.num_scenes))
-    return PreferenceDataset(contexts=scenes, futures=futures_t, future_valid=valid_t, pairs=pair_t,
-                             pair_annotator=torch.zeros(len(pairs), dtype=torch.long),
-                             pair_label=torch.arange(len(pairs), dtype=torch.long),
+    return PreferenceDataset(contexts=scenes, futures=futures_t, future_valid=valid_t, pairs=table[:, :3],
+                             pair_annotator=table[:, 3], pair_label=labels,
                              context_split=tuple(split for _ in range(scenes.num_scenes)), context_keys=keys,
-                             annotators=(CONTRAST_ANNOTATOR,),
-                             metadata={"kinds": list(kinds), "strength": strength, "contrast": True})
+                             annotators=names,
+                             metadata={"kinds": list(kinds), "strength": strength, "contrast": True,
+                                       "judged_by": None if annotators is None else list(names)})
 
 
 def _members(model: Any) -> list[Any]:
