@@ -78,6 +78,19 @@ def test_rm_info_lists_architectures_and_describes_a_model(trained: Path) -> Non
     assert summary["weights_sha256_ok"] and summary["registered"] and summary["num_parameters"] > 0
 
 
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--contrast-annotator", "attentive"], "add --contrast-scenes N"),
+    (["--contrast-scenes", "4", "--contrast-annotator", "nobody"], "not stand-in profiles"),
+])
+def test_rm_train_refuses_contrast_annotators_it_cannot_use(tiny_db: str, tmp_path: Path, extra: list[str],
+                                                            message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["rm", "train", "--db", tiny_db, "--campaign", "tiny", "--out", str(tmp_path / "m"), "--quiet", *extra])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "m" / "model.safetensors").exists()
+
+
 @pytest.mark.skipif(not COMMITTED.is_dir(), reason="the committed reward model is not in this checkout")
 def test_rm_info_on_the_committed_model() -> None:
     code, output = invoke("rm", "info", str(COMMITTED))

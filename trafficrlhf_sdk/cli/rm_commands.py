@@ -71,8 +71,12 @@ def rm() -> None:
 @click.option("--tie-tolerance", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Test pairs whose hidden realism differs by at most this count as ties (strict accuracy).")
 @click.option("--contrast-scenes", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Add automatic contrast pairs from the last N train scenes' logs (the log preferred to it made "
-                   "faster, slower, jerky, off its lane, tailgating or weaving), weighed by --contrast-weight.")
+              help="Add contrast items from the last N train scenes' logs: the log and the same future made "
+                   "faster, slower, jerky, off its lane, tailgating or weaving, weighed by --contrast-weight. "
+                   "Labelled by --contrast-annotator; without one, the log is preferred to each perturbation.")
+@click.option("--contrast-annotator", "contrast_annotators", multiple=True, metavar="PROFILE",
+              help="Stand-in profile (attentive, safety, flow, hurried) that labels the contrast items as campaign "
+                   "items, picking the most realistic option with its own noise (repeatable).")
 @click.option("--contrast-weight", type=click.FloatRange(min=0), default=None,
               help="Weight of the contrast pairs' loss [default: RewardConfig].")
 @click.option("--title", default=None, help="Title of the model card.")
@@ -88,7 +92,8 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
                   seed: int, threads: int | None, device: str,
                   test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
-                  contrast_scenes: int | None, contrast_weight: float | None, title: str | None,
+                  contrast_scenes: int | None, contrast_annotators: tuple[str, ...], contrast_weight: float | None,
+                  title: str | None,
                   notes: tuple[str, ...], resume: bool, quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card.
 
@@ -112,7 +117,8 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
     commands = ["trafficrlhf " + shlex.join(sys.argv[1:])] if os.path.basename(sys.argv[0]) == "trafficrlhf" else []
     with _resume_hint_on_interrupt(out_dir):
         trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
-                                 annotators=annotators, contrast_scenes=contrast_scenes, half=half,
+                                 annotators=annotators, contrast_scenes=contrast_scenes,
+                                 contrast_annotators=contrast_annotators, half=half,
                                  test_campaign=test_campaign, test_annotators=test_annotators,
                                  tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
                                  log=None if quiet else _echo_epoch, resume=resume,

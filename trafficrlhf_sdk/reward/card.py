@@ -114,14 +114,17 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
 
     if source is None and (contrast_scenes or probe_scenes):
         source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
+    from trafficrlhf_sdk.feedback.synthetic import PROFILES
+
+    unknown = sorted(set(contrast_annotators) - set(PROFILES))
+    if unknown:
+        raise TrafficRLHFError(f"--contrast-annotator {unknown}: not stand-in profiles; use some of "
+                               f"{', '.join(PROFILES)}.")
+    if contrast_annotators and not contrast_scenes:
+        raise TrafficRLHFError(f"--contrast-annotator {list(contrast_annotators)} labels contrast items, but there "
+                               "are none; add --contrast-scenes N (recorded train scenes that give the items).")
     contrast = None
     if contrast_scenes:
-        from trafficrlhf_sdk.feedback.synthetic import PROFILES
-
-        unknown = sorted(set(contrast_annotators) - set(PROFILES))
-        if unknown:
-            raise TrafficRLHFError(f"contrast annotators {unknown} are not stand-in profiles; use some of "
-                                   f"{', '.join(PROFILES)}.")
         judges = {name: PROFILES[name] for name in contrast_annotators} or None
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
                                                      future_steps=future_steps), annotators=judges)
