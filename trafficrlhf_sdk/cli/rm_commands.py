@@ -90,10 +90,9 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
                   weight_decay: float | None,
                   batch_size: int | None, margin: float | None, center_coef: float | None, patience: int | None,
                   ensemble: int, bootstrap: bool, half: bool, architecture: str, arch_options: tuple[str, ...],
-                  seed: int, threads: int | None, device: str,
-                  test_campaign: str | None, test_annotators: tuple[str, ...], tie_tolerance: float,
-                  contrast_scenes: int | None, contrast_annotators: tuple[str, ...], contrast_weight: float | None,
-                  title: str | None,
+                  seed: int, threads: int | None, device: str, test_campaign: str | None,
+                  test_annotators: tuple[str, ...], tie_tolerance: float, contrast_scenes: int | None,
+                  contrast_annotators: tuple[str, ...], contrast_weight: float | None, title: str | None,
                   notes: tuple[str, ...], resume: bool, quiet: bool) -> None:
     """Train a reward model with the Bradley–Terry loss and save it with its model card.
 
@@ -117,9 +116,9 @@ def train_command(db_path: str | None, campaigns: tuple[str, ...], data_dir: str
     commands = ["trafficrlhf " + shlex.join(sys.argv[1:])] if os.path.basename(sys.argv[0]) == "trafficrlhf" else []
     with _resume_hint_on_interrupt(out_dir):
         trained = train_and_save(config, dataset, out_dir, store=store, campaigns=campaigns if db_path else (),
-                                 annotators=annotators, contrast_scenes=contrast_scenes,
-                                 contrast_annotators=contrast_annotators, half=half,
-                                 test_campaign=test_campaign, test_annotators=test_annotators,
+                                 annotators=annotators, contrast_scenes=contrast_scenes, half=half,
+                                 contrast_annotators=contrast_annotators, test_campaign=test_campaign,
+                                 test_annotators=test_annotators,
                                  tie_tolerance=tie_tolerance, title=title, notes=notes, commands=commands,
                                  log=None if quiet else _echo_epoch, resume=resume,
                                  on_start=lambda info: _echo_start(architecture, info))
