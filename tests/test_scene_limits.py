@@ -330,10 +330,12 @@ COLLISION_CHILD = textwrap.dedent("""
     a, t = 1000, 100  # 499,500 pairs x 100 steps: 1.2 GB of pair indices at once
     xy = torch.stack([torch.arange(a, dtype=torch.float32)[:, None].expand(a, t) * 10,
                       torch.arange(t, dtype=torch.float32)[None].expand(a, t)], -1)[None]
+    before = next(line for line in open("/proc/self/status") if line.startswith("VmRSS"))
     pairs = colliding_pairs(xy, torch.zeros(1, a, t), torch.tensor([4.5, 1.9]).expand(1, a, 2), torch.ones(1, a, t,
                             dtype=torch.bool))
     hwm = next(line for line in open("/proc/self/status") if line.startswith("VmHWM"))
-    print(json.dumps({"pairs": len(pairs[0]), "peak_mb": int(hwm.split()[1]) / 1024}))
+    print(json.dumps({"pairs": len(pairs[0]), "peak_mb": int(hwm.split()[1]) / 1024,
+                      "start_mb": int(before.split()[1]) / 1024}))
 """)
 
 
@@ -342,4 +344,6 @@ def test_collision_checks_of_a_large_scene_take_memory_for_one_chunk() -> None:
                          env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert run.returncode == 0, run.stderr[-2000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
-    assert result["pairs"] == 0 and result["peak_mb"] < 700, result
+    # the check's own growth over the process's size before it (torch alone is a few hundred MB, and the allocator
+    # moves the peak by tens of MB between runs); all pairs at once would add 1.2 GB
+    assert result["pairs"] == 0 and result["peak_mb"] - result["start_mb"] < 650, result
