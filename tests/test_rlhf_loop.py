@@ -43,6 +43,8 @@ def test_two_rounds_with_active_selection_then_a_rerun_does_nothing(data_root: s
     store.close()
     card = json.load(open(os.path.join(out, "round_1", "reward_model", "config.json")))
     assert card["data"]["campaign"] == ["round0", "round1"]
+    assert card["data"]["contrast"]["decided_by"] == ["attentive", "hurried"]  # the stand-ins label the contrast
+    assert card["data"]["contrast"]["scenes"] == 3 and card["data"]["contrast"]["pairs"] > 0
     lines: list[str] = []
     assert rlhf(config, out, log=lines.append) == result
     assert lines and all(line.endswith("skipped") for line in lines)  # every step was done

@@ -13,8 +13,8 @@ preferences where the newest policy drives):
    of them are labelled;
 3. **label**: by stand-in annotator profiles, or by people in the browser app (``people=True``: the loop waits
    until every served item has a label, and can be stopped and resumed meanwhile);
-4. **reward model**: retrained on every round's labels (plus automatic contrast pairs from recorded driving
-   with ``contrast_scenes``), saved with its model card and probe results;
+4. **reward model**: retrained on every round's labels (plus, with ``contrast_scenes``, contrast items from
+   recorded driving that the same stand-in profiles label), saved with its model card and probe results;
 5. **align**: the base model (every round starts from it, which is robust to a reward model's errors) is aligned
    against the new reward model with the alignment recipe.
 
@@ -77,9 +77,13 @@ class RLHFConfig(BaseModel):
         default_factory=lambda: RewardConfig(ensemble_size=3, max_epochs=30),
         description="RewardConfig fields of the reward model (table [reward]; `seed` defaults to this config's).")
     contrast_scenes: int = Field(0, ge=0, description="Recorded train scenes (from the end of the split) whose "
-                                 "logs give automatic contrast pairs; 0: none, the reward model learns the labels "
-                                 "alone (pairs the annotators do not hold cost the alignment ladder's row (c) "
-                                 "most of its gain).")
+                                 "logs, beside perturbed copies, make contrast items that the stand-in profiles "
+                                 "label like any item (with `people`: pairs in which the log wins); 0: none, the "
+                                 "reward model learns the campaigns' labels alone.")
+    contrast_labels: Literal["annotators", "log"] = Field(
+        "annotators", description="Who decides each contrast item: the stand-in profiles of `annotators`, like any "
+        "item (with `people`, the log wins), or 'log': the log wins every pair (how reference_models/reward/ctg_loop "
+        "was made).")
     probe_scenes: int = Field(50, ge=0, description="Held-out val scenes the reward model is probed on; 0: none.")
     align: Annotated[AlignConfig, ONLY_SET_FIELDS] = Field(
         default_factory=AlignConfig, description="AlignConfig fields of the alignment stage (table [align]; "
@@ -212,6 +216,11 @@ def _label(config: RLHFConfig, db: str, r: int, campaigns: list[StepResult], fol
     return done
 
 
+def _judged_contrast(config: RLHFConfig) -> bool:
+    """Whether the stand-ins label the contrast items (otherwise the log wins each pair)."""
+    return bool(config.contrast_scenes) and config.contrast_labels == "annotators" and not config.people
+
+
 def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult], folder: str,
                   steps: dict[str, Any]) -> StepResult:
     """The round's reward model, trained on every round's labels so far (and any contrast pairs), probed."""
@@ -221,7 +230,9 @@ def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult],
     campaigns = [step["campaign"] for step in labels]
     reward = reward_model_step(
         os.path.join(folder, "reward_model"), settings, db, campaigns, val_fraction=0.15, split_seed=config.seed,
-        contrast_scenes=config.contrast_scenes, probe_scenes=config.probe_scenes, source=config.source,
+        contrast_scenes=config.contrast_scenes,
+        contrast_annotators=config.annotators if _judged_contrast(config) else (),
+        probe_scenes=config.probe_scenes, source=config.source,
         root=config.root, candidate_seconds=config.seconds, title=f"Reward model of RLHF round {r} ({config.model})",
         after=labels, **steps)
     if reward.cached:

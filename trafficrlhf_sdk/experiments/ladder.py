@@ -79,9 +79,9 @@ class LadderConfig(BaseModel):
     reward: RewardConfig = Field(default_factory=lambda: RewardConfig(learning_rate=1e-3, weight_decay=0.0,
                                                                       max_epochs=60),
                                  description="How the learned reward model trains.")
-    contrast_scenes: int = Field(0, ge=0, description="Contrast pairs from the logs of the last N train scenes (0: "
-                                 "none; the reward model then learns the stand-ins' labels alone, which row (c) "
-                                 "measures).")
+    contrast_scenes: int = Field(0, ge=0, description="Contrast items from the logs of the last N train scenes, "
+                                 "labelled by the same stand-in profiles (0: none; the reward model then learns "
+                                 "the labels of the model's candidates alone).")
     rounds: int = Field(1, ge=1, description="Rounds of the learned path: each round after the first labels "
                         "closed-loop contexts of the policy aligned against the previous round's reward model and "
                         "retrains it on every label so far (see the module docstring). Above 1 the reward model is "
@@ -188,6 +188,7 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
         folder = os.path.join(out_dir, "reward_model") if r == 0 else \
             os.path.join(out_dir, "rounds", f"round_{r}", "reward_model")
         trained = reward_model_step(folder, config.reward, db, list(names), contrast_scenes=config.contrast_scenes,
+                                    contrast_annotators=config.annotators if config.contrast_scenes else (),
                                     probe_scenes=config.probe_scenes, candidate_seconds=config.seconds,
                                     after=list(labelled),
                                     title=f"{recipe.model} reward model of the alignment ladder"

@@ -149,6 +149,10 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     card = model_card(result.metrics, model, dataset=dataset if campaigns else None, campaigns=campaigns,
                       annotators=annotators, test_metrics=test_metrics, test_campaign=test_campaign,
                       test_annotators=test_annotators, title=title, notes=notes, commands=commands)
+    if contrast is not None:
+        card.setdefault("data", {})["contrast"] = {
+            "scenes": contrast_scenes, "pairs": int(contrast.pairs.shape[0]),
+            "decided_by": list(contrast_annotators) or "the log wins every pair"}
     probes = None
     if probe_scenes:
         probes = probe_reward_model(model.eval(), recorded_windows(source, "val", probe_scenes, root))
