@@ -81,12 +81,14 @@ def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, 
     def fake_label(folder, db, campaign, annotators, **_):  # type: ignore[no-untyped-def]
         return StepResult("label", folder, "x", {"campaign": campaign})
 
-    def fake_reward(folder, config, db, campaigns, **_):  # type: ignore[no-untyped-def]
+    def fake_reward(folder, config, db, campaigns, **kw):  # type: ignore[no-untyped-def]
         calls.append(("reward", list(campaigns)))
+        calls.append(("contrast", (kw["contrast_scenes"], tuple(kw["contrast_annotators"]))))
         return StepResult("reward_model", folder, "x", {"folder": folder})
 
-    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
+    def fake_align(folder, row, after=(), **_):  # type: ignore[no-untyped-def]
         calls.append(("align", (folder, row.reward_model)))
+        calls.append(("after", (folder, [step.name for step in after])))
         return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
 
     def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
@@ -112,6 +114,14 @@ def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, 
     assert aligned[policy] == round_0 and aligned[str(out / "rows" / "c")] == last
     assert aligned[str(out / "rows" / "d")] == last
     assert "round 1's" in (out / "ladder.md").read_text()
+    # the built-in rows read no learned reward, so retraining it leaves them done; the learned rows wait for it
+    after = dict(c for kind, c in calls if kind == "after")  # type: ignore[misc]
+    assert after[str(out / "rows" / "a")] == after[str(out / "rows" / "b")] == []
+    assert after[str(out / "rows" / "c")] == after[str(out / "rows" / "d")] == ["reward_model"]
+    assert {c for kind, c in calls if kind == "contrast"} == {(0, ())}  # no contrast items by default
+    calls.clear()
+    run_ladder(config.model_copy(update={"contrast_scenes": 7}), str(tmp_path / "o2"), log=lambda _: None)
+    assert {c for kind, c in calls if kind == "contrast"} == {(7, ("attentive", "safety", "flow"))}
     calls.clear()
     with pytest.raises(ValidationError, match=r"rounds=2 trains the reward model here.*--reward-model"):
         LadderConfig(recipe=str(recipe), rounds=2, reward_model=str(tmp_path / "rm"))

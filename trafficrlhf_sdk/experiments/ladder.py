@@ -139,7 +139,8 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
         fields = {"alpha": 0.0} if key == "d" else {}
         row = recipe.model_copy(update={"reward_model": spec or reward_model,
                                         "align": recipe.align.model_copy(update=fields)})
-        aligned = align_step(os.path.join(out_dir, "rows", key), row, after=learned, **steps)
+        # rows (a) and (b) read no learned reward: a retrained reward model leaves them done
+        aligned = align_step(os.path.join(out_dir, "rows", key), row, after=[] if spec else learned, **steps)
         rows[key] = {"label": label, "reward": spec or reward_model, "align": _summary(aligned),
                      "evaluation": evaluate(f"row_{key}", aligned["folder"], [aligned])}
     if config.agreement_contexts:
