@@ -191,3 +191,42 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     again = run_ladder(config, str(out), log=lambda _: None)
     assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
     assert rows["c"]["reward"] == again["c"]["reward"]
+
+
+def test_agreement_is_redone_when_the_reward_models_weights_or_the_policy_change(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.reward.loading as loading
+    import trafficrlhf_sdk.reward.oracle as oracle
+    from trafficrlhf_sdk.experiments import ladder
+    from trafficrlhf_sdk.experiments.steps import read_recipe
+
+    recipe_file = tmp_path / "recipe.toml"
+    recipe_file.write_text(TINY_RECIPE)
+    recipe = read_recipe(str(recipe_file))
+    generated: list[list[str]] = []
+
+    def fake_generate(folder, db, campaign, after=(), **_):  # type: ignore[no-untyped-def]
+        generated.append([step.digest for step in after])
+        return StepResult("generate", folder, "g" + "".join(step.digest for step in after), {})
+
+    runs: list[str] = []
+    monkeypatch.setattr(loading, "load_reward", lambda path: path)
+    monkeypatch.setattr(oracle, "judgment_agreement", lambda model, store, name: runs.append(name) or {"pairs": 1})
+    rm = tmp_path / "rm"
+    rm.mkdir()
+    (rm / "model.safetensors").write_bytes(b"first")
+    config = LadderConfig(recipe=str(recipe_file), agreement_contexts=2)
+    steps = {"overwrite": True, "log": lambda _: None}
+    db = str(tmp_path / "feedback.sqlite")
+
+    def agreement(policy: list[StepResult]) -> None:
+        ladder._agreement(config, recipe, "ckpt", str(rm), db, str(tmp_path), "end", steps, fake_generate, policy)
+
+    policy = [StepResult("align", "row_c", "p1", {})]
+    agreement(policy)
+    agreement(policy)
+    assert len(runs) == 1 and generated[-1] == ["p1"]  # the same inputs: done before
+    (rm / "model.safetensors").write_bytes(b"retrained")  # same folder, other weights
+    agreement(policy)
+    assert len(runs) == 2
+    agreement([StepResult("align", "row_c", "p2", {})])  # another policy: its candidates and the agreement again
+    assert len(runs) == 3 and generated[-1] == ["p2"]

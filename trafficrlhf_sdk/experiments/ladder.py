@@ -135,18 +135,22 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
                                                     reward_model_step, align_step, PROFILES)
     else:
         reward_model = resolve_path(reward_model)
+    policies: dict[str, Any] = {}
     for key, (label, spec) in LADDER_ROWS.items():
         fields = {"alpha": 0.0} if key == "d" else {}
         row = recipe.model_copy(update={"reward_model": spec or reward_model,
                                         "align": recipe.align.model_copy(update=fields)})
         # rows (a) and (b) read no learned reward: a retrained reward model leaves them done
         aligned = align_step(os.path.join(out_dir, "rows", key), row, after=[] if spec else learned, **steps)
+        policies[key] = aligned
         rows[key] = {"label": label, "reward": spec or reward_model, "align": _summary(aligned),
                      "evaluation": evaluate(f"row_{key}", aligned["folder"], [aligned])}
     if config.agreement_contexts:
         rows["agreement"] = {
-            moment: _agreement(config, recipe, checkpoint, reward_model, db, out_dir, moment, steps, generate_step)
-            for moment, checkpoint in (("start", recipe.checkpoint), ("end", rows["c"]["align"]["folder"]))}
+            moment: _agreement(config, recipe, checkpoint, reward_model, db, out_dir, moment, steps, generate_step,
+                               policy)
+            for moment, checkpoint, policy in (("start", recipe.checkpoint, []),
+                                               ("end", rows["c"]["align"]["folder"], [policies["c"]]))}
     _write(rows, config, out_dir)
     return rows
 
@@ -199,10 +203,12 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
 
 
 def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward_model: str, db: str, out_dir: str,
-               moment: str, steps: dict[str, Any], generate_step: Any) -> dict[str, Any]:
-    """The reward model's agreement with the noise-free stand-in on val candidates of ``checkpoint``."""
+               moment: str, steps: dict[str, Any], generate_step: Any, policy: list[Any]) -> dict[str, Any]:
+    """The reward model's agreement with the noise-free stand-in on val candidates of ``checkpoint`` (made by the
+    ``policy`` step, if any). Both are redone when the policy or the reward model's weights change."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
     from trafficrlhf_sdk.feedback.store import FeedbackStore
+    from trafficrlhf_sdk.models.checkpoint import sha256_file
     from trafficrlhf_sdk.pipeline.step import run_step
     from trafficrlhf_sdk.reward.loading import load_reward
     from trafficrlhf_sdk.reward.oracle import judgment_agreement
@@ -212,7 +218,9 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
                               num_contexts=config.agreement_contexts, num_candidates=config.candidates,
                               candidate_seconds=config.seconds, seed=config.agreement_seed)
     folder = os.path.join(out_dir, "agreement", moment)
-    generated = generate_step(os.path.join(folder, "generate"), db, campaign, **steps)
+    generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=policy, **steps)
+    weights = sorted(name for name in os.listdir(reward_model) if name.endswith(".safetensors")) \
+        if os.path.isdir(reward_model) else []
 
     def work() -> dict[str, Any]:
         store = FeedbackStore(db)
@@ -221,8 +229,10 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
         finally:
             store.close()
 
-    return dict(run_step("agreement", folder, {"campaign": campaign.name, "reward_model": reward_model}, work,
-                         after=[generated], **steps).outputs)
+    inputs = {"campaign": campaign.name, "reward_model": reward_model,
+              **({"weights": {name: sha256_file(os.path.join(reward_model, name)) for name in weights}}
+                 if weights else {})}
+    return dict(run_step("agreement", folder, inputs, work, after=[generated], **steps).outputs)
 
 
 def _summary(aligned: Any) -> dict[str, Any]:
