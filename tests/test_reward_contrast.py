@@ -156,22 +156,6 @@ def test_judged_contrast_items_prefer_what_each_annotator_picks_not_the_log() ->
     assert torch.equal(again.pairs, data.pairs)
 
 
-def test_contrast_items_can_show_each_kind_at_several_strengths() -> None:
-    scenes = _scenes(3)
-    data = contrast_dataset(scenes, ("slower", "off_lane"), strength=(0.5, 1.0))
-    assert data.futures.shape[1] == 5 and (data.pairs[:, 1] == 4).all()  # four variants, the log last
-    now = scenes.current_index
-    for slot, (kind, value) in enumerate([("slower", 0.5), ("slower", 1.0), ("off_lane", 0.5), ("off_lane", 1.0)]):
-        expected = perturb_future(scenes, kind, value)[0].states[:, :, now + 1:].float()
-        assert torch.equal(data.futures[:, slot], expected)
-    assert data.context_keys[0]["models"] == ["log:slower@0.5", "log:slower@1", "log:off_lane@0.5",
-                                              "log:off_lane@1", "log"]
-    assert data.metadata["strength"] == [0.5, 1.0]
-    assert contrast_dataset(scenes, ("slower",), strength=0.5).futures.shape[1] == 2
-    with pytest.raises(TrafficRLHFError, match="empty"):
-        contrast_dataset(scenes, ("slower",), strength=())
-
-
 def test_tie_pairs_reach_the_loss_as_soft_labels_and_survive_filtering() -> None:
     from dataclasses import replace
 

@@ -172,12 +172,11 @@ def recorded_windows(source: str = "nuscenes_pred", split: str = "val", num_scen
 
 
 def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATIONS,
-                     strength: float | Sequence[float] = DEFAULT_STRENGTH, split: str = "train",
+                     strength: float = DEFAULT_STRENGTH, split: str = "train",
                      annotators: Mapping[str, Any] | None = None) -> Any:
     """A :class:`~trafficrlhf_sdk.feedback.PreferenceDataset` of contrast items: every context of ``scenes``
     (``current_index`` = the start of the futures) with, as options, its logged future and that future perturbed
-    as each of ``kinds`` that changes an agent, at each ``strength`` (one value or several: a milder and a
-    stronger copy of each kind); futures ``(K, len(kinds) x len(strengths) + 1, A, H, 4)`` with the log last.
+    as each of ``kinds`` that changes an agent; futures ``(K, len(kinds) + 1, A, H, 4)`` with the log last.
 
     ``annotators`` None: the pairs "log ≻ each perturbation", annotator :data:`CONTRAST_ANNOTATOR` (an assumption:
     the log is more realistic). ``annotators`` (name -> a
@@ -188,13 +187,9 @@ def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATION
     from trafficrlhf_sdk.feedback.preference import PreferenceDataset
 
     now = scenes.current_index
-    strengths = [float(strength)] if isinstance(strength, (int, float)) else [float(x) for x in strength]
-    if not strengths:
-        raise TrafficRLHFError("`strength` is an empty sequence; give one value in (0, 1] or several, e.g. 0.5.")
-    variants = [(kind, value) for kind in kinds for value in strengths]
     futures, valids, changed, options = [], [], [], []
-    for kind, value in variants:
-        moved, agents = perturb_future(scenes, kind, value)
+    for kind in kinds:
+        moved, agents = perturb_future(scenes, kind, strength)
         futures.append(moved.states[:, :, now + 1:])
         valids.append(scenes.valid[:, :, now + 1:])
         changed.append(agents.any(-1))
@@ -204,12 +199,12 @@ def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATION
     options.append(scenes)
     futures_t = torch.stack(futures, 1).float()
     valid_t = torch.stack(valids, 1)
-    log_slot = len(variants)
+    log_slot = len(kinds)
     shown = torch.stack([*changed, torch.ones_like(changed[0])], 1).cpu()  # (K, kinds + 1): the item's options
     ids = scenes.scene_ids or tuple(str(c) for c in range(scenes.num_scenes))
     if annotators is None:
         names: tuple[str, ...] = (CONTRAST_ANNOTATOR,)
-        pairs = [(c, log_slot, j, 0) for c in range(scenes.num_scenes) for j in range(log_slot) if shown[c, j]]
+        pairs = [(c, log_slot, j, 0) for c in range(scenes.num_scenes) for j in range(len(kinds)) if shown[c, j]]
     else:
         from trafficrlhf_sdk.feedback.judgment import judge_scenarios
         from trafficrlhf_sdk.feedback.synthetic import annotator_generator, noisy_choice
@@ -236,16 +231,13 @@ def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATION
     labels = torch.arange(len(pairs)) if annotators is None else table[:, 0] * len(names) + table[:, 3]
     keys = tuple({"campaign": "contrast", "source": scenes.source, "split": (scenes.extras or {}).get("split"),
                   "scene_id": ids[c], "context_id": f"contrast/{ids[c]}/{now}",
-                  "models": [f"log:{kind}" + (f"@{value:g}" if len(strengths) > 1 else "")
-                             for kind, value in variants] + ["log"]}
+                  "models": [f"log:{kind}" for kind in kinds] + ["log"]}
                  for c in range(scenes.num_scenes))
     return PreferenceDataset(contexts=scenes, futures=futures_t, future_valid=valid_t, pairs=table[:, :3],
                              pair_annotator=table[:, 3], pair_label=labels,
                              context_split=tuple(split for _ in range(scenes.num_scenes)), context_keys=keys,
                              annotators=names,
-                             metadata={"kinds": list(kinds),
-                                       "strength": strengths[0] if len(strengths) == 1 else strengths,
-                                       "contrast": True,
+                             metadata={"kinds": list(kinds), "strength": strength, "contrast": True,
                                        "judged_by": None if annotators is None else list(names)})
 
 
