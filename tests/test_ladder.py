@@ -230,3 +230,34 @@ def test_agreement_is_redone_when_the_reward_models_weights_or_the_policy_change
     assert len(runs) == 2
     agreement([StepResult("align", "row_c", "p2", {})])  # another policy: its candidates and the agreement again
     assert len(runs) == 3 and generated[-1] == ["p2"]
+
+
+def test_rows_c_and_d_follow_the_weights_of_a_given_reward_model(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.pipeline as pipeline
+
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE)
+    seen: dict[str, list[str]] = {}
+
+    def fake_align(folder, row, after=(), **_):  # type: ignore[no-untyped-def]
+        seen[folder] = [f"{step.name}:{step.digest}" for step in after]
+        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+
+    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": 0.1, "speed_ratio": 1.0}})
+
+    monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
+    rm = tmp_path / "rm"
+    rm.mkdir()
+    (rm / "model.safetensors").write_bytes(b"first")
+    config = LadderConfig(recipe=str(recipe), reward_model=str(rm), agreement_contexts=0)
+    out = tmp_path / "out"
+    run_ladder(config, str(out), log=lambda _: None)
+    first = dict(seen)
+    (rm / "model.safetensors").write_bytes(b"retrained")
+    run_ladder(config, str(out), log=lambda _: None)
+    for key in ("a", "b"):
+        assert first[str(out / "rows" / key)] == seen[str(out / "rows" / key)] == []
+    for key in ("c", "d"):
+        assert first[str(out / "rows" / key)] != seen[str(out / "rows" / key)]  # other weights: run again

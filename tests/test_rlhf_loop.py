@@ -48,3 +48,15 @@ def test_two_rounds_with_active_selection_then_a_rerun_does_nothing(data_root: s
     lines: list[str] = []
     assert rlhf(config, out, log=lines.append) == result
     assert lines and all(line.endswith("skipped") for line in lines)  # every step was done
+
+
+@pytest.mark.parametrize(("fields", "judged"), [
+    ({"contrast_scenes": 5}, True),
+    ({"contrast_scenes": 5, "contrast_labels": "log"}, False),
+    ({"contrast_scenes": 5, "people": True}, False),
+    ({"contrast_scenes": 0}, False),
+])
+def test_the_stand_ins_label_contrast_items_unless_told_the_log_wins(fields: dict, judged: bool) -> None:
+    from trafficrlhf_sdk.loop import _judged_contrast
+
+    assert _judged_contrast(RLHFConfig(model="ctg", **fields)) is judged

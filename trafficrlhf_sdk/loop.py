@@ -78,12 +78,13 @@ class RLHFConfig(BaseModel):
         description="RewardConfig fields of the reward model (table [reward]; `seed` defaults to this config's).")
     contrast_scenes: int = Field(0, ge=0, description="Recorded train scenes (from the end of the split) whose "
                                  "logs, beside perturbed copies, make contrast items that the stand-in profiles "
-                                 "label like any item (with `people`: pairs in which the log wins); 0: none, the "
-                                 "reward model learns the campaigns' labels alone.")
+                                 "label like any item (see `contrast_labels`); 0: none, the reward model learns "
+                                 "the campaigns' labels alone.")
     contrast_labels: Literal["annotators", "log"] = Field(
         "annotators", description="Who decides each contrast item: the stand-in profiles of `annotators`, like any "
-        "item (with `people`, the log wins), or 'log': the log wins every pair (how reference_models/reward/ctg_loop "
-        "was made).")
+        "item (with `people`, the log wins), or 'log': the log wins every pair (which reproduces "
+        "reference_models/reward/ctg_loop). The stand-ins label the contrast items with their profiles' own seeds, "
+        "so every round reads the same contrast labels.")
     probe_scenes: int = Field(50, ge=0, description="Held-out val scenes the reward model is probed on; 0: none.")
     align: Annotated[AlignConfig, ONLY_SET_FIELDS] = Field(
         default_factory=AlignConfig, description="AlignConfig fields of the alignment stage (table [align]; "

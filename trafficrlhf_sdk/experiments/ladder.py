@@ -133,8 +133,9 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     if reward_model is None:
         reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
                                                     reward_model_step, align_step, PROFILES)
-    else:
+    else:  # a given reward model: its weights stand in for the step that would have trained it
         reward_model = resolve_path(reward_model)
+        learned = [_given_reward_model(reward_model)]
     policies: dict[str, Any] = {}
     for key, (label, spec) in LADDER_ROWS.items():
         fields = {"alpha": 0.0} if key == "d" else {}
@@ -202,13 +203,31 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
     return trained["folder"], [trained]
 
 
+def _weights(reward_model: str) -> dict[str, str]:
+    """SHA-256 of each ``.safetensors`` file of a reward-model folder (empty for anything else)."""
+    from trafficrlhf_sdk.models.checkpoint import sha256_file
+
+    if not os.path.isdir(reward_model):
+        return {}
+    return {name: sha256_file(os.path.join(reward_model, name))
+            for name in sorted(os.listdir(reward_model)) if name.endswith(".safetensors")}
+
+
+def _given_reward_model(reward_model: str) -> Any:
+    """A reward model given to the ladder, as the step rows (c) and (d) follow: other weights in the same folder
+    make them run again."""
+    from trafficrlhf_sdk.pipeline.step import StepResult, inputs_digest
+
+    return StepResult("reward_model", reward_model, inputs_digest({"weights": _weights(reward_model)}),
+                      {"folder": reward_model})
+
+
 def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward_model: str, db: str, out_dir: str,
                moment: str, steps: dict[str, Any], generate_step: Any, policy: list[Any]) -> dict[str, Any]:
     """The reward model's agreement with the noise-free stand-in on val candidates of ``checkpoint`` (made by the
     ``policy`` step, if any). Both are redone when the policy or the reward model's weights change."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
     from trafficrlhf_sdk.feedback.store import FeedbackStore
-    from trafficrlhf_sdk.models.checkpoint import sha256_file
     from trafficrlhf_sdk.pipeline.step import run_step
     from trafficrlhf_sdk.reward.loading import load_reward
     from trafficrlhf_sdk.reward.oracle import judgment_agreement
@@ -219,8 +238,6 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
                               candidate_seconds=config.seconds, seed=config.agreement_seed)
     folder = os.path.join(out_dir, "agreement", moment)
     generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=policy, **steps)
-    weights = sorted(name for name in os.listdir(reward_model) if name.endswith(".safetensors")) \
-        if os.path.isdir(reward_model) else []
 
     def work() -> dict[str, Any]:
         store = FeedbackStore(db)
@@ -229,9 +246,8 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
         finally:
             store.close()
 
-    inputs = {"campaign": campaign.name, "reward_model": reward_model,
-              **({"weights": {name: sha256_file(os.path.join(reward_model, name)) for name in weights}}
-                 if weights else {})}
+    weights = _weights(reward_model)
+    inputs = {"campaign": campaign.name, "reward_model": reward_model, **({"weights": weights} if weights else {})}
     return dict(run_step("agreement", folder, inputs, work, after=[generated], **steps).outputs)
 
 
