@@ -485,3 +485,64 @@ def test_follow_options_start_the_head_braking_and_set_its_desired_gap(gated_hea
         CTGAdapter(checkpoint=path, seed=0, follow_gate_steps=5)
     with pytest.raises(TrafficRLHFError, match=r"follow_ttc=2\.0 and follow_decel=1\.0"):
         CTGAdapter(checkpoint=path, seed=0, follow=True, follow_ttc=2.0, follow_decel=1.0)
+
+
+@needs_data
+def test_the_imitation_loss_holds_a_head_to_the_log_through_the_clean_prediction_its_step_implies(scenes) -> None:  # type: ignore[no-untyped-def]
+    """A model with a head adds :meth:`CTGModel.head_loss` to its imitation loss. Rebuilt step by step from the same
+    noise: each sampling step's steered mean ``mu + sigma * shift`` is the DDIM mean of one clean prediction, found
+    here by inverting the mean's affine map, and the loss scores that prediction against the log with the
+    training loss's action and state MSEs. A fresh (zero) head's loss is the base denoiser's loss at the sampling
+    steps; a non-zero head gets the gradient; a model without heads adds nothing."""
+    from ctg_reference.data import agent_features, future_targets, select_rows, window_mask
+    from trafficrlhf_ctg import CTGAdapter
+
+    from trafficrlhf_sdk.models.random import draw_normal
+
+    path = str(REPO / "reference_models/ctg/checkpoints/ctg_small_4s")
+    adapter = CTGAdapter(checkpoint=path, seed=0, steer_road=True)
+    model, cfg = adapter.model, adapter.cfg
+    t = cfg.history_steps
+    mask = window_mask(scenes, t, cfg.horizon, cfg.history_steps)
+    rows = select_rows(agent_features(scenes.replace_unchecked(current_index=t), cfg, crop_agents=mask), mask)
+    actions, states = (x[mask] for x in future_targets(scenes, t, cfg.horizon))
+    steer_map = (rows["map"][:, :1], rows["v0"])
+    with torch.no_grad():
+        cond = model.encode(rows)
+
+    def by_steps(seed: int) -> torch.Tensor:
+        n, schedule = actions.shape[0], model.sample_schedule
+        noise = draw_normal(torch.Generator().manual_seed(seed), (n * len(schedule), cfg.horizon, 2), "cpu")
+        noise = noise.reshape(n, len(schedule), cfg.horizon, 2)
+        x0_log, total = model.normalize(actions), 0.0
+        for j, (k, k_prev) in enumerate(schedule):
+            ab, ab_prev = model.alphas_bar[k], model.alphas_bar[k_prev]
+            x = ab.sqrt() * x0_log + (1 - ab).sqrt() * noise[:, j]
+            mean, sigma, x0 = model._transition(x, k, k_prev, cond, with_x0=True)
+            mean = mean + sigma * model._head_shifts(cond, x0, k, steer_map, n)
+            along_x = (1 - ab_prev - sigma**2).clamp_min(0).sqrt() / (1 - ab).sqrt()
+            clean = (mean - along_x * x) / (ab_prev.sqrt() - along_x * ab.sqrt())
+            diff = model.rollout(clean, rows["v0"]) - states
+            diff = torch.cat([diff[..., :3], torch.atan2(diff[..., 3:].sin(), diff[..., 3:].cos())], -1)
+            state = ((diff / model.state_std) ** 2).mean()
+            total = total + torch.nn.functional.mse_loss(clean, x0_log) + cfg.state_loss_weight * state
+        return total / len(schedule)
+
+    with torch.no_grad():
+        fresh = model.head_loss(cond, actions, rows["v0"], steer_map, states, torch.Generator().manual_seed(4))
+        torch.testing.assert_close(fresh, by_steps(4), rtol=1e-4, atol=1e-6)
+        model.steer.net[-1].weight.normal_(0, 0.1)
+        steered = model.head_loss(cond, actions, rows["v0"], steer_map, states, torch.Generator().manual_seed(4))
+        torch.testing.assert_close(steered, by_steps(4), rtol=1e-4, atol=1e-6)
+    assert not torch.isclose(fresh, steered)
+
+    base = CTGAdapter(checkpoint=path, seed=0)
+    torch.manual_seed(5)
+    plain = base.imitation_loss(scenes)
+    torch.manual_seed(5)
+    with_head = adapter.imitation_loss(scenes)
+    assert with_head > plain
+    with_head.backward()
+    head = adapter.parameter_groups()["steer"]
+    assert head[-2].grad is not None and head[-2].grad.abs().sum() > 0
+    assert base.model.head_loss(cond, actions, rows["v0"], steer_map) == 0

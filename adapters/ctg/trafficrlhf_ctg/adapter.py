@@ -464,8 +464,10 @@ class CTGAdapter(TrafficModelAdapter):
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
         """The diffusion training loss on logged windows of ``batch``: every vehicle with 1 s of valid history
-        and a valid 2 s future at up to ``imitation_windows`` evenly spaced steps. Noise levels and noise are
-        drawn from torch's global generator."""
+        and a valid future of the model's horizon at up to ``imitation_windows`` evenly spaced steps; for a model
+        with a steering or gap-keeping head, plus :meth:`CTGModel.head_loss` (the steered sampler's loss on the
+        same windows), so the heads are held to the log too. Noise levels and noise are drawn from torch's global
+        generator."""
         self._check_dt(batch)
         th, h = self.cfg.history_steps, self.horizon
         candidates = list(range(th, batch.num_steps - h, 5))
@@ -500,6 +502,10 @@ class CTGAdapter(TrafficModelAdapter):
             return sum(p.sum() * 0.0 for p in self.model.parameters())  # type: ignore[return-value]
         data = {key: torch.cat(values) for key, values in parts.items()}
         group = torch.unique(data["group"], return_inverse=True)[1] if "group" in data else None
-        loss, _ = self.model.loss(self.model.encode(data), data["actions"], data["v0"], data["states"],
+        cond = self.model.encode(data)
+        loss, _ = self.model.loss(cond, data["actions"], data["v0"], data["states"],
                                   scene=self.model.scene_rows(data), group=group)
-        return loss
+        if self.model.steer is None and self.model.follow is None:
+            return loss
+        steer_map = (data["map"][:, :1], data["v0"], data["neighbours"], data["neighbour_valid"], data["extent"])
+        return loss + self.model.head_loss(cond, data["actions"], data["v0"], steer_map, data["states"])

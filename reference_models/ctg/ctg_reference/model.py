@@ -305,6 +305,48 @@ class CTGModel(nn.Module):
         return action_loss + self.cfg.state_loss_weight * state_loss, {"action": action_loss.detach(),
                                                                         "state": state_loss.detach()}
 
+    def head_loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor, steer_map: SteerMap | None,
+                  target_states: torch.Tensor | None = None, generator: torch.Generator | None = None
+                  ) -> torch.Tensor:
+        """The training loss of the steered sampler on logged ``actions (N, H, 2)``: the heads' share of the model's
+        own loss, 0 for a model without heads.
+
+        The heads move each sampling step's mean by ``sigma_k * shift``, which is the step of a clean prediction
+        moved by ``sigma_k * shift / c_k`` (``c_k``: the weight of the clean prediction in the DDIM mean). At every
+        step ``(k, k_prev)`` of :attr:`sample_schedule` the logged actions are noised to ``x_k ~ q(x_k | x_0)``,
+        and that steered clean prediction is scored against the log with :meth:`loss`'s action and state MSEs
+        (averaged over the steps). Its gradient reaches the heads (and whatever the heads read), so a fine-tuned head
+        pays for making the logged futures less likely where its gate opens on them. ``cond (N, cond_dim)``;
+        ``steer_map`` as in :meth:`sample`, ``target_states`` and ``generator`` as in :meth:`loss`."""
+        if self.steer is None and self.follow is None:
+            return actions.new_zeros(())
+        if self.mixer is not None:
+            raise ValueError("head_loss: the heads of a scene-denoising model (scene_denoising=True) are steered "
+                             "through the mixer's reading of the co-denoised rows, which this loss does not "
+                             "rebuild; fine-tune such a model's heads with imitation_coef = 0.")
+        n, h = actions.shape[0], self.cfg.horizon
+        schedule = torch.tensor(self.sample_schedule, device=actions.device)  # (K, 2)
+        steps = schedule.shape[0]
+        k, k_prev = schedule[:, 0].repeat(n), schedule[:, 1].repeat(n)  # rows row-major by the n windows
+        x0_log = self.normalize(actions)[:, None].expand(n, steps, h, 2).reshape(-1, h, 2)
+        noise = draw_normal(generator, x0_log.shape, actions.device)
+        ab, ab_prev = self.alphas_bar[k][:, None, None], self.alphas_bar[k_prev][:, None, None]
+        xk = ab.sqrt() * x0_log + (1 - ab).sqrt() * noise
+        c = cond[:, None].expand(n, steps, cond.shape[-1]).reshape(-1, cond.shape[-1])
+        _, sigma, x0 = self._transition(xk, k, k_prev, c, with_x0=True)
+        shift = self._head_shifts(c, x0, k, steer_map, n)
+        assert shift is not None
+        weight = ab_prev.sqrt() - (1 - ab_prev - sigma**2).clamp_min(0).sqrt() * ab.sqrt() / (1 - ab).sqrt()
+        steered = x0 + sigma * shift / weight
+        action_loss = F.mse_loss(steered, x0_log)
+        if target_states is None:
+            target_states = unicycle_from_origin(actions, v0, self.cfg.dt)
+        states = self.rollout(steered.reshape(n, steps, h, 2), v0[:, None].expand(n, steps))
+        diff = states - target_states[:, None]
+        diff = torch.cat([diff[..., :3], torch.atan2(torch.sin(diff[..., 3:]), torch.cos(diff[..., 3:]))], -1)
+        state_loss = ((diff / self.state_std) ** 2).mean()
+        return action_loss + self.cfg.state_loss_weight * state_loss
+
     # ------------------------------------------------------------ sampling
     def _transition(self, x: torch.Tensor, k: torch.Tensor | int, k_prev: torch.Tensor | int, cond: torch.Tensor,
                     with_x0: bool = False) -> tuple[torch.Tensor, ...]:
