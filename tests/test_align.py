@@ -192,26 +192,6 @@ def test_cli_align_then_evaluate_the_aligned_checkpoint(data_root: str, tmp_path
     bad = runner.invoke(get_cli(), ["align", "--model", "example_gru", "--out", out])
     assert bad.exit_code != 0 and "--reward-model" in str(bad.exception)
 
-def test_anneal_lr_decays_the_rate_linearly_and_a_resumed_run_follows_the_schedule(train_scenes: ScenarioTensor,
-                                                                                     tmp_path) -> None:
-    config = {**FAST, "epochs": 4, "save_every": 1, "learning_rate": 1e-3, "anneal_lr": True}
-    full_model = _model()
-    full = align(full_model, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "full"),
-                 **config)
-    assert [h["learning_rate"] for h in full.history] == pytest.approx([1e-3, 7.5e-4, 5e-4, 2.5e-4])
-    align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
-          callback=lambda epoch, stats: epoch < 1, **config)  # stopped after two epochs
-    resumed = _model()
-    result = align(resumed, NoCollisionReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
-                   resume=True, **config)
-    assert [h["learning_rate"] for h in result.history] == pytest.approx([1e-3, 7.5e-4, 5e-4, 2.5e-4])
-    for key, value in _state(full_model).items():
-        assert torch.equal(value, _state(resumed)[key]), key
-    constant = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes,
-                     **{**config, "anneal_lr": False, "epochs": 2})
-    assert [h["learning_rate"] for h in constant.history] == [1e-3, 1e-3]
-
-
 def test_target_kl_stops_the_ppo_passes_early(train_scenes: ScenarioTensor) -> None:
     config = {**FAST, "epochs": 1, "ppo_epochs": 4, "learning_rate": 1e-2}
     full = align(_model(), NoCollisionReward(), alpha=1.0, scenes=train_scenes, **config).history[0]
