@@ -71,10 +71,6 @@ class AlignConfig(BaseModel):
     ppo_epochs: int = Field(2, ge=1, description="Passes over an epoch's samples.")
     minibatch_contexts: int = Field(8, ge=1, description="Contexts per optimizer step (with all their samples).")
     learning_rate: float = Field(1e-4, ge=0, description="AdamW learning rate.")
-    anneal_lr: bool = Field(False, description="Decay the learning rate linearly over the epochs, from "
-                            "`learning_rate` at the first to `learning_rate / epochs` at the last (as CleanRL's "
-                            "PPO does by default), so that the kept weights are where training settled rather than "
-                            "wherever the last full-size steps left them.")
     groups: tuple[str, ...] | None = Field(None, description="Parameter groups to train, from the adapter's "
                                                              "parameter_groups() (e.g. ('decoder',)); None: all "
                                                              "groups it offers.")

@@ -290,16 +290,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         return configure(os.path.join(self.config.output_dir, "logs"), formats)
 
     # ------------------------------------------------------------------ main loop
-    def _set_learning_rate(self, epoch: int) -> float:
-        """The learning rate of ``epoch`` (0-based), set on the optimizer: ``learning_rate``, or with
-        ``anneal_lr`` ``learning_rate * (1 - epoch / epochs)`` (a function of the epoch alone, so a resumed run
-        follows the same schedule)."""
-        cfg = self.config
-        lr = cfg.learning_rate * (1.0 - epoch / cfg.epochs) if cfg.anneal_lr else cfg.learning_rate
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
-        return lr
-
     def train(self, callback: Callable[[int, dict[str, float]], bool | None] | None = None) -> list[dict[str, float]]:
         """Run the remaining epochs; returns the history. ``callback(epoch, stats)`` after each epoch may return
         False to stop (the state is checkpointed first when ``output_dir`` is set)."""
@@ -334,7 +324,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                     stats["passing_share"] = float(rollout.passing.sum() / sampled)
                 stats.update(self.last_heldout)
                 scored = [p.detach().clone() for p in self.trainable] if cfg.early_stopping_patience else []
-                stats["learning_rate"] = self._set_learning_rate(epoch)
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
                 # the held-out realism was measured before this epoch's update: it belongs to the weights after
