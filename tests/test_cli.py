@@ -250,6 +250,46 @@ def test_render_unknown_scene_and_bad_step(data_root: str, tmp_path: Path,
     assert not (tmp_path / "x.png").exists()
 
 
+def test_compare_plot_places_each_run_by_its_failure_and_speed_change_from_the_first(tmp_path) -> None:
+    """`compare --plot` writes a PNG of failure change against speed change, both relative to the first folder
+    (seed runs averaged); draws named alike but for a seed suffix share a group; a base without failures is one
+    clear error."""
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from trafficrlhf_sdk.cli import get_cli
+    from trafficrlhf_sdk.evaluation.compare import SEED_SUFFIX, tradeoff_points
+
+    def write(folder, failure: float, speed: float, seed: int = 0) -> None:  # type: ignore[no-untyped-def]
+        folder.mkdir(parents=True)
+        (folder / "results.json").write_text(json.dumps({
+            "metrics": {"failure_rate": failure, "speed_ratio": speed}, "metadata": {"model": "m", "seed": seed},
+            "simulation_time_s": 1.0, "num_scenes": 1, "num_controlled_agents": 2}))
+
+    write(tmp_path / "base" / "seed_0", 0.08, 1.0)
+    write(tmp_path / "base" / "seed_1", 0.12, 1.1, seed=1)  # base: failure 0.10, speed 1.05
+    write(tmp_path / "recipe_s0", 0.04, 1.05)
+    write(tmp_path / "recipe_s1", 0.02, 0.945)
+    write(tmp_path / "other", 0.10, 0.84)
+    folders = [str(tmp_path / name) for name in ("base", "recipe_s0", "recipe_s1", "other")]
+    points = tradeoff_points(folders)
+    assert [p[0] for p in points] == ["recipe_s0", "recipe_s1", "other"]
+    assert [round(p[1], 6) for p in points] == [-0.6, -0.8, 0.0]
+    assert [round(p[2], 6) for p in points] == [0.0, -0.1, -0.2]
+    assert {SEED_SUFFIX.sub("", p[0]) for p in points} == {"recipe", "other"}
+    png = tmp_path / "tradeoff.png"
+    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--plot", str(png), "--target", "-60"])
+    assert out.exit_code == 0, out.output
+    assert Image.open(png).size[0] > 300
+    write(tmp_path / "clean", 0.0, 1.0)
+    bad = CliRunner().invoke(get_cli(), ["compare", str(tmp_path / "clean"), folders[1], "--plot", str(png)])
+    assert bad.exit_code != 0 and "relative changes need both above 0" in str(bad.exception)
+    alone = CliRunner().invoke(get_cli(), ["compare", folders[0], "--plot", str(png)])
+    assert alone.exit_code == 2 and "pass at least two" in alone.output
+
+
 def test_compare_builds_a_table_from_evaluate_runs(tmp_path) -> None:
     """`compare` reads results.json of several runs into one markdown table; a missing folder is one clear error."""
     from click.testing import CliRunner

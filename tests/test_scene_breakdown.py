@@ -169,7 +169,7 @@ def test_compare_interval_prints_the_change_with_its_interval(tmp_path) -> None:
     assert "| failure rate | " in out.output and "-68.4 % | -68.4 % to -68.4 % | 1.00 |" in out.output
     assert "| off-road rate | 0.0000 | 0.0000 | n/a: 0 before | | |" in out.output
     lonely = CliRunner().invoke(get_cli(), ["compare", *folders, "--target", "-70"])
-    assert lonely.exit_code == 2 and "--target -70 only acts with --interval" in lonely.output
+    assert lonely.exit_code == 2 and "--target -70 only acts with --interval or --plot" in lonely.output
     lonely = CliRunner().invoke(get_cli(), ["compare", *folders, "--level", "0.9"])
     assert lonely.exit_code == 2 and "--level 0.9 only acts with --interval" in lonely.output
     # seeds given out of order are listed in seed order

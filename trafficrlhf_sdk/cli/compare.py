@@ -18,20 +18,28 @@ from trafficrlhf_sdk.cli.app import cli
               help="With --interval: the interval's coverage (default 0.95).")
 @click.option("--target", type=click.FloatRange(-100.0, 1000.0), default=None,
               help="With --interval: a relative change in percent (e.g. -70); adds the share of bootstrap draws at "
-                   "or below it.")
+                   "or below it. With --plot: drawn as a line.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, metavar="PNG",
+              help="Also write a PNG of each folder's failure-rate change against its change in speed / logged "
+                   "speed, relative to the first folder; folders named alike but for a seed suffix (_s0, _s1) share "
+                   "a colour. With --target, its line is drawn.")
 def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool, level: float | None,
-                    target: float | None) -> None:
-    """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json)."""
-    for name, value in (("--target", target), ("--level", level)):
+                    target: float | None, plot_path: str | None) -> None:
+    """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json, or is an
+    `evaluate --seeds` folder whose seed_<S> runs are read)."""
+    for name, value in (("--level", level),):
         if value is not None and not interval:
             raise click.BadParameter(f"{name} {value:g} only acts with --interval; add --interval.", param_hint=name)
     from trafficrlhf_sdk.evaluation.compare import (
         change_interval_table,
         comparison_table,
         meta_metric_table,
+        run_folders,
         scene_change_table,
     )
 
+    given = list(folders)
+    folders = tuple(run for folder in given for run in run_folders(folder))  # an `evaluate --seeds` folder: its runs
     click.echo(comparison_table(list(folders)))
     meta = meta_metric_table(list(folders), level=0.95 if level is None else level)
     if meta is not None:  # runs with --rollouts K >= 2: the meta-metric against the first run, per scene
@@ -44,6 +52,16 @@ def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool
         click.echo("")
         click.echo(change_interval_table(list(folders), level=0.95 if level is None else level,
                                          target=None if target is None else target / 100.0))
+    if plot_path is not None:
+        from trafficrlhf_sdk.evaluation.compare import tradeoff_plot
+
+        if len(given) < 2:
+            raise click.BadParameter(f"--plot {plot_path} compares folders with the first; pass at least two.",
+                                     param_hint="--plot")
+        click.echo(f"wrote {tradeoff_plot(given, plot_path, None if target is None else target / 100.0)}")
+    elif target is not None and not interval:
+        raise click.BadParameter(f"--target {target:g} only acts with --interval or --plot; add one.",
+                                 param_hint="--target")
 
 
 @cli.command("report")

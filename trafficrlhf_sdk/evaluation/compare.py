@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
-from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError
+from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
 __all__ = ["change_interval_table", "comparison_table", "interval_table", "meta_metric_table", "read_results",
-           "run_folders", "run_label", "scene_change_table"]
+           "run_folders", "run_label", "scene_change_table", "tradeoff_plot", "tradeoff_points"]
 
 SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
@@ -261,3 +262,68 @@ def meta_metric_table(folders: list[str], level: float = 0.95, resamples: int = 
         lines.append(f"| {label} | {ci.after:.4f} | {ci.before:.4f} | {ci.difference:+.4f} | {ci.low:+.4f} to "
                      f"{ci.high:+.4f} | {100 * ci.win_share:.0f} % of {ci.scenes} |")
     return "\n".join(lines)
+
+
+SEED_SUFFIX = re.compile(r"[_-]?s(?:eed)?\d+$")
+"""A trailing training-seed suffix of a folder name (``_s3``, ``-seed3``): folders that differ only in it are
+draws of one recipe and share a colour in :func:`tradeoff_plot`."""
+
+
+def _mean_metric(folder: str, key: str) -> float:
+    """``key`` averaged over the seed runs of an evaluation folder."""
+    values = [read_results(run)["metrics"].get(key) for run in run_folders(folder)]
+    if any(v is None for v in values):
+        raise DataFormatError(f"{folder!r} has no {key!r} in its results.json; evaluate with the default metrics.")
+    return sum(values) / len(values)
+
+
+def tradeoff_points(folders: list[str]) -> list[tuple[str, float, float]]:
+    """``(name, failure change, speed change)`` of each folder after the first, both relative to the first
+    folder's (the base's) seed-averaged ``failure_rate`` and ``speed_ratio`` (speed / logged speed); ``name`` is the
+    folder's own name."""
+    if len(folders) < 2:
+        raise TrafficRLHFError(f"tradeoff_points needs a base folder and at least one other; got {folders!r}.")
+    base_failure, base_speed = (_mean_metric(folders[0], k) for k in ("failure_rate", "speed_ratio"))
+    if base_failure <= 0 or base_speed <= 0:
+        raise DataFormatError(f"the base folder {folders[0]!r} has failure rate {base_failure:g} and speed ratio "
+                              f"{base_speed:g}; relative changes need both above 0. Pass another base first.")
+    return [(os.path.basename(os.path.normpath(folder)),
+             _mean_metric(folder, "failure_rate") / base_failure - 1.0,
+             _mean_metric(folder, "speed_ratio") / base_speed - 1.0) for folder in folders[1:]]
+
+
+def tradeoff_plot(folders: list[str], path: str, failure_target: float | None = None,
+                  speed_band: float | None = None) -> str:
+    """A PNG at ``path``: each folder after the first as a point, its failure-rate change against its change in
+    speed / logged speed, both relative to the first folder. Folders whose names differ only in a seed suffix
+    (:data:`SEED_SUFFIX`) share a colour and a legend entry, with their mean as a larger marker. Optional guides:
+    ``failure_target`` (e.g. -0.6) and ``speed_band`` (e.g. 0.05, drawn at -band and +band)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[str, list[tuple[float, float]]] = {}
+    for name, failure, speed in tradeoff_points(folders):
+        groups.setdefault(SEED_SUFFIX.sub("", name) or name, []).append((100 * speed, 100 * failure))
+    fig, ax = plt.subplots(figsize=(7, 4.6))
+    for i, (group, points) in enumerate(groups.items()):
+        colour = f"C{i % 10}"
+        ax.scatter([p[0] for p in points], [p[1] for p in points], color=colour, alpha=0.6, s=28,
+                   label=f"{group} ({len(points)})")
+        if len(points) > 1:
+            ax.scatter([sum(p[0] for p in points) / len(points)], [sum(p[1] for p in points) / len(points)],
+                       color=colour, marker="D", s=80, edgecolor="black")
+    if failure_target is not None:
+        ax.axhline(100 * failure_target, color="grey", linestyle="--", linewidth=1)
+    if speed_band is not None:
+        for edge in (-speed_band, speed_band):
+            ax.axvline(100 * edge, color="grey", linestyle="--", linewidth=1)
+    ax.set(xlabel="speed / logged speed, change from the base (%)", ylabel="failure rate, change from the base (%)",
+           title=f"against {os.path.basename(os.path.normpath(folders[0]))}; diamonds: mean of a group's draws")
+    ax.legend(fontsize=8, loc="best")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
