@@ -280,12 +280,14 @@ def test_compare_plot_places_each_run_by_its_failure_and_speed_change_from_the_f
     assert [round(p[2], 6) for p in points] == [0.0, -0.1, -0.2]
     assert {SEED_SUFFIX.sub("", p[0]) for p in points} == {"recipe", "other"}
     png = tmp_path / "tradeoff.png"
-    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--plot", str(png), "--target", "-60"])
+    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--plot", str(png), "--target", "-60", "--speed-band", "5"])
     assert out.exit_code == 0, out.output
     assert Image.open(png).size[0] > 300
     write(tmp_path / "clean", 0.0, 1.0)
     bad = CliRunner().invoke(get_cli(), ["compare", str(tmp_path / "clean"), folders[1], "--plot", str(png)])
     assert bad.exit_code != 0 and "relative changes need both above 0" in str(bad.exception)
+    band = CliRunner().invoke(get_cli(), ["compare", *folders, "--speed-band", "5"])
+    assert band.exit_code == 2 and "--speed-band 5 only acts with --plot" in band.output
     alone = CliRunner().invoke(get_cli(), ["compare", folders[0], "--plot", str(png)])
     assert alone.exit_code == 2 and "pass at least two" in alone.output
 

@@ -23,13 +23,23 @@ from trafficrlhf_sdk.cli.app import cli
               help="Also write a PNG of each folder's failure-rate change against its change in speed / logged "
                    "speed, relative to the first folder; folders named alike but for a seed suffix (_s0, _s1) share "
                    "a colour. With --target, its line is drawn.")
+@click.option("--speed-band", type=click.FloatRange(0.0, 100.0, min_open=True), default=None, metavar="PERCENT",
+              help="With --plot: draw the speed changes of +-PERCENT (the product's limit is 5).")
 def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool, level: float | None,
-                    target: float | None, plot_path: str | None) -> None:
+                    target: float | None, plot_path: str | None, speed_band: float | None) -> None:
     """Print a markdown table comparing the evaluation runs in FOLDERS (each holds a results.json, or is an
     `evaluate --seeds` folder whose seed_<S> runs are read)."""
-    for name, value in (("--level", level),):
-        if value is not None and not interval:
-            raise click.BadParameter(f"{name} {value:g} only acts with --interval; add --interval.", param_hint=name)
+    if level is not None and not interval:
+        raise click.BadParameter(f"--level {level:g} only acts with --interval; add --interval.", param_hint="--level")
+    if target is not None and not interval and plot_path is None:
+        raise click.BadParameter(f"--target {target:g} only acts with --interval or --plot; add one.",
+                                 param_hint="--target")
+    if speed_band is not None and plot_path is None:
+        raise click.BadParameter(f"--speed-band {speed_band:g} only acts with --plot; add --plot PNG.",
+                                 param_hint="--speed-band")
+    if plot_path is not None and len(folders) < 2:
+        raise click.BadParameter(f"--plot {plot_path} compares folders with the first; pass at least two.",
+                                 param_hint="--plot")
     from trafficrlhf_sdk.evaluation.compare import (
         change_interval_table,
         comparison_table,
@@ -55,13 +65,9 @@ def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool
     if plot_path is not None:
         from trafficrlhf_sdk.evaluation.compare import tradeoff_plot
 
-        if len(given) < 2:
-            raise click.BadParameter(f"--plot {plot_path} compares folders with the first; pass at least two.",
-                                     param_hint="--plot")
-        click.echo(f"wrote {tradeoff_plot(given, plot_path, None if target is None else target / 100.0)}")
-    elif target is not None and not interval:
-        raise click.BadParameter(f"--target {target:g} only acts with --interval or --plot; add one.",
-                                 param_hint="--target")
+        written = tradeoff_plot(given, plot_path, None if target is None else target / 100.0,
+                                None if speed_band is None else speed_band / 100.0)
+        click.echo(f"wrote {written}")
 
 
 @cli.command("report")
