@@ -280,7 +280,8 @@ def test_compare_plot_places_each_run_by_its_failure_and_speed_change_from_the_f
     assert [round(p[2], 6) for p in points] == [0.0, -0.1, -0.2]
     assert {SEED_SUFFIX.sub("", p[0]) for p in points} == {"recipe", "other"}
     png = tmp_path / "tradeoff.png"
-    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--plot", str(png), "--target", "-60", "--speed-band", "5"])
+    out = CliRunner().invoke(get_cli(), ["compare", *folders, "--plot", str(png), "--target", "-60",
+                                         "--speed-band", "5"])
     assert out.exit_code == 0, out.output
     assert Image.open(png).size[0] > 300
     write(tmp_path / "clean", 0.0, 1.0)
