@@ -40,32 +40,14 @@ def compare_command(folders: tuple[str, ...], scene_changes: int, interval: bool
     if plot_path is not None and len(folders) < 2:
         raise click.BadParameter(f"--plot {plot_path} compares folders with the first; pass at least two.",
                                  param_hint="--plot")
-    from trafficrlhf_sdk.evaluation.compare import (
-        change_interval_table,
-        comparison_table,
-        meta_metric_table,
-        run_folders,
-        scene_change_table,
-    )
+    from trafficrlhf_sdk.evaluation.compare import compare_report
 
-    given = list(folders)
-    folders = tuple(run for folder in given for run in run_folders(folder))  # an `evaluate --seeds` folder: its runs
-    click.echo(comparison_table(list(folders)))
-    meta = meta_metric_table(list(folders), level=0.95 if level is None else level)
-    if meta is not None:  # runs with --rollouts K >= 2: the meta-metric against the first run, per scene
-        click.echo("")
-        click.echo(meta)
-    if scene_changes:
-        click.echo("")
-        click.echo(scene_change_table(list(folders), scene_changes))
-    if interval:
-        click.echo("")
-        click.echo(change_interval_table(list(folders), level=0.95 if level is None else level,
-                                         target=None if target is None else target / 100.0))
+    click.echo(compare_report(list(folders), scene_changes, interval, 0.95 if level is None else level,
+                              None if target is None else target / 100.0))
     if plot_path is not None:
         from trafficrlhf_sdk.evaluation.compare import tradeoff_plot
 
-        written = tradeoff_plot(given, plot_path, None if target is None else target / 100.0,
+        written = tradeoff_plot(list(folders), plot_path, None if target is None else target / 100.0,
                                 None if speed_band is None else speed_band / 100.0)
         click.echo(f"wrote {written}")
 

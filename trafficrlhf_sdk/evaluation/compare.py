@@ -8,8 +8,8 @@ import re
 
 from trafficrlhf_sdk.errors import DataFormatError, DataNotFoundError, TrafficRLHFError
 
-__all__ = ["change_interval_table", "comparison_table", "interval_table", "meta_metric_table", "read_results",
-           "run_folders", "run_label", "scene_change_table", "tradeoff_plot", "tradeoff_points"]
+__all__ = ["change_interval_table", "compare_report", "comparison_table", "interval_table", "meta_metric_table",
+           "read_results", "run_folders", "run_label", "scene_change_table", "tradeoff_plot", "tradeoff_points"]
 
 SHARED_ROWS = (
     ("guidance_speed_limit", "speed-limit violation (m/s)"),
@@ -327,3 +327,21 @@ def tradeoff_plot(folders: list[str], path: str, failure_target: float | None = 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def compare_report(folders: list[str], scene_changes: int = 0, interval: bool = False, level: float = 0.95,
+                   target: float | None = None) -> str:
+    """What ``trafficrlhf compare`` prints: :func:`comparison_table` of the runs in ``folders`` (an ``evaluate
+    --seeds`` folder stands for its ``seed_<S>`` runs), then, where they apply, :func:`meta_metric_table`, the
+    ``scene_changes`` scenes that moved most (:func:`scene_change_table`) and with ``interval`` the changes with
+    their paired intervals (:func:`change_interval_table`; ``target`` a relative change such as -0.7)."""
+    runs = [run for folder in folders for run in run_folders(folder)]
+    parts = [comparison_table(runs)]
+    meta = meta_metric_table(runs, level=level)
+    if meta is not None:  # runs with --rollouts K >= 2: the meta-metric against the first run, per scene
+        parts.append(meta)
+    if scene_changes:
+        parts.append(scene_change_table(runs, scene_changes))
+    if interval:
+        parts.append(change_interval_table(runs, level=level, target=target))
+    return "\n\n".join(parts)
