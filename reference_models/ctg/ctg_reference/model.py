@@ -298,12 +298,16 @@ class CTGModel(nn.Module):
         action_loss = F.mse_loss(pred, x0)
         if target_states is None:
             target_states = unicycle_from_origin(actions, v0, self.cfg.dt)
-        states = self.rollout(pred, v0)
-        diff = states - target_states
-        diff = torch.cat([diff[..., :3], torch.atan2(torch.sin(diff[..., 3:]), torch.cos(diff[..., 3:]))], -1)
-        state_loss = ((diff / self.state_std) ** 2).mean()
+        state_loss = self._state_loss(self.rollout(pred, v0), target_states)
         return action_loss + self.cfg.state_loss_weight * state_loss, {"action": action_loss.detach(),
                                                                         "state": state_loss.detach()}
+
+    def _state_loss(self, states: torch.Tensor, target_states: torch.Tensor) -> torch.Tensor:
+        """Mean squared error of agent-frame ``states (..., H, 4)`` against ``target_states`` (broadcast), each
+        channel over its ``state_std``, the yaw difference wrapped to (-pi, pi]."""
+        diff = states - target_states
+        diff = torch.cat([diff[..., :3], torch.atan2(torch.sin(diff[..., 3:]), torch.cos(diff[..., 3:]))], -1)
+        return ((diff / self.state_std) ** 2).mean()
 
     def head_loss(self, cond: torch.Tensor, actions: torch.Tensor, v0: torch.Tensor, steer_map: SteerMap | None,
                   target_states: torch.Tensor | None = None, generator: torch.Generator | None = None
@@ -342,10 +346,7 @@ class CTGModel(nn.Module):
         if target_states is None:
             target_states = unicycle_from_origin(actions, v0, self.cfg.dt)
         states = self.rollout(steered.reshape(n, steps, h, 2), v0[:, None].expand(n, steps))
-        diff = states - target_states[:, None]
-        diff = torch.cat([diff[..., :3], torch.atan2(torch.sin(diff[..., 3:]), torch.cos(diff[..., 3:]))], -1)
-        state_loss = ((diff / self.state_std) ** 2).mean()
-        return action_loss + self.cfg.state_loss_weight * state_loss
+        return action_loss + self.cfg.state_loss_weight * self._state_loss(states, target_states[:, None])
 
     # ------------------------------------------------------------ sampling
     def _transition(self, x: torch.Tensor, k: torch.Tensor | int, k_prev: torch.Tensor | int, cond: torch.Tensor,
