@@ -47,6 +47,23 @@ def test_missing_ray_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
         run_tasks(_square_plus, {"offset": 0}, [1], ExecutionConfig(workers=1))
 
 
+def test_ray_hands_a_free_worker_the_next_task_while_an_earlier_one_runs(ray_head) -> None:  # type: ignore[no-untyped-def]
+    def sleep_then_pid(shared: dict, task: float) -> tuple[float, int]:  # shipped by value: workers cannot import
+        import os  # this test module
+        import time
+
+        time.sleep(task)
+        return task, os.getpid()
+
+    # task 0 keeps one worker busy; the other worker must run every short task meanwhile, not wait for task 0's
+    # result to be read first
+    tasks = [3.0, 0.05, 0.05, 0.05, 0.05]
+    results = run_tasks(sleep_then_pid, {}, tasks, RAY)
+    assert [r[0] for r in results] == tasks  # in task order
+    slow, fast = results[0][1], {r[1] for r in results[1:]}
+    assert len(fast) == 1 and slow not in fast
+
+
 @pytest.mark.data
 def test_evaluation_on_ray_equals_in_process(ray_head, val_scenes) -> None:  # type: ignore[no-untyped-def]
     scenes = val_scenes[:3]

@@ -116,12 +116,35 @@ def iter_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
             yield fn(shared, task)
         return
     with ray_session(execution) as ray:
-        from ray.util import ActorPool
-
         cpus = int(ray.cluster_resources().get("CPU", 1)) // execution.threads_per_worker
         workers = execution.workers or max(1, cpus)
         workers = min(workers, len(tasks))
         actor = ray.remote(num_cpus=execution.threads_per_worker)(_Worker)
         shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
-        pool = ActorPool([actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)])
-        yield from pool.map(lambda a, task: a.run.remote(task), list(tasks))
+        actors = [actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)]
+        yield from _in_task_order(ray, actors, list(tasks))
+
+
+def _in_task_order(ray: Any, actors: Sequence[Any], tasks: Sequence[Any]) -> Iterator[Any]:
+    """Run ``tasks`` on ``actors`` and yield their results in task order. Each actor gets the next task as soon as
+    it finishes one, whatever the order the results are read in (Ray's ``ActorPool.map`` frees an actor only once
+    its result is the next one read, so a fast actor idles behind a slow one); finished results wait in the
+    object store until their turn."""
+    queue = iter(enumerate(tasks))
+    running: dict[Any, tuple[int, Any]] = {}  # object ref -> (task index, actor)
+    finished: dict[int, Any] = {}
+
+    def start(worker: Any) -> None:
+        item = next(queue, None)
+        if item is not None:
+            running[worker.run.remote(item[1])] = (item[0], worker)
+
+    for worker in actors:
+        start(worker)
+    for index in range(len(tasks)):
+        while index not in finished:
+            ready, _ = ray.wait(list(running), num_returns=1)
+            done, worker = running.pop(ready[0])
+            finished[done] = ready[0]
+            start(worker)
+        yield ray.get(finished.pop(index))
