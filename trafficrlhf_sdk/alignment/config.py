@@ -15,8 +15,6 @@ HISTORY_STEPS = 30
 """Logged steps kept before each context's start step (3 s at 0.1 s)."""
 REWARD_HISTORY_STEPS = 10
 """History steps handed to the reward model in front of each sampled future."""
-STEP_S = 0.1
-"""Seconds per step of the training scenes (the SDK's 10 Hz convention)."""
 FAILURE_DRIVE_S = 10.0
 """Length of the closed-loop runs that find the current model's failures (the evaluation protocol's 10 s)."""
 FAILURE_LEAD_STEPS = (5, 15)
@@ -85,12 +83,6 @@ class AlignConfig(BaseModel):
                                     "when the run has fewer failures.")
     failure_scenes: int = Field(16, ge=1, description="Training scenes driven in closed loop per epoch to find "
                                                       "failures (`failure_fraction` > 0).")
-    continue_s: float = Field(0.0, ge=0, le=10, description="Closed-loop seconds the reward also scores after each "
-                              "sample's own horizon: the model being trained drives every sampled agent on from the "
-                              "end of its sample (no gradient, the same guidance, replanning at 2 Hz; the log "
-                              "drives everyone else), so a sample is credited with where it leads. The "
-                              "continuations of one context's samples share their random numbers. 0: the reward "
-                              "scores the sample alone.")
 
     # ---------------------------------------------------------------- data
     source: str = Field("nuscenes_pred", description="Registered scenario source of the training contexts (its "

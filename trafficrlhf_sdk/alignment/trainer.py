@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import torch
 
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
-from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, STEP_S, AlignConfig
+from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
@@ -110,10 +110,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.model = model
         self.reward_model = reward_model
         self.config = config or AlignConfig()
-        self.horizon = int(getattr(model, "horizon", 20))  # steps of one sample
-        self.continue_steps = round(self.config.continue_s / STEP_S)  # closed-loop steps after a sample
-        self.future_steps = self.horizon + self.continue_steps  # log steps kept after "now"
-        self.reward_steps = self.future_steps  # future steps the reward model scores
+        self.horizon = int(getattr(model, "horizon", 20))
+        self.future_steps = self.horizon  # log steps kept after "now"
+        self.reward_steps = self.horizon  # sampled steps the reward model scores
         offered = model.parameter_groups()
         names = tuple(offered) if self.config.groups is None else self.config.groups
         unknown = [n for n in names if n not in offered]
@@ -206,9 +205,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         trace = out.trace.detach()
         b = contexts.num_scenes
         passing = None
-        continuation_seed = int(torch.randint(0, 2**31 - 1, (1,), generator=gen))
-        # B * S scenarios, context-major
-        scenario = self.sample_scenarios(contexts, out.futures, trace.agents, continuation_seed)
+        scenario = self.sample_scenarios(contexts, out.futures, trace.agents)  # B * S scenarios, context-major
         if self.config.credit == "agent":
             reference = None
             if getattr(self.reward_model, "uses_log", False):
@@ -238,10 +235,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if self.monitor_contexts is None:
             self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
         contexts = self.monitor_contexts
-        gen = derived_generator(cfg.seed, "monitor-samples")
-        out = self._sample(contexts, gen, MONITOR_SAMPLES)
-        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=gen))
-        scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents, seed)
+        out = self._sample(contexts, derived_generator(cfg.seed, "monitor-samples"), MONITOR_SAMPLES)
+        scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
         return self.monitor.scores(scenario, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
 
     def _draw_monitor_contexts(self) -> tuple[ScenarioTensor, ScenarioTensor]:
