@@ -140,3 +140,41 @@ def test_the_judgment_as_a_reward_scores_each_agent() -> None:
     assert scene[0] == pytest.approx(1.0) and scene[1] < scene[0]
     with pytest.raises(TrafficRLHFError, match="profile"):
         load_reward("builtin:judgment", {"profile": "nobody"})
+
+
+class _Judge:
+    """Scores a scenario with the stand-in's own judgment (a perfect reward model)."""
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        from trafficrlhf_sdk.feedback.judgment import judge_scenarios
+
+        return judge_scenarios(scenario, scenario.controlled).realism.float()
+
+
+class _LikesStalls(_Judge):
+    """The judgment, plus a large bonus for every agent-step below 0.5 m/s: blind to stalling, and worse."""
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        now = scenario.current_index
+        speed = torch.diff(scenario.xy[:, :, now:], dim=2).norm(dim=-1) / scenario.dt
+        return super().score(scenario) + 10 * (speed < 0.5).float().mean((1, 2))
+
+
+def test_judgment_agreement_names_the_term_a_reward_model_misses(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+    from trafficrlhf_sdk.reward.oracle import judgment_agreement
+    from trafficrlhf_sdk.testing.feedback import make_tiny_campaign
+
+    store = FeedbackStore(str(tmp_path / "fb.db"))
+    make_tiny_campaign(store, num_contexts=2)
+    exact = judgment_agreement(_Judge(), store, "tiny")
+    assert exact["agreement"] == 1.0 and exact["contexts"] == 2
+    assert sum(v["pairs"] for v in exact["by_term"].values()) == exact["pairs"]
+    # the candidate whose car brakes to a stop loses on its pace, more than on the stall itself
+    assert set(exact["by_term"]) == {"offroad", "collision", "pace", "weave"}
+    assert all(v["agreement"] == 1.0 for v in exact["by_term"].values())
+    broken = judgment_agreement(_LikesStalls(), store, "tiny")
+    assert broken["by_term"]["pace"]["agreement"] == 0.0  # every pair the stopping car decides is turned round
+    assert broken["by_term"]["offroad"]["agreement"] == 1.0 and broken["by_term"]["collision"]["agreement"] == 1.0
+    assert broken["by_term"]["weave"]["agreement"] == 1.0
+    assert broken["agreement"] == 1 - broken["by_term"]["pace"]["pairs"] / broken["pairs"]

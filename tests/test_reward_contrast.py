@@ -55,6 +55,23 @@ def test_retimed_futures_follow_the_logged_path_at_another_pace() -> None:
     assert float(shift.max()) == pytest.approx(2.0, abs=1e-3)
 
 
+def test_a_stall_brakes_along_the_logged_path_and_stays_stopped() -> None:
+    scenes = _scenes()
+    now, dt = scenes.current_index, scenes.dt
+    moved, changed = perturb_future(scenes, "stall", 0.5)  # braking from 1 s to 2.5 s
+    assert changed.all()
+    step = lambda s: torch.diff(s.xy[:, :, now:], dim=2).norm(dim=-1) / dt  # noqa: E731  (B, A, H) m/s
+    before, after = step(scenes), step(moved)
+    assert torch.allclose(after[..., :10], before[..., :10], rtol=1e-4)  # the log's pace for the first second
+    stopped = round(2.5 / dt)
+    assert float(after[..., stopped:].abs().max()) < 1e-4  # stopped from 2.5 s on
+    assert torch.all(after[..., 11:stopped] < before[..., 11:stopped])  # braking in between
+    # it stays on the logged path: every position is one the log passes through
+    path = scenes.xy[:, :, now:]
+    nearest = (moved.xy[:, :, now:, None] - path[:, :, None]).norm(dim=-1).amin(-1)
+    assert float(nearest.max()) < float(before.max()) * dt
+
+
 def test_tailgating_closes_the_gap_to_the_lead() -> None:
     from trafficrlhf_sdk.metrics.geometry import following_gaps
 
@@ -199,7 +216,7 @@ def test_conservative_ensembles_read_the_worst_member_or_a_lower_confidence_boun
 
 class _Broken:
     """A reward broken in one way: it pays for driving faster, slower, jerkier, sideways off the path the agent
-    was on, closer to its lead, or swerving."""
+    was on, closer to its lead, swerving, or standing still."""
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
@@ -219,6 +236,9 @@ class _Broken:
             yaw = scenario.yaw[:, :, now, None]
             side = -torch.sin(yaw) * rel[..., 0] + torch.cos(yaw) * rel[..., 1]
             return torch.diff(side, n=2, dim=2).abs().mean((1, 2))
+        if self.kind == "stall":  # pays for standing still
+            speed = torch.diff(scenario.xy[:, :, now:], dim=2).norm(dim=-1) / scenario.dt
+            return (speed < 0.5).float().mean((1, 2))
         if self.kind == "off_lane":  # lateral offset from the line the agent was heading along at "now"
             yaw = scenario.yaw[:, :, now, None]
             rel = scenario.xy[:, :, now:] - scenario.xy[:, :, now, None]

@@ -287,6 +287,12 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
         lines += ["", "Reward model against the noise-free stand-in on the policy's own val candidates: "
                   f"{a['start']['agreement']:.3f} at the start ({a['start']['pairs']} pairs), "
                   f"{a['end']['agreement']:.3f} at the end ({a['end']['pairs']} pairs)."]
+        terms = a["end"].get("by_term") or {}
+        if terms:
+            order = sorted(terms, key=lambda name: -terms[name]["pairs"])
+            lines += ["", "At the end, by the judgment term that decides a pair (pairs, agreement): "
+                      + "; ".join(f"{name} {terms[name]['pairs']}, {terms[name]['agreement']:.3f}" for name in order)
+                      + "."]
     with open(os.path.join(out_dir, "ladder.md"), "w") as fh:
         fh.write("\n".join(lines) + "\n")
     _plot(plain, os.path.join(out_dir, "ladder.png"))

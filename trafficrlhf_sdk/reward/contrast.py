@@ -15,6 +15,9 @@ slower     follow it ``1 - strength / 2`` times as fast
 jerky      follow it with the clock oscillating by ``strength`` seconds over a 3 s period (stop-and-go)
 off_lane   drift sideways, ``4 * strength`` metres after 1.5 s, off their lane
 tailgate   close in on the agent ahead to a bumper gap of 1 m over 2 s (agents with a lead within 40 m only)
+weave      swerve side to side within their lane, ``strength`` metres either way every 2.5 s
+stall      brake along their path to a standstill within 1.5 s, starting ``(1 - strength) * 2`` s in, and stay
+           stopped
 ========== ===============================================================================================
 
 The same perturbations are the **probes** of :func:`probe_reward_model`: on held-out logs each perturbed future
@@ -43,11 +46,12 @@ __all__ = ["CONTRAST_ANNOTATOR", "PERTURBATIONS", "contrast_dataset", "log_windo
            "probe_reward_model", "recorded_windows"]
 
 CONTRAST_ANNOTATOR = "contrast:log"
-PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate", "weave")
+PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate", "weave", "stall")
 MOVING_SPEED = 1.0  # m/s at "now": only agents that drive are perturbed
 DEFAULT_STRENGTH = 0.5
 JERK_PERIOD_S = 3.0  # s, the period of the stop-and-go clock
 WEAVE_PERIOD_S = 2.5  # s, the period of a weave within the lane
+STALL_BRAKE_S = 1.5  # s, braking from the logged pace to a standstill
 
 
 def _warp(states: torch.Tensor, valid: torch.Tensor, now: int, clock: torch.Tensor, dt: float) -> torch.Tensor:
@@ -90,7 +94,8 @@ def perturb_future(scenario: ScenarioTensor, kind: str,
 
     ``faster`` / ``slower``: re-timed at 1 + strength / 1 - strength / 2 times the pace; ``jerky``: a stop-and-go
     clock; ``off_lane``: drifting up to 4 x strength metres sideways; ``tailgate``: closing in on the lead;
-    ``weave``: swerving side to side by strength metres every 2.5 s."""
+    ``weave``: swerving side to side by strength metres every 2.5 s; ``stall``: braking to a standstill from
+    (1 - strength) x 2 s on."""
     if kind not in PERTURBATIONS:
         raise TrafficRLHFError(f"unknown perturbation {kind!r}; use one of {', '.join(PERTURBATIONS)}.")
     if not 0 < strength <= 1:
@@ -104,11 +109,14 @@ def perturb_future(scenario: ScenarioTensor, kind: str,
     k = torch.arange(1, h + 1, dtype=states.dtype, device=states.device).expand(b, a, h)
     moving = scenario.controlled & valid[:, :, now] & (states[:, :, now, 2] > MOVING_SPEED)
     new = states.clone()
-    if kind in ("faster", "slower", "jerky"):
+    if kind in ("faster", "slower", "jerky", "stall"):
         if kind == "faster":
             clock = k * (1 + strength)
         elif kind == "slower":
             clock = k * (1 - strength / 2)
+        elif kind == "stall":  # the clock's rate falls from 1 to 0 over STALL_BRAKE_S, then the agent stays put
+            rate = (1 - (k * dt - (1 - strength) * 2.0) / STALL_BRAKE_S).clamp(0, 1)
+            clock = torch.cumsum(rate, -1)
         else:
             amplitude = strength / dt  # steps
             clock = k + amplitude * torch.sin(2 * math.pi * k * dt / JERK_PERIOD_S)

@@ -87,23 +87,38 @@ class JudgmentReward:
 
 
 def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
-                       config: SyntheticAnnotatorConfig | None = None, tolerance: float = 0.0) -> dict[str, float]:
+                       config: SyntheticAnnotatorConfig | None = None, tolerance: float = 0.0) -> dict[str, Any]:
     """How often ``reward`` (anything with ``score(scenario) -> (B,)``, or ``step_rewards``) orders two candidates
     of the same context as the noise-free stand-in does, over every pair of candidates of every context of
-    ``campaign`` whose realism differs by more than ``tolerance`` (no labels needed). Returns ``agreement`` and the
-    number of ``pairs`` and ``contexts``."""
+    ``campaign`` whose realism differs by more than ``tolerance`` (no labels needed). Returns ``agreement``, the
+    number of ``pairs`` and ``contexts``, and ``by_term``: per judgment term, the pairs that term decides (the one
+    adding most to the loser's weighted penalty over the winner's) with their ``pairs`` and ``agreement``, so a
+    shortfall names what the reward model does not see."""
     from trafficrlhf_sdk.reward.scoring import scenario_scores
 
+    judgment = (config or SyntheticAnnotatorConfig()).judgment()
+    names = (*FAILURE_TERMS, *STYLE_TERMS)
     record_campaign = store.campaign(campaign)
     agree = pairs = contexts = 0
+    tally = {name: [0, 0] for name in names}  # term -> [agreeing pairs, pairs]
     for key in store.context_keys(record_campaign):
         record = store.load_context(int(key["id"]), record_campaign)
-        realism = judge_realism(record, config, include_logged=False).realism
+        judged = judge_realism(record, judgment, include_logged=False)
         batch = ScenarioTensor.concat([record.candidate_scenario(k) for k in range(record.num_candidates)])
         scores = scenario_scores(reward, batch).double()
-        better = (realism[:, None] - realism[None, :]) > tolerance  # (N, N): row more realistic than column
-        if better.any():
-            contexts += 1
-            pairs += int(better.sum())
-            agree += int((better & (scores[:, None] > scores[None, :])).sum())
-    return {"agreement": agree / pairs if pairs else float("nan"), "pairs": pairs, "contexts": contexts}
+        better = (judged.realism[:, None] - judged.realism[None, :]) > tolerance  # (N, N): row beats column
+        if not better.any():
+            continue
+        contexts += 1
+        pairs += int(better.sum())
+        agreed = better & (scores[:, None] > scores[None, :])
+        agree += int(agreed.sum())
+        weighted = torch.stack([judgment.weight(n) * judged.components[n].double() for n in names])  # (terms, N)
+        decider = (weighted[:, None, :] - weighted[:, :, None]).argmax(0)  # (N, N): the loser's worst excess
+        for n, name in enumerate(names):
+            mine = better & (decider == n)
+            tally[name][0] += int((agreed & mine).sum())
+            tally[name][1] += int(mine.sum())
+    by_term = {name: {"pairs": n, "agreement": ok / n} for name, (ok, n) in tally.items() if n}
+    return {"agreement": agree / pairs if pairs else float("nan"), "pairs": pairs, "contexts": contexts,
+            "by_term": by_term}
