@@ -14,6 +14,7 @@ from trafficrlhf_sdk.feedback import (FeedbackStore, JudgmentConfig, SyntheticAn
                                       agent_penalties, judge_realism, judge_scenarios)
 from trafficrlhf_sdk.feedback.records import ContextRecord
 from trafficrlhf_sdk.feedback.synthetic import PROFILES
+from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.scenario.map import MapRaster, PolylineType
 from trafficrlhf_sdk.testing.feedback import VARIANTS, make_tiny_campaign, tiny_context
 
@@ -146,8 +147,6 @@ class _Judge:
     """Scores a scenario with the stand-in's own judgment (a perfect reward model)."""
 
     def score(self, scenario: ScenarioTensor) -> torch.Tensor:
-        from trafficrlhf_sdk.feedback.judgment import judge_scenarios
-
         return judge_scenarios(scenario, scenario.controlled).realism.float()
 
 
@@ -161,9 +160,7 @@ class _LikesStalls(_Judge):
 
 
 def test_judgment_agreement_names_the_term_a_reward_model_misses(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from trafficrlhf_sdk.feedback.store import FeedbackStore
     from trafficrlhf_sdk.reward.oracle import judgment_agreement
-    from trafficrlhf_sdk.testing.feedback import make_tiny_campaign
 
     store = FeedbackStore(str(tmp_path / "fb.db"))
     make_tiny_campaign(store, num_contexts=2)
