@@ -68,3 +68,22 @@ def test_probes_count_windows_and_the_scenes_they_come_from() -> None:
     windows = ScenarioTensor.concat([one, one, two])  # two windows of one scene, one of another
     entry = probe_reward_model(_LikesTheLog(windows), windows, ("faster",))["faster"]
     assert entry["windows"] == 3 and entry["scenes"] == 2 and entry["pass_rate"] == 1.0
+
+
+@pytest.mark.data
+def test_contrast_items_of_the_kinds_asked_for_are_in_the_card(data_root: str, tmp_path: Path) -> None:
+    from trafficrlhf_sdk.feedback import FeedbackStore, SyntheticAnnotator, SyntheticAnnotatorConfig
+    from trafficrlhf_sdk.reward import RewardConfig
+    from trafficrlhf_sdk.reward.card import train_and_save
+    from trafficrlhf_sdk.reward.evaluation import load_preferences
+    from trafficrlhf_sdk.testing.feedback import make_tiny_campaign
+
+    store = FeedbackStore(str(tmp_path / "fb.db"))
+    campaign = make_tiny_campaign(store, num_contexts=3)
+    SyntheticAnnotator(store, "oracle", SyntheticAnnotatorConfig()).label(campaign)
+    dataset, _ = load_preferences(store.path, campaign.name, None, ["oracle"])
+    trained = train_and_save(RewardConfig(max_epochs=1, batch_size=4, progress=False), dataset,
+                             str(tmp_path / "rm"), store=store, campaigns=[campaign.name], contrast_scenes=2,
+                             contrast_kinds=("stall",), source="nuscenes_pred")
+    contrast = trained.card["data"]["contrast"]
+    assert contrast["kinds"] == ["stall"] and contrast["pairs"] > 0

@@ -72,7 +72,8 @@ class TrainedRewardModel:
 
 def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None, campaigns: Sequence[str] = (),
                    annotators: Sequence[str] = (), contrast_scenes: int | None = None,
-                   contrast_annotators: Sequence[str] = (), half: bool = False,
+                   contrast_annotators: Sequence[str] = (), contrast_kinds: Sequence[str] | None = None,
+                   half: bool = False,
                    test_campaign: str | None = None, test_annotators: Sequence[str] = (), tie_tolerance: float = 0.0,
                    title: str | None = None, notes: Sequence[str] = (), commands: Sequence[str] = (),
                    log: Callable[[dict[str, float]], None] | None = None,
@@ -86,8 +87,9 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     ``store`` is the feedback database ``campaigns`` come from (needed by ``test_campaign``, read from the same
     database). ``contrast_scenes`` N adds contrast items from the last N train scenes' logs, labelled by the
     stand-in profiles named in ``contrast_annotators`` (:data:`~trafficrlhf_sdk.feedback.synthetic.PROFILES`),
-    or, when none is named, as "log ≻ perturbation" (:func:`~trafficrlhf_sdk.reward.contrast.contrast_dataset`).
-    ``half`` stores
+    or, when none is named, as "log ≻ perturbation" (:func:`~trafficrlhf_sdk.reward.contrast.contrast_dataset`),
+    each log against its copies perturbed as ``contrast_kinds`` say (None: the default
+    :data:`~trafficrlhf_sdk.reward.contrast.CONTRAST_KINDS`). ``half`` stores
     float16 weights, rounded before testing so the card's test metrics are those of the saved weights.
     ``on_start`` hears the trainer's ``dataset_info`` (pairs, contexts, featurizing time) before training;
     ``log`` hears each epoch's row.
@@ -110,7 +112,7 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     if test_campaign is not None and store is None:
         raise TrafficRLHFError(f"--test-campaign {test_campaign!r} needs --db (the campaign is read from the same "
                                "database); pass the database the training campaigns come from.")
-    from trafficrlhf_sdk.reward.contrast import contrast_dataset, probe_reward_model, recorded_windows
+    from trafficrlhf_sdk.reward.contrast import CONTRAST_KINDS, contrast_dataset, probe_reward_model, recorded_windows
 
     if source is None and (contrast_scenes or probe_scenes):
         source = str(dataset.context_keys[0].get("source") or "nuscenes_pred")
@@ -127,7 +129,8 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     if contrast_scenes:
         judges = {name: PROFILES[name] for name in contrast_annotators} or None
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
-                                                     future_steps=future_steps), annotators=judges)
+                                                     future_steps=future_steps),
+                                    kinds=tuple(contrast_kinds or CONTRAST_KINDS), annotators=judges)
     checkpoints = os.path.join(out_dir, CHECKPOINTS_FOLDER)
     if resume is None:
         from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
@@ -152,6 +155,7 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     if contrast is not None:
         card.setdefault("data", {})["contrast"] = {
             "scenes": contrast_scenes, "pairs": int(contrast.pairs.shape[0]),
+            "kinds": list(contrast.metadata["kinds"]),
             "decided_by": list(contrast_annotators) or "the log wins every pair"}
     probes = None
     if probe_scenes:

@@ -22,6 +22,8 @@ stall      brake along their path to a standstill within 1.5 s, starting ``(1 - 
 
 The same perturbations are the **probes** of :func:`probe_reward_model`: on held-out logs each perturbed future
 must score below the log; the pass rate per kind (and per ensemble member) says what the reward model can see.
+Contrast sets use the first six by default (:data:`CONTRAST_KINDS`); ``stall`` is a probe, and a contrast kind
+only when asked for.
 Contrast pairs are stored with the annotator name ``CONTRAST_ANNOTATOR`` and weighed by
 ``RewardConfig.contrast_weight``; they are never counted as human labels.
 
@@ -42,11 +44,14 @@ from trafficrlhf_sdk.metrics.geometry import following_gaps
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 
-__all__ = ["CONTRAST_ANNOTATOR", "PERTURBATIONS", "contrast_dataset", "log_windows", "perturb_future",
+__all__ = ["CONTRAST_ANNOTATOR", "CONTRAST_KINDS", "PERTURBATIONS", "contrast_dataset", "log_windows", "perturb_future",
            "probe_reward_model", "recorded_windows"]
 
 CONTRAST_ANNOTATOR = "contrast:log"
-PERTURBATIONS = ("faster", "slower", "jerky", "off_lane", "tailgate", "weave", "stall")
+CONTRAST_KINDS = ("faster", "slower", "jerky", "off_lane", "tailgate", "weave")
+"""The perturbations of a contrast set by default (:func:`contrast_dataset`)."""
+PERTURBATIONS = (*CONTRAST_KINDS, "stall")
+"""Every perturbation, and the probes of :func:`probe_reward_model`."""
 MOVING_SPEED = 1.0  # m/s at "now": only agents that drive are perturbed
 DEFAULT_STRENGTH = 0.5
 JERK_PERIOD_S = 3.0  # s, the period of the stop-and-go clock
@@ -179,7 +184,7 @@ def recorded_windows(source: str = "nuscenes_pred", split: str = "val", num_scen
     return log_windows(reader.load_batch(split, scene_ids=ids), future_steps=future_steps)
 
 
-def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = PERTURBATIONS,
+def contrast_dataset(scenes: ScenarioTensor, kinds: Sequence[str] = CONTRAST_KINDS,
                      strength: float = DEFAULT_STRENGTH, split: str = "train",
                      annotators: Mapping[str, Any] | None = None) -> Any:
     """A :class:`~trafficrlhf_sdk.feedback.PreferenceDataset` of contrast items: every context of ``scenes``
