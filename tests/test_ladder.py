@@ -190,8 +190,7 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     assert "| 95 % interval |" in (out / "ladder.md").read_text()
     end = saved["agreement"]["end"]
     assert sum(v["pairs"] for v in end["by_term"].values()) == end["pairs"]
-    if end["pairs"]:
-        assert "by the judgment term that decides a pair" in (out / "ladder.md").read_text()
+    assert ("by the judgment term that decides a pair" in (out / "ladder.md").read_text()) == bool(end["pairs"])
     again = run_ladder(config, str(out), log=lambda _: None)
     assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
     assert rows["c"]["reward"] == again["c"]["reward"]

@@ -57,7 +57,7 @@ def test_ray_hands_a_free_worker_the_next_task_while_an_earlier_one_runs(ray_hea
 
     # task 0 keeps one worker busy; the other worker must run every short task meanwhile, not wait for task 0's
     # result to be read first
-    tasks = [3.0, 0.05, 0.05, 0.05, 0.05]
+    tasks = [5.0, 0.05, 0.05, 0.05, 0.05]
     results = run_tasks(sleep_then_pid, {}, tasks, RAY)
     assert [r[0] for r in results] == tasks  # in task order
     slow, fast = results[0][1], {r[1] for r in results[1:]}

@@ -173,7 +173,8 @@ def _echo_epoch(row: dict[str, float]) -> None:
 @click.option("--probes", "probe_scenes", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also probe the model on N held-out val scenes (two windows from each scene long enough): the "
                    "logged future must score above the same future made faster, slower, jerky, off its lane, "
-                   "tailgating or weaving (pass rate per probe and member, over the windows the perturbation changes).")
+                   "tailgating, weaving or stalling (pass rate per probe and member, over the windows the "
+                   "perturbation changes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def eval_command(model_dir: str, db_path: str | None, campaign: str | None, data_dir: str | None,
                  annotators: tuple[str, ...], subset: str, val_fraction: float, split_seed: int,

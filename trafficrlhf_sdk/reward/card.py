@@ -130,7 +130,8 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
         judges = {name: PROFILES[name] for name in contrast_annotators} or None
         contrast = contrast_dataset(recorded_windows(source, "train", contrast_scenes, root, from_end=True,
                                                      future_steps=future_steps),
-                                    kinds=tuple(contrast_kinds or CONTRAST_KINDS), annotators=judges)
+                                    kinds=CONTRAST_KINDS if contrast_kinds is None else tuple(contrast_kinds),
+                                    annotators=judges)
     checkpoints = os.path.join(out_dir, CHECKPOINTS_FOLDER)
     if resume is None:
         from trafficrlhf_sdk.alignment.checkpointing import list_checkpoints
