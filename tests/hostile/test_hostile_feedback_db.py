@@ -157,7 +157,13 @@ def _command(name: str, db: Path, out: Path) -> list[str]:
 def normalized(stdout: str, db: Path, out: Path) -> str:
     """``stdout`` with the case's own paths and a printed token replaced (what differs between two runs)."""
     text = stdout.replace(str(out), "OUT").replace(str(db), "DB")
-    return re.sub(r"\b[A-Za-z0-9_-]{32}\b", "TOKEN", text)
+    # a token may start or end with "-", where \b finds no word boundary
+    return re.sub(r"(?<![A-Za-z0-9_-])[A-Za-z0-9_-]{32}(?![A-Za-z0-9_-])", "TOKEN", text)
+
+
+def test_normalized_hides_any_printed_token() -> None:
+    for token in ("YrhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC", "-rhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC", "_rhjrqKXqjVeGyOQbRyDTLAkTPW2S-Q-"):
+        assert normalized(f"token: {token}\n", Path("/db"), Path("/out")) == "token: TOKEN\n"
 
 
 def integrity_ok(db: Path) -> bool:
