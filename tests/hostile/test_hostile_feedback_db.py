@@ -162,7 +162,8 @@ def normalized(stdout: str, db: Path, out: Path) -> str:
 
 
 def test_normalized_hides_any_printed_token() -> None:
-    for token in ("YrhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC", "-rhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC", "_rhjrqKXqjVeGyOQbRyDTLAkTPW2S-Q-"):
+    for token in ("YrhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC", "-rhjrqKXqjVeGyOQbRyDTLAkTPW2S-QC",
+                  "_rhjrqKXqjVeGyOQbRyDTLAkTPW2S-Q-"):
         assert normalized(f"token: {token}\n", Path("/db"), Path("/out")) == "token: TOKEN\n"
 
 
