@@ -141,3 +141,19 @@ def test_concat_pools_campaigns(labeled: FeedbackStore) -> None:
     assert PreferenceDataset.concat([first]) is first
     with pytest.raises(ValueError, match="empty"):
         PreferenceDataset.concat([])
+
+
+def test_concat_aligns_campaigns_with_different_histories_at_the_candidates_start(labeled: FeedbackStore) -> None:
+    """A campaign whose candidates start after a shorter history pools with a shorter one: its histories are cut to
+    the shortest, and every pair's futures and recent history are unchanged."""
+    first = export_preferences(labeled, "tiny", 0.34)
+    shorter = dataclasses.replace(first, contexts=first.contexts.time_slice(1))  # one step less of history
+    short_now, long_now = shorter.contexts.current_index, first.contexts.current_index
+    pooled = PreferenceDataset.concat([first, shorter])
+    assert pooled.contexts.current_index == short_now == long_now - 1
+    for part, start in ((first, 0), (shorter, len(first))):
+        w_pool, _ = pooled.pair_scenarios([start])
+        w_part, _ = part.pair_scenarios([0])
+        cut = part.contexts.current_index - short_now
+        torch.testing.assert_close(w_pool.states[:, : w_part.num_agents, : w_part.num_steps - cut],
+                                   w_part.states[:, :, cut:])

@@ -155,7 +155,9 @@ class PreferenceDataset:
 
         Agents and future steps are padded with invalid entries; every dataset must have the same N. Pair
         context indices are shifted, annotators merged by name; label ids are kept (unique within one database).
-        Each context keeps the train/val split it was exported with.
+        Each context keeps the train/val split it was exported with. Campaigns that start their candidates after
+        different lengths of history (``history_seconds``) are aligned at that start: the longer histories are cut
+        to the shortest one.
         """
         if not datasets:
             raise ValueError("`datasets` is empty; pass at least one PreferenceDataset.")
@@ -165,7 +167,9 @@ class PreferenceDataset:
                                   "train on campaigns with the same --candidates.")
         if len(datasets) == 1:
             return datasets[0]
-        contexts = ScenarioTensor.concat([d.contexts for d in datasets])
+        shortest = min(d.contexts.current_index for d in datasets)
+        contexts = ScenarioTensor.concat([d.contexts.time_slice(d.contexts.current_index - shortest)
+                                          for d in datasets])
         a, h = contexts.num_agents, max(int(d.futures.shape[3]) for d in datasets)
         annotators = tuple(sorted({name for d in datasets for name in d.annotators}))
         futures, valid, pairs, who = [], [], [], []
