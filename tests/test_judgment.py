@@ -175,3 +175,32 @@ def test_judgment_agreement_names_the_term_a_reward_model_misses(tmp_path) -> No
     assert broken["by_term"]["offroad"]["agreement"] == 1.0 and broken["by_term"]["collision"]["agreement"] == 1.0
     assert broken["by_term"]["weave"]["agreement"] == 1.0
     assert broken["agreement"] == 1 - broken["by_term"]["pace"]["pairs"] / broken["pairs"]
+
+
+class _Reversed(_Judge):
+    """The judgment turned round: every strictly ordered pair is ordered wrong."""
+
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        return -super().score(scenario)
+
+
+def test_judgment_agreement_by_realism_gap(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.reward.oracle import AGREEMENT_GAPS, judgment_agreement
+
+    store = FeedbackStore(str(tmp_path / "fb.db"))
+    make_tiny_campaign(store, num_contexts=2)
+    campaign = store.campaign("tiny")
+    gaps = []  # every strictly ordered pair's realism gap, judged here context by context
+    for key in store.context_keys(campaign):
+        record = store.load_context(int(key["id"]), campaign)
+        batch = ScenarioTensor.concat([record.candidate_scenario(k) for k in range(record.num_candidates)])
+        realism = judge_scenarios(batch, batch.controlled).realism
+        diff = realism[:, None] - realism[None, :]
+        gaps += diff[diff > 0].tolist()
+    exact, reversed_ = judgment_agreement(_Judge(), store, "tiny"), judgment_agreement(_Reversed(), store, "tiny")
+    assert set(exact["by_gap"]) == {str(g) for g in AGREEMENT_GAPS}
+    for gap in AGREEMENT_GAPS:
+        expected = sum(g > gap for g in gaps)
+        assert expected > 0 and exact["by_gap"][str(gap)]["pairs"] == expected == reversed_["by_gap"][str(gap)]["pairs"]
+        assert exact["by_gap"][str(gap)]["agreement"] == 1.0 and reversed_["by_gap"][str(gap)]["agreement"] == 0.0
+    assert exact["pairs"] == len(gaps) and reversed_["agreement"] == 0.0

@@ -191,6 +191,8 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     end = saved["agreement"]["end"]
     assert sum(v["pairs"] for v in end["by_term"].values()) == end["pairs"]
     assert ("by the judgment term that decides a pair" in (out / "ladder.md").read_text()) == bool(end["pairs"])
+    assert set(end["by_gap"]) == {"0.02", "0.05"}
+    assert ("whose realism differs by more than a gap" in (out / "ladder.md").read_text()) == bool(end["pairs"])
     again = run_ladder(config, str(out), log=lambda _: None)
     assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
     assert rows["c"]["reward"] == again["c"]["reward"]

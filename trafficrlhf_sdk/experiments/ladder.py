@@ -287,6 +287,10 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
         lines += ["", "Reward model against the noise-free stand-in on the policy's own val candidates: "
                   f"{a['start']['agreement']:.3f} at the start ({a['start']['pairs']} pairs), "
                   f"{a['end']['agreement']:.3f} at the end ({a['end']['pairs']} pairs)."]
+        by_gap = a["end"].get("by_gap") or {}
+        if by_gap:
+            lines += ["", "At the end, on the pairs whose realism differs by more than a gap (pairs, agreement): "
+                      + "; ".join(f"{gap}: {v['pairs']}, {v['agreement']:.3f}" for gap, v in by_gap.items()) + "."]
         terms = a["end"].get("by_term") or {}
         if terms:
             order = sorted(terms, key=lambda name: -terms[name]["pairs"])

@@ -24,7 +24,10 @@ from trafficrlhf_sdk.feedback.judgment import FAILURE_TERMS, STYLE_TERMS, agent_
 from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotatorConfig, judge_realism
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["JudgmentReward", "hidden_realism", "judgment_agreement", "strict_pairs"]
+__all__ = ["AGREEMENT_GAPS", "JudgmentReward", "hidden_realism", "judgment_agreement", "strict_pairs"]
+
+AGREEMENT_GAPS = (0.02, 0.05)
+"""Realism gaps above which :func:`judgment_agreement` also reports agreement (``by_gap``)."""
 
 
 def hidden_realism(store: FeedbackStore, dataset: PreferenceDataset,
@@ -91,9 +94,11 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
     """How often ``reward`` (anything with ``score(scenario) -> (B,)``, or ``step_rewards``) orders two candidates
     of the same context as the noise-free stand-in does, over every pair of candidates of every context of
     ``campaign`` whose realism differs by more than ``tolerance`` (no labels needed). Returns ``agreement``, the
-    number of ``pairs`` and ``contexts``, and ``by_term``: per judgment term, the pairs that term decides (the one
+    number of ``pairs`` and ``contexts``; ``by_term``: per judgment term, the pairs that term decides (the one
     adding most to the loser's weighted penalty over the winner's) with their ``pairs`` and ``agreement``, so a
-    shortfall names what the reward model does not see."""
+    shortfall names what the reward model does not see; and ``by_gap``: for each gap of :data:`AGREEMENT_GAPS`
+    (keyed by its text), the ``pairs`` whose realism differs by more and their ``agreement``, so a shortfall on
+    pairs a person would see differ is told from one on near ties."""
     from trafficrlhf_sdk.reward.scoring import scenario_scores
 
     judgment = (config or SyntheticAnnotatorConfig()).judgment()
@@ -101,6 +106,7 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
     record_campaign = store.campaign(campaign)
     agree = pairs = contexts = 0
     tally = {name: [0, 0] for name in names}  # term -> [agreeing pairs, pairs]
+    gaps = {gap: [0, 0] for gap in AGREEMENT_GAPS}
     for key in store.context_keys(record_campaign):
         record = store.load_context(int(key["id"]), record_campaign)
         judged = judge_realism(record, judgment, include_logged=False)
@@ -113,6 +119,10 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
         pairs += int(better.sum())
         agreed = better & (scores[:, None] > scores[None, :])
         agree += int(agreed.sum())
+        for gap in AGREEMENT_GAPS:
+            clear = (judged.realism[:, None] - judged.realism[None, :]) > max(gap, tolerance)
+            gaps[gap][0] += int((agreed & clear).sum())
+            gaps[gap][1] += int(clear.sum())
         weighted = torch.stack([judgment.weight(n) * judged.components[n].double() for n in names])  # (terms, N)
         decider = (weighted[:, None, :] - weighted[:, :, None]).argmax(0)  # (N, N): the loser's worst excess
         for n, name in enumerate(names):
@@ -120,5 +130,6 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
             tally[name][0] += int((agreed & mine).sum())
             tally[name][1] += int(mine.sum())
     by_term = {name: {"pairs": n, "agreement": ok / n} for name, (ok, n) in tally.items() if n}
+    by_gap = {str(gap): {"pairs": n, "agreement": ok / n if n else float("nan")} for gap, (ok, n) in gaps.items()}
     return {"agreement": agree / pairs if pairs else float("nan"), "pairs": pairs, "contexts": contexts,
-            "by_term": by_term}
+            "by_term": by_term, "by_gap": by_gap}
