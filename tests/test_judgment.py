@@ -204,3 +204,25 @@ def test_judgment_agreement_by_realism_gap(tmp_path) -> None:  # type: ignore[no
         assert expected > 0 and exact["by_gap"][str(gap)]["pairs"] == expected == reversed_["by_gap"][str(gap)]["pairs"]
         assert exact["by_gap"][str(gap)]["agreement"] == 1.0 and reversed_["by_gap"][str(gap)]["agreement"] == 0.0
     assert exact["pairs"] == len(gaps) and reversed_["agreement"] == 0.0
+
+
+def test_judged_pairs_label_every_strictly_ordered_candidate_pair(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.feedback import export_preferences
+    from trafficrlhf_sdk.reward.oracle import hidden_realism, judged_pairs, strict_pairs
+
+    store = FeedbackStore(str(tmp_path / "fb.db"))
+    campaign = make_tiny_campaign(store, num_contexts=3)
+    who, _ = store.add_annotator("alice")
+    while (item := store.next_item(who, campaign)) is not None:
+        store.submit_label(who, campaign, item.context_id, 0)
+    dataset = export_preferences(store, "tiny")
+    realism = hidden_realism(store, dataset)
+    labelled = judged_pairs(dataset, realism)
+    n = dataset.num_candidates
+    c, w, lo = labelled.pairs.unbind(1)
+    assert strict_pairs(labelled, realism).all() and (w < n).all() and (lo < n).all()
+    expected = sum(int(realism[k, i] > realism[k, j]) for k in range(dataset.num_contexts) for i in range(n)
+                   for j in range(n))
+    assert expected > 0 and len(labelled) == expected
+    assert labelled.annotators == ("judgment",) and len(set(labelled.pair_label.tolist())) == expected
+    assert labelled.num_contexts == dataset.num_contexts and torch.equal(labelled.futures, dataset.futures)

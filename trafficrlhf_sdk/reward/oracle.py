@@ -13,6 +13,7 @@ measured (the alignment ladder).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -24,7 +25,8 @@ from trafficrlhf_sdk.feedback.judgment import FAILURE_TERMS, STYLE_TERMS, agent_
 from trafficrlhf_sdk.feedback.synthetic import PROFILES, SyntheticAnnotatorConfig, judge_realism
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 
-__all__ = ["AGREEMENT_GAPS", "JudgmentReward", "hidden_realism", "judgment_agreement", "strict_pairs"]
+__all__ = ["AGREEMENT_GAPS", "JudgmentReward", "hidden_realism", "judged_pairs", "judgment_agreement",
+           "strict_pairs"]
 
 AGREEMENT_GAPS = (0.02, 0.05)
 """Realism gaps above which :func:`judgment_agreement` also reports agreement (``by_gap``)."""
@@ -53,6 +55,22 @@ def strict_pairs(dataset: PreferenceDataset, realism: torch.Tensor, tolerance: f
     """Whether each pair's winner is more realistic than its loser by more than ``tolerance``, bool ``(P,)``."""
     c, w, lo = dataset.pairs.unbind(1)
     return (realism[c, w] - realism[c, lo]) > tolerance
+
+
+def judged_pairs(dataset: PreferenceDataset, realism: torch.Tensor) -> PreferenceDataset:
+    """``dataset``'s contexts labelled without noise: every pair of candidates whose ``realism`` (``(K, N + 1)``,
+    from :func:`hidden_realism`) differs, the more realistic one preferred; the logged futures are left out.
+
+    A reward model trained on these labels shows what its inputs and head can learn of the judgment; against the
+    same model trained on annotators' choices it separates the loss to label noise from the loss to the inputs
+    (docs/explanation/feedback-chain.md)."""
+    n = dataset.futures.shape[1] - 1
+    candidates = realism[:, :n]
+    better = candidates[:, :, None] > candidates[:, None, :]  # (K, N, N): row beats column
+    pairs = better.nonzero()  # (P, 3): context, winner, loser
+    return replace(dataset, pairs=pairs, pair_annotator=torch.zeros(len(pairs), dtype=torch.long),
+                   pair_label=pairs[:, 0] * (n * n) + pairs[:, 1] * n + pairs[:, 2], annotators=("judgment",),
+                   pair_prob=None)
 
 
 class JudgmentReward:
