@@ -219,7 +219,7 @@ def test_judged_pairs_label_every_strictly_ordered_candidate_pair(tmp_path) -> N
     realism = hidden_realism(store, dataset)
     labelled = judged_pairs(dataset, realism)
     n = dataset.num_candidates
-    c, w, lo = labelled.pairs.unbind(1)
+    _, w, lo = labelled.pairs.unbind(1)
     assert strict_pairs(labelled, realism).all() and (w < n).all() and (lo < n).all()
     expected = sum(int(realism[k, i] > realism[k, j]) for k in range(dataset.num_contexts) for i in range(n)
                    for j in range(n))
