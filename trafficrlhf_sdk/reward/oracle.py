@@ -124,23 +124,24 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
     record_campaign = store.campaign(campaign)
     agree = pairs = contexts = 0
     tally = {name: [0, 0] for name in names}  # term -> [agreeing pairs, pairs]
-    gaps = {gap: [0, 0] for gap in AGREEMENT_GAPS}
+    gaps = {threshold: [0, 0] for threshold in AGREEMENT_GAPS}  # threshold -> [agreeing pairs, pairs]
     for key in store.context_keys(record_campaign):
         record = store.load_context(int(key["id"]), record_campaign)
         judged = judge_realism(record, judgment, include_logged=False)
         batch = ScenarioTensor.concat([record.candidate_scenario(k) for k in range(record.num_candidates)])
         scores = scenario_scores(reward, batch).double()
-        better = (judged.realism[:, None] - judged.realism[None, :]) > tolerance  # (N, N): row beats column
+        gap = judged.realism[:, None] - judged.realism[None, :]  # (N, N): row's realism over column's
+        better = gap > tolerance  # row beats column
         if not better.any():
             continue
         contexts += 1
         pairs += int(better.sum())
         agreed = better & (scores[:, None] > scores[None, :])
         agree += int(agreed.sum())
-        for gap in AGREEMENT_GAPS:
-            clear = (judged.realism[:, None] - judged.realism[None, :]) > max(gap, tolerance)
-            gaps[gap][0] += int((agreed & clear).sum())
-            gaps[gap][1] += int(clear.sum())
+        for threshold in AGREEMENT_GAPS:
+            clear = gap > max(threshold, tolerance)
+            gaps[threshold][0] += int((agreed & clear).sum())
+            gaps[threshold][1] += int(clear.sum())
         weighted = torch.stack([judgment.weight(n) * judged.components[n].double() for n in names])  # (terms, N)
         decider = (weighted[:, None, :] - weighted[:, :, None]).argmax(0)  # (N, N): the loser's worst excess
         for n, name in enumerate(names):
@@ -148,6 +149,6 @@ def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
             tally[name][0] += int((agreed & mine).sum())
             tally[name][1] += int(mine.sum())
     by_term = {name: {"pairs": n, "agreement": ok / n} for name, (ok, n) in tally.items() if n}
-    by_gap = {str(gap): {"pairs": n, "agreement": ok / n if n else float("nan")} for gap, (ok, n) in gaps.items()}
+    by_gap = {str(t): {"pairs": n, "agreement": ok / n if n else float("nan")} for t, (ok, n) in gaps.items()}
     return {"agreement": agree / pairs if pairs else float("nan"), "pairs": pairs, "contexts": contexts,
             "by_term": by_term, "by_gap": by_gap}
