@@ -259,7 +259,9 @@ def compute_step_inputs(scenario: ScenarioTensor, spec: FeatureSpec, steps: torc
     dist = torch.sqrt(rx * rx + ry * ry)
     others_ok &= dist <= spec.neighbour_radius_m
     k = min(spec.num_neighbours, a_)
-    order = torch.where(others_ok, dist, torch.full_like(dist, float("inf"))).topk(k, dim=1, largest=False).indices
+    # ties by agent index (a stable sort), so appended padding agents cannot reorder equally near neighbours
+    nearest = torch.where(others_ok, dist, torch.full_like(dist, float("inf")))
+    order = torch.sort(nearest, dim=1, stable=True).indices[:, :k]
     pick = lambda t: t.gather(1, order)  # noqa: E731
     n_ok = pick(others_ok).float()
     ryaw = wrap_angle(others[..., 3] - yaw[:, None])

@@ -84,7 +84,9 @@ def neighbour_vectors(scenario: ScenarioTensor, scene: torch.Tensor, agent: torc
     dist = torch.sqrt(rx * rx + ry * ry)
     ok &= dist <= radius_m
     take = min(k, a_)
-    order = torch.where(ok, dist, torch.full_like(dist, float("inf"))).topk(take, dim=1, largest=False).indices
+    # nearest first, ties by agent index (a stable sort): padding agents, appended and never valid, cannot change
+    # which of several equally near agents are taken
+    order = torch.sort(torch.where(ok, dist, torch.full_like(dist, float("inf"))), dim=1, stable=True).indices[:, :take]
     pick = lambda t: t.gather(1, order)  # noqa: E731
     rel = wrap_angle(others[..., 3] - pose[:, None, 3])
     speed = others[..., 2]

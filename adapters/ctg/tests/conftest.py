@@ -18,3 +18,16 @@ def scenes():  # type: ignore[no-untyped-def]
     from trafficrlhf_nuscenes_pred import NuScenesPredSource
 
     return NuScenesPredSource(root=root).load_batch("val", 3)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():  # type: ignore[no-untyped-def]
+    """One torch thread per test: the bit-for-bit comparisons of runs with different batch compositions hold for
+    a fixed thread count (with several threads, torch splits an elementwise op where the sizes put the split), and
+    the tests' outcome must not depend on what set the thread count before them."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

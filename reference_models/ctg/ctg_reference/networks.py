@@ -10,8 +10,7 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
-import torch.nn.functional as F
-from reference_common.layers import mlp
+from reference_common.layers import Mish, mish, mlp
 from torch import nn
 
 if TYPE_CHECKING:
@@ -36,15 +35,15 @@ class ContextEncoder(nn.Module):
         super().__init__()
         c, w = cfg.map_channels, cfg.cnn_width
         self.cnn = nn.Sequential(
-            nn.Conv2d(c, w, 3, stride=2, padding=1), nn.GroupNorm(4, w), nn.Mish(),
-            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.GroupNorm(4, 2 * w), nn.Mish(),
-            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 4 * w), nn.Mish(),
-            nn.Conv2d(4 * w, 8 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 8 * w), nn.Mish(),
+            nn.Conv2d(c, w, 3, stride=2, padding=1), nn.GroupNorm(4, w), Mish(),
+            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.GroupNorm(4, 2 * w), Mish(),
+            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 4 * w), Mish(),
+            nn.Conv2d(4 * w, 8 * w, 3, stride=2, padding=1), nn.GroupNorm(8, 8 * w), Mish(),
             nn.Flatten(),
         )
         with torch.no_grad():
             flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
-        self.map_head = nn.Sequential(nn.Linear(flat, cfg.map_dim), nn.Mish())
+        self.map_head = nn.Sequential(nn.Linear(flat, cfg.map_dim), Mish())
         self.history = mlp([cfg.history_steps * 6 + 2, 128, 64])
         self.num_plan_steps = len(cfg.neighbour_plan_steps)
         self.neighbour = mlp([8 + 3 * self.num_plan_steps, 64, 64])
@@ -126,13 +125,13 @@ class ResBlock1d(nn.Module):
         self.norm1 = nn.GroupNorm(groups, cout)
         self.conv2 = nn.Conv1d(cout, cout, kernel, padding=kernel // 2)
         self.norm2 = nn.GroupNorm(groups, cout)
-        self.emb = nn.Sequential(nn.Mish(), nn.Linear(emb_dim, cout))
+        self.emb = nn.Sequential(Mish(), nn.Linear(emb_dim, cout))
         self.skip = nn.Conv1d(cin, cout, 1) if cin != cout else nn.Identity()
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
         """``(N, cin, L)`` -> ``(N, cout, L)``."""
-        h = F.mish(self.norm1(self.conv1(x))) + self.emb(emb)[..., None]
-        h = F.mish(self.norm2(self.conv2(h)))
+        h = mish(self.norm1(self.conv1(x))) + self.emb(emb)[..., None]
+        h = mish(self.norm2(self.conv2(h)))
         return h + self.skip(x)
 
 
@@ -143,7 +142,7 @@ class TemporalUNet(nn.Module):
         super().__init__()
         d1, d2 = cfg.unet_dims
         k, g = cfg.kernel_size, cfg.groups
-        self.time = nn.Sequential(SinusoidalEmbedding(cfg.time_dim), nn.Linear(cfg.time_dim, 64), nn.Mish(),
+        self.time = nn.Sequential(SinusoidalEmbedding(cfg.time_dim), nn.Linear(cfg.time_dim, 64), Mish(),
                                   nn.Linear(64, cfg.time_dim))
         emb = cfg.time_dim + cfg.cond_dim
         self.down1 = ResBlock1d(2, d1, emb, k, g)
@@ -154,7 +153,7 @@ class TemporalUNet(nn.Module):
         self.upsample = nn.ConvTranspose1d(d2, d2, 4, stride=2, padding=1)
         self.up1 = ResBlock1d(d2 + d1, d1, emb, k, g)
         self.up2 = ResBlock1d(d1, d1, emb, k, g)
-        self.out = nn.Sequential(nn.Conv1d(d1, d1, k, padding=k // 2), nn.GroupNorm(g, d1), nn.Mish(),
+        self.out = nn.Sequential(nn.Conv1d(d1, d1, k, padding=k // 2), nn.GroupNorm(g, d1), Mish(),
                                  nn.Conv1d(d1, 2, 1))
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
