@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
-from reference_common.layers import Mish, mlp
+from reference_common.layers import mlp
 from torch import nn
 
 __all__ = [
@@ -115,7 +115,7 @@ def yaw_rate_estimate(history: torch.Tensor, history_valid: torch.Tensor, dt: fl
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(4, cout), Mish())
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(4, cout), nn.Mish())
 
 
 class AgentEncoder(nn.Module):
@@ -274,10 +274,10 @@ class GoalConditionedPolicy(nn.Module):
         self.cfg = cfg
         self.agent = AgentEncoder(cfg.history_steps, 64)
         self.cnn = nn.Sequential(
-            nn.Conv2d(cfg.map_channels, 8, 3, stride=2, padding=1), Mish(),
-            nn.Conv2d(8, 16, 3, stride=2, padding=1), Mish(),
-            nn.Conv2d(16, 32, 3, stride=2, padding=1), Mish(),
-            nn.AdaptiveAvgPool2d(3), nn.Flatten(), nn.Linear(32 * 9, 64), Mish(),
+            nn.Conv2d(cfg.map_channels, 8, 3, stride=2, padding=1), nn.Mish(),
+            nn.Conv2d(8, 16, 3, stride=2, padding=1), nn.Mish(),
+            nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.Mish(),
+            nn.AdaptiveAvgPool2d(3), nn.Flatten(), nn.Linear(32 * 9, 64), nn.Mish(),
         )
         self.goal = mlp([5, 32, 32])
         h = cfg.policy_hidden

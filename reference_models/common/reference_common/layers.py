@@ -43,8 +43,9 @@ class _MishFunction(torch.autograd.Function):
 
 def mish(x: torch.Tensor) -> torch.Tensor:
     """Mish, ``x * tanh(softplus(x))``, for float32 / float64 with one exponential instead of the exp, log1p and tanh
-    of ``torch.nn.functional.mish`` (which dominate the reference models' time on a CPU; see benchmarks/), as
-    accurate as torch's kernel against a float64 evaluation; other dtypes use torch's kernel."""
+    of ``torch.nn.functional.mish`` (which dominate the time of CTG's temporal U-Net on a CPU; see benchmarks/), as
+    accurate as torch's kernel against a float64 evaluation; other dtypes use torch's kernel. Its last bits differ
+    from torch's, so a network switched to it samples slightly different numbers."""
     if x.dtype not in (torch.float32, torch.float64):
         return F.mish(x)
     if torch.is_grad_enabled() and x.requires_grad:
@@ -66,5 +67,5 @@ def mlp(sizes: list[int]) -> nn.Sequential:
     for i in range(len(sizes) - 1):
         layers.append(nn.Linear(sizes[i], sizes[i + 1]))
         if i < len(sizes) - 2:
-            layers += [nn.LayerNorm(sizes[i + 1]), Mish()]
+            layers += [nn.LayerNorm(sizes[i + 1]), nn.Mish()]
     return nn.Sequential(*layers)

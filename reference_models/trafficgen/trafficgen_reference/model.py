@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
-from reference_common.layers import Mish, mlp
+from reference_common.layers import mlp
 from torch import nn
 
 __all__ = [
@@ -145,7 +145,7 @@ def boxes_overlap(box: torch.Tensor, others: torch.Tensor) -> torch.Tensor:
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(8, cout), Mish())
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(8, cout), nn.Mish())
 
 
 # --------------------------------------------------------------------------------------------- initializer
@@ -326,7 +326,7 @@ class Forecaster(nn.Module):
         self.cnn = nn.Sequential(_conv(c, 16, 2), _conv(16, 32, 2), _conv(32, 32, 2), nn.Flatten())
         with torch.no_grad():
             flat = self.cnn(torch.zeros(1, c, cfg.map_size, cfg.map_size)).shape[-1]
-        self.map_head = nn.Sequential(nn.Linear(flat, 128), Mish())
+        self.map_head = nn.Sequential(nn.Linear(flat, 128), nn.Mish())
         self.history = mlp([cfg.history_steps * 6 + 2, 128, 64])
         self.neighbour = mlp([8, 64, 64])
         self.fuse = mlp([128 + 64 + 64, h, h])
