@@ -24,6 +24,7 @@ import torch
 from PIL import Image
 
 from trafficrlhf_sdk.cli import main
+from trafficrlhf_sdk.feedback.store import FeedbackStore
 from trafficrlhf_sdk.errors import FileEncodingError, InputLimitError, MapMismatchError, TrafficRLHFError
 from trafficrlhf_sdk.metrics import geometry
 from trafficrlhf_sdk.scenario.checks import on_map_share
@@ -347,3 +348,24 @@ def test_collision_checks_of_a_large_scene_take_memory_for_one_chunk() -> None:
     # the check's own growth over the process's size before it (torch alone is a few hundred MB, and the allocator
     # moves the peak by tens of MB between runs); all pairs at once would add 1.2 GB
     assert result["pairs"] == 0 and result["peak_mb"] - result["start_mb"] < 650, result
+
+
+def test_a_campaign_leaves_out_and_reports_a_scene_with_no_vehicle_to_judge(tmp_path: Path, capsys,
+                                                                            monkeypatch) -> None:
+    """A later start of a scene whose vehicles have all left shows nobody to judge: the campaign stores the other
+    scenes and names the one it left out (all of them empty: the error of the test above)."""
+    root = write_scene(tmp_path / "data")
+    empty = "scene-0002"  # the same scene with its map moved off every track
+    for folder, name in (("label/val", "{}.txt"), ("maps", "{}.png")):
+        (root / folder / name.format(empty)).write_bytes((root / folder / name.format(SCENE)).read_bytes())
+    (root / "maps" / f"meta_{empty}.txt").write_text(f"{ORIGIN[0]} {ORIGIN[1] + 30.0} {PPM}\n")
+    monkeypatch.setenv("TRAFFICRLHF_SOURCE_OPTIONS", "min_on_map_share=0")
+    db = tmp_path / "f.db"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["feedback", "create", "--db", str(db), "--name", "c", "--model", "constant_velocity", "--root",
+              str(root), "--scenes", "2"])
+    out = capsys.readouterr().out
+    assert exit_info.value.code == 0
+    assert f"added 1 contexts, 1 left out with no vehicle to judge at their start ({empty})" in out
+    store = FeedbackStore(str(db))
+    assert [k["scene_id"] for k in store.context_keys(store.campaign("c"))] == [SCENE]

@@ -103,6 +103,8 @@ def create_command(db_path: str, name: str, models: tuple[str, ...], guidance: s
             report = create_campaign(store, config, on_context=report_line, execution=execution)
         items = store.counts(report.campaign)["items"]
     skipped = f", {len(report.skipped)} already present" if report.skipped else ""
+    if report.empty:
+        skipped += f", {len(report.empty)} left out with no vehicle to judge at their start ({', '.join(report.empty)})"
     click.echo(f"added {len(report.added)} contexts{skipped}; campaign {name!r} now has {items} items in {db_path}")
 
 

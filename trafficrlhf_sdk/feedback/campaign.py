@@ -30,7 +30,7 @@ winner and loser came from (``PreferenceDataset.context_keys[i]["models"]``). Th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Literal
 
@@ -108,11 +108,14 @@ class CampaignConfig(BaseModel):
 
 @dataclass(frozen=True)
 class CampaignReport:
-    """What a create/extend call did: the campaign, ids of the added contexts, scenes already present."""
+    """What a create/extend call did: the campaign, ids of the added contexts, scenes already present, and scenes
+    left out because their context shows no vehicle to judge at its start (e.g. a later start of a scene whose
+    vehicles have all left)."""
 
     campaign: Campaign
     added: list[int]
     skipped: list[str]
+    empty: list[str] = field(default_factory=list)
 
 
 def context_seed(campaign_seed: int, source: str, split: str, scene_id: str) -> int:
@@ -297,21 +300,25 @@ def _fill(store: FeedbackStore, campaign: Campaign, source: Any, scene_ids: list
     todo = [s for s in scene_ids if (cfg["source"], cfg["split"], s) not in present]
     skipped = [s for s in scene_ids if (cfg["source"], cfg["split"], s) in present]
     parts = iter_candidates(campaign, source, todo, execution)  # each stored as soon as it is made
-    added = []
+    added, empty = [], []
     for scene_id, (context, cands, cand_valid, logged, logged_valid) in zip(todo, parts):
         seed = context_seed(campaign.seed, cfg["source"], cfg["split"], scene_id)
-        if not bool(context.controlled.any()):
-            raise DataFormatError(
-                f"{cfg['source']}/{cfg['split']}/{scene_id}: the context has no controlled agent (no vehicle is "
-                "present at its start on the drivable layer of its map), so its items would show nobody to judge; "
-                "nothing was stored for it. Leave the scene out of the campaign, or fix its map."
-            )
+        if not bool(context.controlled.any()):  # its items would show nobody to judge: left out, reported
+            empty.append(scene_id)
+            continue
         added.append(store.add_context(campaign, cfg["source"], cfg["split"], scene_id, seed, context, cands,
                                        cand_valid, logged, logged_valid, __version__,
                                        candidate_models=cfg.get("candidate_models")))
         if on_context is not None:
             on_context(scene_id)
-    return CampaignReport(store.campaign(campaign.id), added, skipped)
+    if empty and not added:
+        shown = ", ".join(f"{cfg['source']}/{cfg['split']}/{s}" for s in empty[:5]) + (" ..." if len(empty) > 5 else "")
+        raise DataFormatError(
+            f"{shown}: the context has no controlled agent (no vehicle is present at its start on the drivable layer "
+            f"of its map), so its items would show nobody to judge; none of the {len(empty)} new contexts was "
+            "stored. Pick other scenes or an earlier start (`history_seconds`), or fix the map."
+        )
+    return CampaignReport(store.campaign(campaign.id), added, skipped, empty)
 
 
 def _mixed_candidates(campaign: Campaign, scene: ScenarioTensor, slots: list[str], cfg: dict[str, Any],
