@@ -47,19 +47,27 @@ def test_missing_ray_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
         run_tasks(_square_plus, {"offset": 0}, [1], ExecutionConfig(workers=1))
 
 
-def test_ray_hands_a_free_worker_the_next_task_while_an_earlier_one_runs(ray_head) -> None:  # type: ignore[no-untyped-def]
-    def sleep_then_pid(shared: dict, task: float) -> tuple[float, int]:  # shipped by value: workers cannot import
-        import os  # this test module
+def test_ray_hands_a_free_worker_the_next_task_while_an_earlier_one_runs(ray_head, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    def block_or_pass(shared: dict, task: tuple[str, int]) -> tuple[str, int]:  # shipped by value: workers cannot
+        import os  # import this test module
         import time
 
-        time.sleep(task)
-        return task, os.getpid()
+        kind, index = task
+        flag = os.path.join(shared["folder"], "fast_done")
+        if kind == "slow":  # holds its worker until every short task has run (60 s at most)
+            deadline = time.monotonic() + 60.0
+            while not os.path.exists(flag) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            return ("slow" if os.path.exists(flag) else "timed out"), os.getpid()
+        if index == 4:
+            open(flag, "w").close()
+        return kind, os.getpid()
 
-    # task 0 keeps one worker busy; the other worker must run every short task meanwhile, not wait for task 0's
-    # result to be read first
-    tasks = [5.0, 0.05, 0.05, 0.05, 0.05]
-    results = run_tasks(sleep_then_pid, {}, tasks, RAY)
-    assert [r[0] for r in results] == tasks  # in task order
+    # task 0 holds one worker until the short tasks are done: the other worker must run them all meanwhile, not
+    # wait for task 0's result to be read first (that would time task 0 out); no timing, so load cannot flake it
+    tasks = [("slow", 0), ("fast", 1), ("fast", 2), ("fast", 3), ("fast", 4)]
+    results = run_tasks(block_or_pass, {"folder": str(tmp_path)}, tasks, RAY)
+    assert [r[0] for r in results] == ["slow", "fast", "fast", "fast", "fast"]  # in task order, nobody timed out
     slow, fast = results[0][1], {r[1] for r in results[1:]}
     assert len(fast) == 1 and slow not in fast
 
