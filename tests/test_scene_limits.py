@@ -353,7 +353,8 @@ def test_collision_checks_of_a_large_scene_take_memory_for_one_chunk() -> None:
 def test_a_campaign_leaves_out_and_reports_a_scene_with_no_vehicle_to_judge(tmp_path: Path, capsys,
                                                                             monkeypatch) -> None:
     """A later start of a scene whose vehicles have all left shows nobody to judge: the campaign stores the other
-    scenes and names the one it left out (all of them empty: the error of the test above)."""
+    scenes and names the one it left out (every one empty: the error that
+    test_a_scene_accepted_with_no_agent_to_drive_fails_evaluate_and_feedback_create checks)."""
     root = write_scene(tmp_path / "data")
     empty = "scene-0002"  # the same scene with its map moved off every track
     for folder, name in (("label/val", "{}.txt"), ("maps", "{}.png")):
