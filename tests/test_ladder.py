@@ -51,7 +51,7 @@ def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypat
     (tmp_path / "rm").mkdir()
     monkeypatch.setattr(pipeline, "align_step", fake_align)
     monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
-    config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0)
+    config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0, draws=1)
     rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
     assert sorted(aligned) == sorted(LADDER_ROWS) and set(rows) == {"base", *LADDER_ROWS}
     base = aligned["a"].model_dump()  # type: ignore[attr-defined]
@@ -63,8 +63,87 @@ def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypat
         assert {k: v for k, v in dumped.items() if k not in ("reward_model", "align")} == \
             {k: v for k, v in base.items() if k not in ("reward_model", "align")}
     table = (tmp_path / "out" / "ladder.md").read_text()
-    assert "(a) built-in failure reward | 0.0500 (-50.0 %)" in table
+    assert "(a) built-in failure reward | 0.0500 (-50.0 %) | -50.0 % |" in table
+    assert "- the reward model, (b) to (c): +0.0" in table
     assert (tmp_path / "out" / "ladder.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_every_row_runs_in_each_draw_with_its_own_training_seed(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.pipeline as pipeline
+
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE + "seed = 5\n")
+    aligned: dict[str, object] = {}
+    failures = {"a": (0.04, 0.05, 0.06), "b": (0.06, 0.07, 0.05), "c": (0.05, 0.05, 0.05), "d": (0.1, 0.1, 0.1)}
+
+    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
+        aligned[folder.rsplit("/", 1)[-1]] = row
+        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+
+    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
+        name = folder.rsplit("/", 1)[-1]
+        if name == "base":
+            failure = 0.1
+        else:
+            key, _, seed = name.removeprefix("row_").partition("_seed")
+            failure = failures[key][int(seed) - 5 if seed else 0]
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
+
+    (tmp_path / "rm").mkdir()
+    monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
+    config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0)
+    assert config.draws == 3
+    rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
+    assert sorted(aligned) == sorted(f"{k}{s}" for k in LADDER_ROWS for s in ("", "_seed6", "_seed7"))
+    from trafficrlhf_sdk.experiments.steps import read_recipe
+
+    written = read_recipe(str(recipe)).align.model_dump(exclude_unset=True)
+    for key in LADDER_ROWS:
+        first = aligned[key].align  # type: ignore[attr-defined]
+        # draw 0 is the recipe as written (the same set fields, so the same step digest as before draws existed)
+        assert first.model_dump(exclude_unset=True) == {**written, **({"alpha": 0.0} if key == "d" else {})}
+        for seed in (6, 7):
+            other = aligned[f"{key}_seed{seed}"].align  # type: ignore[attr-defined]
+            assert other.model_dump() == {**first.model_dump(), "seed": seed}
+        assert [d["seed"] for d in rows[key]["draws"]] == [5, 6, 7]
+    table = (tmp_path / "out" / "ladder.md").read_text()
+    # row (a): -60 / -50 / -40 %, mean -50 %; t(0.975, 2) = 4.303, s = 10 -> half-width 24.8 points
+    assert "(a) built-in failure reward | 0.0500 (-50.0 %) | -60.0 / -50.0 / -40.0 % | -74.8 % to -25.2 % |" in table
+    assert "95 % interval over draws (t)" in table and "mean of 3 training draws (seeds 5, 6, 7)" in table
+    # the annotator's link, paired by seed: (b) - (a) = +20, +20, -10 points -> mean +10.0
+    assert "- the annotator, (a) to (b): +10.0 (-33.0 to +53.0)" in table
+    saved = json.loads((tmp_path / "out" / "ladder.json").read_text())
+    assert [d["evaluation"]["metrics"]["failure_rate"] for d in saved["a"]["draws"]] == [0.04, 0.05, 0.06]
+
+
+def test_alignments_on_workers_run_the_control_row_last(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.experiments import ladder
+    from trafficrlhf_sdk.parallel import ExecutionConfig
+
+    seen: list[str] = []
+
+    def fake_tasks(fn, shared, tasks, execution):  # type: ignore[no-untyped-def]
+        assert execution.workers == 2 and shared["log"] is None  # a worker has nowhere to print
+        for job in tasks:
+            seen.append(job.folder)
+            yield StepResult("align", job.folder, "x", {"folder": job.folder})
+
+    monkeypatch.setattr(ladder, "iter_tasks", fake_tasks)
+    jobs = [ladder._AlignJob(key, draw, draw, f"{key}{draw}", None, []) for draw in range(2) for key in "abcd"]
+    done = ladder._align_rows(jobs, False, lambda _: None, ExecutionConfig(workers=2))
+    assert seen == ["a0", "b0", "c0", "a1", "b1", "c1", "d0", "d1"] and set(done) == {j.folder for j in jobs}
+
+
+def test_t_quantile_matches_scipy() -> None:
+    from scipy.stats import t
+
+    from trafficrlhf_sdk.experiments.ladder import _t_quantile
+
+    for df in (1, 2, 3, 5, 9, 40):
+        assert _t_quantile(0.975, df) == pytest.approx(t.ppf(0.975, df), abs=1e-4)
+    with pytest.raises(ValueError, match=r"0\.5 < p < 1"):
+        _t_quantile(0.2, 3)
 
 
 def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -174,7 +253,7 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     recipe = tmp_path / "recipe.toml"
     recipe.write_text(TINY_RECIPE)
     config = LadderConfig(recipe=str(recipe), campaigns=((3, 0), (2, 1)), scenes=2, seeds=(0,), agreement_contexts=2,
-                          contrast_scenes=2, probe_scenes=2,
+                          contrast_scenes=2, probe_scenes=2, draws=2,
                           reward={"max_epochs": 1, "batch_size": 2, "ensemble_size": 1, "progress": False})
     out = tmp_path / "ladder"
     rows = run_ladder(config, str(out), log=lambda _: None)
@@ -187,14 +266,20 @@ def test_tiny_ladder_end_to_end_and_resumed(data_root: str, tmp_path) -> None:
     # every evaluation names its scenes, so the rows can be compared scene by scene (the table's interval)
     named = json.loads((out / "evaluations" / "row_c" / "seed_0" / "results.json").read_text())["metadata"]
     assert len(named["scene_ids"]) == 2 and named["model"] == "ctg" and named["seed"] == 0
-    assert "| 95 % interval |" in (out / "ladder.md").read_text()
+    assert "| 95 % interval over draws (t) |" in (out / "ladder.md").read_text()
     end = saved["agreement"]["end"]
     assert sum(v["pairs"] for v in end["by_term"].values()) == end["pairs"]
     assert ("by the judgment term that decides a pair" in (out / "ladder.md").read_text()) == bool(end["pairs"])
     assert set(end["by_gap"]) == {"0.02", "0.05"}
     assert ("whose realism differs by more than a gap" in (out / "ladder.md").read_text()) == bool(end["pairs"])
+    # the second draw is its own training run: another seed in its own folder
+    second = json.loads((out / "rows" / "a_seed1" / "step.json").read_text())
+    assert second["inputs"]["align"]["seed"] == 1 and "seed" not in \
+        json.loads((out / "rows" / "a" / "step.json").read_text())["inputs"]["align"]
+    assert [d["seed"] for d in saved["c"]["draws"]] == [0, 1]
     again = run_ladder(config, str(out), log=lambda _: None)
-    assert all(again[k]["evaluation"].cached for k in ("base", *LADDER_ROWS))
+    assert all(d["evaluation"].cached for k in LADDER_ROWS for d in again[k]["draws"])
+    assert again["base"]["evaluation"].cached
     assert rows["c"]["reward"] == again["c"]["reward"]
 
 
@@ -224,7 +309,8 @@ def test_agreement_is_redone_when_the_reward_models_weights_or_the_policy_change
     db = str(tmp_path / "feedback.sqlite")
 
     def agreement(policy: list[StepResult]) -> None:
-        ladder._agreement(config, recipe, "ckpt", str(rm), db, str(tmp_path), "end", steps, fake_generate, policy)
+        ladder._agreement(config, recipe, "ckpt", str(rm), db, str(tmp_path), "end", steps, fake_generate, policy,
+                         None)
 
     policy = [StepResult("align", "row_c", "p1", {})]
     agreement(policy)

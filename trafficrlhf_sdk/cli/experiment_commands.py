@@ -75,8 +75,10 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
 @click.option("--reward-model", default=None, help="A learned reward-model folder for rows (c) and (d) instead of "
                                                    "training one on stand-in labels.")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings.")
+@ray_options("the rows' alignments side by side (one per worker), the evaluations' rollouts and the campaigns' "
+             "candidates")
 def ladder_command(model: str | None, out_dir: str, config_path: str | None, reward_model: str | None,
-                   overwrite: bool) -> None:
+                   overwrite: bool, workers: int, ray_address: str | None) -> None:
     """The alignment ladder: one model and fine-tuning recipe, rewarded by (a) the built-in failure reward, (b) the
     stand-in's judgment, (c) a reward model learned from its labels, (d) (c) with alpha = 0; each row evaluated in
     closed loop, so the gap each link of the feedback chain loses is measured."""
@@ -94,5 +96,8 @@ def ladder_command(model: str | None, out_dir: str, config_path: str | None, rew
         fields["reward_model"] = reward_model
     config = (load_config(LadderConfig, config_path, **fields) if config_path is not None
               else LadderConfig(**fields))  # type: ignore[arg-type]
-    rows = run_ladder(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite)
+    from trafficrlhf_sdk.parallel import ExecutionConfig
+
+    execution = ExecutionConfig(workers=workers, ray_address=ray_address)
+    rows = run_ladder(config, out_dir, log=lambda line: click.echo(line), overwrite=overwrite, execution=execution)
     click.echo(f"wrote {out_dir}/ladder.md ({len(rows) - ('agreement' in rows)} rows)")

@@ -24,6 +24,10 @@ round ``r - 1``'s reward model, draws ``round_contexts`` train contexts from tha
 cut shortly before its failures (``CampaignConfig.contexts = 'closed_loop'``), has the same stand-ins label them,
 and retrains the reward model on every label so far; rows (c) and (d) use the last round's reward model.
 
+Each row runs ``draws`` times, with training seeds ``seed``, ``seed + 1``, ... of the recipe (a fine-tuning run is
+one draw of its recipe, and draws of the same recipe differ by tens of points), and is reported as the mean over
+its draws with a t-interval over them; each link's loss is the difference of two rows, paired by training seed.
+
 Everything runs as steps of :mod:`trafficrlhf_sdk.pipeline` under the output folder, so an interrupted ladder
 resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` and ``ladder.png``.
 """
@@ -35,10 +39,13 @@ import os
 from collections.abc import Callable
 from typing import Any
 
+from dataclasses import dataclass
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import resolve_path
+from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks
 from trafficrlhf_sdk.reward.config import RewardConfig
 
 __all__ = ["LADDER_ROWS", "LadderConfig", "run_ladder"]
@@ -96,6 +103,9 @@ class LadderConfig(BaseModel):
     rollouts: int = Field(1, ge=1, description="Rollouts per scene (2 or more add the realism meta-metric).")
     agreement_contexts: int = Field(60, ge=0, description="Val contexts of the policy's own candidates on which "
                                     "the reward model's agreement with the stand-in is measured (0: skip).")
+    draws: int = Field(3, ge=1, description="Training draws of every row: draw i runs the recipe with the training "
+                       "seed (the recipe's seed + i), so each row is reported as its mean over draws with their "
+                       "spread; draw 0 is the recipe unchanged.")
 
     @model_validator(mode="after")
     def _check(self) -> LadderConfig:
@@ -107,14 +117,20 @@ class LadderConfig(BaseModel):
 
 
 def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = print,
-               overwrite: bool = False) -> dict[str, Any]:
-    """Run (or resume) the ladder into ``out_dir``; returns the rows as written to ``ladder.json``."""
+               overwrite: bool = False, execution: ExecutionConfig | None = None) -> dict[str, Any]:
+    """Run (or resume) the ladder into ``out_dir``; returns the rows as written to ``ladder.json``.
+
+    With ``execution`` on Ray, the rows' alignments (every row and draw is independent of the others once the
+    reward model exists) run side by side, one per worker, and the evaluations' rollouts and the campaigns'
+    candidates run on the workers too; each worker uses its own torch threads, so the numbers are those of an
+    in-process run with as many threads."""
     from trafficrlhf_sdk.experiments.steps import read_recipe
     from trafficrlhf_sdk.evaluation.runs import EvaluationRequest
     from trafficrlhf_sdk.feedback.synthetic import PROFILES
-    from trafficrlhf_sdk.pipeline import align_step, evaluate_step, generate_step, label_step, reward_model_step
+    from trafficrlhf_sdk.pipeline import evaluate_step, generate_step, label_step, reward_model_step
 
     steps = {"overwrite": overwrite, "log": log}
+    ray = execution if execution is not None and execution.uses_ray else None
     recipe = read_recipe(config.recipe)
     guidance = recipe.align.guidance
     os.makedirs(out_dir, exist_ok=True)
@@ -123,7 +139,8 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     def evaluate(label: str, checkpoint: str | None, after: list[Any]) -> Any:
         request = EvaluationRequest(model=recipe.model, checkpoint=checkpoint, guidance=guidance or "none",
                                     model_options=recipe.model_options, num_scenes=config.scenes,
-                                    seeds=config.seeds, rollouts=config.rollouts)
+                                    seeds=config.seeds, rollouts=config.rollouts,
+                                    **({"execution": ray} if ray is not None else {}))
         return evaluate_step(os.path.join(out_dir, "evaluations", label), request, metrics=METRICS, after=after,
                              **steps)
 
@@ -132,35 +149,87 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     learned: list[Any] = []
     if reward_model is None:
         reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
-                                                    reward_model_step, align_step, PROFILES)
+                                                    reward_model_step, PROFILES, ray)
     else:  # a given reward model: its weights stand in for the step that would have trained it
         reward_model = resolve_path(reward_model)
         learned = [_given_reward_model(reward_model)]
-    policies: dict[str, Any] = {}
+    jobs = []
+    for draw in range(config.draws):
+        seed = recipe.align.seed + draw
+        for key, (_, spec) in LADDER_ROWS.items():
+            fields: dict[str, Any] = {"alpha": 0.0} if key == "d" else {}
+            if draw:  # draw 0 is the recipe as written (and keeps its folders and digests)
+                fields["seed"] = seed
+            row = recipe.model_copy(update={"reward_model": spec or reward_model,
+                                            "align": recipe.align.model_copy(update=fields)})
+            # rows (a) and (b) read no learned reward: a retrained reward model leaves them done
+            jobs.append(_AlignJob(key, draw, seed, os.path.join(out_dir, "rows", key + _suffix(draw, seed)), row,
+                                  [] if spec else learned))
+    aligned = _align_rows(jobs, overwrite, log, ray)
     for key, (label, spec) in LADDER_ROWS.items():
-        fields = {"alpha": 0.0} if key == "d" else {}
-        row = recipe.model_copy(update={"reward_model": spec or reward_model,
-                                        "align": recipe.align.model_copy(update=fields)})
-        # rows (a) and (b) read no learned reward: a retrained reward model leaves them done
-        aligned = align_step(os.path.join(out_dir, "rows", key), row, after=[] if spec else learned, **steps)
-        policies[key] = aligned
-        rows[key] = {"label": label, "reward": spec or reward_model, "align": _summary(aligned),
-                     "evaluation": evaluate(f"row_{key}", aligned["folder"], [aligned])}
+        draws = [{"seed": job.seed, "align": _summary(aligned[job.folder]),
+                  "evaluation": evaluate(f"row_{key}{_suffix(job.draw, job.seed)}", aligned[job.folder]["folder"],
+                                         [aligned[job.folder]])}
+                 for job in jobs if job.key == key]
+        rows[key] = {"label": label, "reward": spec or reward_model, "align": draws[0]["align"],
+                     "evaluation": draws[0]["evaluation"], "draws": draws}
     if config.agreement_contexts:
+        end = next(job for job in jobs if job.key == "c" and job.draw == 0)
         rows["agreement"] = {
             moment: _agreement(config, recipe, checkpoint, reward_model, db, out_dir, moment, steps, generate_step,
-                               policy)
+                               policy, ray)
             for moment, checkpoint, policy in (("start", recipe.checkpoint, []),
-                                               ("end", rows["c"]["align"]["folder"], [policies["c"]]))}
+                                               ("end", rows["c"]["align"]["folder"], [aligned[end.folder]]))}
     _write(rows, config, out_dir)
     return rows
 
 
+@dataclass(frozen=True)
+class _AlignJob:
+    """One row's alignment in one draw."""
+
+    key: str
+    draw: int
+    seed: int
+    folder: str
+    recipe: Any
+    after: list[Any]
+
+
+def _suffix(draw: int, seed: int) -> str:
+    """The folder suffix of a draw: none for draw 0 (the recipe as written), ``_seed<S>`` for the others."""
+    return f"_seed{seed}" if draw else ""
+
+
+def _align_job(shared: dict[str, Any], job: _AlignJob) -> Any:
+    """One alignment step (in-process, or a task on a Ray worker; a finished one is read from its folder)."""
+    from trafficrlhf_sdk import pipeline
+
+    return pipeline.align_step(job.folder, job.recipe, after=job.after, overwrite=shared["overwrite"],
+                               log=shared["log"])
+
+
+def _align_rows(jobs: list[_AlignJob], overwrite: bool, log: Callable[[str], None],
+                execution: ExecutionConfig | None) -> dict[str, Any]:
+    """Every job's alignment step, by folder: one after another in-process, or side by side on Ray workers (the
+    control row (d) last, so the rows that move come first)."""
+    if execution is None:
+        return {job.folder: _align_job({"overwrite": overwrite, "log": log}, job) for job in jobs}
+    order = sorted(jobs, key=lambda job: (job.key == "d", job.draw, job.key))
+    log(f"align: {len(order)} rows x draws on Ray workers ({', '.join(os.path.basename(j.folder) for j in order)})")
+    done = {}
+    for job, result in zip(order, iter_tasks(_align_job, {"overwrite": overwrite, "log": None}, order, execution)):
+        log(f"align: {'done before' if result.cached else 'done'} ({job.folder})")
+        done[job.folder] = result
+    return done
+
+
 def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str, steps: dict[str, Any],
-                        generate_step: Any, label_step: Any, reward_model_step: Any, align_step: Any,
-                        profiles: dict[str, Any]) -> tuple[str, list[Any]]:
+                        generate_step: Any, label_step: Any, reward_model_step: Any, profiles: dict[str, Any],
+                        execution: ExecutionConfig | None) -> tuple[str, list[Any]]:
     """The product path: the base model's candidates on train contexts, stand-in labels, a reward model; with
     ``rounds`` above 1, then each round's closed-loop contexts of the policy the previous reward model aligned."""
+    from trafficrlhf_sdk import pipeline
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
 
     annotators = {name: profiles[name] for name in config.annotators}
@@ -168,7 +237,8 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
 
     def label(campaign: CampaignConfig, after: list[Any]) -> None:
         folder = os.path.join(out_dir, "feedback", campaign.name)
-        generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=after, **steps)
+        generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=after, execution=execution,
+                                  **steps)
         labelled.append(label_step(os.path.join(folder, "label"), db, campaign.name, annotators, after=[generated],
                                    **steps))
         names.append(campaign.name)
@@ -184,8 +254,8 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
         if r > 0:  # the previous round's policy drives; its contexts are cut shortly before its own failures
             assert trained is not None
             row = recipe.model_copy(update={"reward_model": trained["folder"]})
-            policy = align_step(os.path.join(out_dir, "rounds", f"round_{r - 1}", "aligned"), row, after=[trained],
-                                **steps)
+            policy = pipeline.align_step(os.path.join(out_dir, "rounds", f"round_{r - 1}", "aligned"), row,
+                                         after=[trained], execution=execution, **steps)
             label(CampaignConfig(name=f"ladder-round-{r}", model=recipe.model, guidance=recipe.align.guidance,
                                  model_options={**recipe.model_options, "checkpoint": policy["folder"]},
                                  split="train", num_contexts=config.round_contexts, num_candidates=config.candidates,
@@ -223,7 +293,8 @@ def _given_reward_model(reward_model: str) -> Any:
 
 
 def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward_model: str, db: str, out_dir: str,
-               moment: str, steps: dict[str, Any], generate_step: Any, policy: list[Any]) -> dict[str, Any]:
+               moment: str, steps: dict[str, Any], generate_step: Any, policy: list[Any],
+               execution: ExecutionConfig | None) -> dict[str, Any]:
     """The reward model's agreement with the noise-free stand-in on val candidates of ``checkpoint`` (made by the
     ``policy`` step, if any). Both are redone when the policy or the reward model's weights change."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
@@ -237,7 +308,8 @@ def _agreement(config: LadderConfig, recipe: Any, checkpoint: str | None, reward
                               num_contexts=config.agreement_contexts, num_candidates=config.candidates,
                               candidate_seconds=config.seconds, seed=config.agreement_seed)
     folder = os.path.join(out_dir, "agreement", moment)
-    generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=policy, **steps)
+    generated = generate_step(os.path.join(folder, "generate"), db, campaign, after=policy, execution=execution,
+                              **steps)
 
     def work() -> dict[str, Any]:
         store = FeedbackStore(db)
@@ -257,36 +329,123 @@ def _summary(aligned: Any) -> dict[str, Any]:
                                     "heldout_realism_first", "heldout_realism_last") if k in outputs}
 
 
+def _plain_row(row: dict[str, Any]) -> dict[str, Any]:
+    """A row with its evaluation steps' outputs in place of the steps (what ``ladder.json`` holds)."""
+    plain = {**row, "evaluation": dict(row["evaluation"].outputs)}
+    if "draws" in row:
+        plain["draws"] = [{**d, "evaluation": dict(d["evaluation"].outputs)} for d in row["draws"]]
+    return plain
+
+
+def _mean_metrics(row: dict[str, Any]) -> dict[str, float]:
+    """The row's metrics, each the mean over its draws (the base: its one evaluation)."""
+    runs = [d["evaluation"]["metrics"] for d in row.get("draws") or [row]]
+    return {name: sum(float(r.get(name, float("nan"))) for r in runs) / len(runs) for name in runs[0]}
+
+
+def _changes(row: dict[str, Any], base_failure: float) -> list[float]:
+    """Each draw's failure-rate change against the base, in percent."""
+    return [100 * (d["evaluation"]["metrics"]["failure_rate"] / max(base_failure, 1e-9) - 1)
+            for d in row.get("draws") or [row]]
+
+
+def _t_quantile(p: float, df: int) -> float:
+    """The ``p`` quantile of Student's t with ``df`` degrees of freedom (``0.5 < p < 1``), by bisection on its
+    distribution function (the density integrated with Simpson's rule); within 1e-4 of the exact value."""
+    import math
+
+    if not 0.5 < p < 1 or df < 1:
+        raise ValueError(f"_t_quantile needs 0.5 < p < 1 and df >= 1; got p={p}, df={df}.")
+    log_norm = math.lgamma((df + 1) / 2) - math.lgamma(df / 2) - 0.5 * math.log(df * math.pi)
+
+    def cdf_above_half(x: float, n: int = 2000) -> float:  # P(0 < T < x)
+        h = x / n
+        total = 0.0
+        for i in range(n + 1):
+            weight = 1 if i in (0, n) else (4 if i % 2 else 2)
+            total += weight * math.exp(log_norm - (df + 1) / 2 * math.log1p((i * h) ** 2 / df))
+        return total * h / 3
+
+    low, high = 0.0, 1.0
+    while cdf_above_half(high) < p - 0.5:
+        high *= 2
+    for _ in range(40):
+        mid = (low + high) / 2
+        low, high = (mid, high) if cdf_above_half(mid) < p - 0.5 else (low, mid)
+    return (low + high) / 2
+
+
+def _mean_interval(values: list[float]) -> tuple[float, float, float] | None:
+    """Mean of ``values`` (one per draw) and its 95 % t-interval over draws; None for a single value."""
+    import statistics
+
+    if len(values) < 2:
+        return None
+    mean = statistics.fmean(values)
+    half = _t_quantile(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
+    return mean, mean - half, mean + half
+
+
+def _over_draws(values: list[float]) -> str:
+    """``values`` (one per draw, in points) as their mean and 95 % t-interval over draws."""
+    interval = _mean_interval(values)
+    if interval is None:
+        return f"{values[0]:+.1f}"
+    return f"{interval[0]:+.1f} ({interval[1]:+.1f} to {interval[2]:+.1f})"
+
+
 def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
     """``ladder.json``, ``ladder.md`` and ``ladder.png``."""
-    plain = {k: (v if k == "agreement" else {**v, "evaluation": dict(v["evaluation"].outputs)})
-             for k, v in rows.items()}
+    plain = {k: (v if k == "agreement" else _plain_row(v)) for k, v in rows.items()}
     with open(os.path.join(out_dir, "ladder.json"), "w") as fh:
         json.dump(plain, fh, indent=2, default=str)
     base = plain["base"]["evaluation"]["metrics"]
+    keys = [k for k in plain if k not in ("base", "agreement")]
+    draws = max((len(plain[k].get("draws") or [1]) for k in keys), default=1)
+    over = "over draws (t)" if draws > 1 else "over scenes"
     lines = [f"# Alignment ladder ({config.recipe})", "",
              f"{config.scenes} val scenes, seeds {', '.join(map(str, config.seeds))}; every row runs the same "
              "fine-tuning recipe from the same start, only the reward differs"
+             + (f"; each row is the mean of {draws} training draws (seeds "
+                f"{', '.join(str(d['seed']) for d in plain[keys[0]]['draws'])})" if draws > 1 else "")
              + (f"; the learned reward model is round {config.rounds - 1}'s (closed-loop contexts of the policy "
                 "each round aligned)." if config.rounds > 1 and not config.reward_model else "."), "",
-             "| row | failure (change) | 95 % interval | collision | off-road | realism ctg / body | speed / log | "
-             "stopped |", "|---|---|---|---|---|---|---|---|"]
+             f"| row | failure (change) | each draw's change | 95 % interval {over} | collision | off-road | "
+             "realism ctg / body | speed / log | stopped |", "|---|---|---|---|---|---|---|---|---|"]
     for key, row in plain.items():
         if key == "agreement":
             continue
-        m = row["evaluation"]["metrics"]
-        change = "" if key == "base" else f" ({100 * (m['failure_rate'] / max(base['failure_rate'], 1e-9) - 1):+.1f} %)"
-        interval = "" if key == "base" else _failure_interval(out_dir, "base", f"row_{key}")
+        m = _mean_metrics(row)
+        changes = [] if key == "base" else _changes(row, base["failure_rate"])
+        change = f" ({100 * (m['failure_rate'] / max(base['failure_rate'], 1e-9) - 1):+.1f} %)" if changes else ""
+        if not changes:
+            interval = ""
+        elif len(changes) > 1:
+            _, low, high = _mean_interval(changes)  # type: ignore[misc]
+            interval = f"{low:+.1f} % to {high:+.1f} %"
+        else:
+            interval = _failure_interval(out_dir, "base", f"row_{key}")
+        each = " / ".join(f"{c:+.1f}" for c in changes) + (" %" if changes else "")
         lines.append(f"| {'' if key == 'base' else f'({key}) '}{row['label']} | {m['failure_rate']:.4f}{change} | "
-                     f"{interval} | "
+                     f"{each} | {interval} | "
                      f"{m.get('collision_rate', float('nan')):.4f} | {m.get('offroad_rate', float('nan')):.4f} | "
                      f"{m.get('realism_ctg', float('nan')):.4f} / {m.get('realism_body', float('nan')):.4f} | "
                      f"{m.get('speed_ratio', float('nan')):.3f} | {m.get('stopped_share', float('nan')):.3f} |")
+    links = [("the annotator", "a", "b"), ("the reward model", "b", "c"), ("the reward itself", "c", "d")]
+    if all(k in plain for _, *pair in links for k in pair):
+        lines += ["", "What each link of the chain loses: the failure change of the lower row minus that of the "
+                  "upper one, in points" + (", mean over draws paired by training seed (95 % t-interval)"
+                                            if draws > 1 else "") + ":", ""]
+        for name, upper, lower in links:
+            gaps = [b - a for a, b in zip(_changes(plain[upper], base["failure_rate"]),
+                                          _changes(plain[lower], base["failure_rate"]))]
+            lines.append(f"- {name}, ({upper}) to ({lower}): {_over_draws(gaps)}")
     if "agreement" in plain:
         a = plain["agreement"]
         lines += ["", "Reward model against the noise-free stand-in on the policy's own val candidates: "
                   f"{a['start']['agreement']:.3f} at the start ({a['start']['pairs']} pairs), "
-                  f"{a['end']['agreement']:.3f} at the end ({a['end']['pairs']} pairs)."]
+                  f"{a['end']['agreement']:.3f} at the end ({a['end']['pairs']} pairs"
+                  + (", row (c) of the first draw" if draws > 1 else "") + ")."]
         by_gap = a["end"].get("by_gap") or {}
         if by_gap:
             lines += ["", "At the end, on the pairs whose realism differs by more than a gap (pairs, agreement): "
@@ -325,12 +484,18 @@ def _plot(rows: dict[str, Any], path: str) -> None:
 
     keys = [k for k in rows if k != "agreement"]
     names = ["base" if k == "base" else f"({k}) {rows[k]['label']}" for k in keys]
-    failure = [rows[k]["evaluation"]["metrics"]["failure_rate"] for k in keys]
+    failure = [_mean_metrics(rows[k])["failure_rate"] for k in keys]
     fig, ax = plt.subplots(figsize=(7, 3.2))
     ax.barh(range(len(keys)), failure, color=["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2"][: len(keys)])
+    for i, key in enumerate(keys):  # each training draw of a row, over its bar
+        runs = [d["evaluation"]["metrics"]["failure_rate"] for d in rows[key].get("draws") or []]
+        if len(runs) > 1:
+            ax.plot(runs, [i] * len(runs), "o", color="black", markersize=3.5, alpha=0.8)
     ax.set_yticks(range(len(keys)), names)
     ax.invert_yaxis()
-    ax.set_xlabel("failure rate (closed loop, mean over seeds)")
+    draws = max(len(rows[k].get("draws") or []) for k in keys)
+    ax.set_xlabel("failure rate (closed loop, mean over seeds" + (f"; bars: mean of {draws} training draws, "
+                                                                 "dots: each draw)" if draws > 1 else ")"))
     for i, value in enumerate(failure):
         ax.text(value, i, f" {value:.3f}", va="center", fontsize=8)
     fig.tight_layout()
