@@ -101,7 +101,7 @@ def test_every_row_runs_in_each_draw_with_its_own_training_seed(tmp_path, monkey
     written = read_recipe(str(recipe)).align.model_dump(exclude_unset=True)
     for key in LADDER_ROWS:
         first = aligned[key].align  # type: ignore[attr-defined]
-        # draw 0 is the recipe as written (the same set fields, so the same step digest as before draws existed)
+        # draw 0 is the recipe as written: the same set fields, so the digest of the recipe as written
         assert first.model_dump(exclude_unset=True) == {**written, **({"alpha": 0.0} if key == "d" else {})}
         for seed in (6, 7):
             other = aligned[f"{key}_seed{seed}"].align  # type: ignore[attr-defined]
@@ -117,22 +117,63 @@ def test_every_row_runs_in_each_draw_with_its_own_training_seed(tmp_path, monkey
     assert [d["evaluation"]["metrics"]["failure_rate"] for d in saved["a"]["draws"]] == [0.04, 0.05, 0.06]
 
 
+def test_control_row_of_a_recipe_without_imitation_term_is_the_start(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.pipeline as pipeline
+
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE + "imitation_coef = 0.0\n")
+    aligned: list[str] = []
+
+    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
+        aligned.append(folder.rsplit("/", 1)[-1])
+        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+
+    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
+        failure = 0.1 if folder.endswith("base") else 0.05
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
+
+    (tmp_path / "rm").mkdir()
+    monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
+    config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0, draws=2)
+    rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
+    # alpha = 0 leaves only terms that hold the policy to its start: (d) is not trained, it is the base
+    assert sorted(aligned) == ["a", "a_seed1", "b", "b_seed1", "c", "c_seed1"]
+    assert rows["d"]["evaluation"] is rows["base"]["evaluation"] and len(rows["d"]["draws"]) == 2
+    assert "the start: nothing else in the recipe moves the weights) | 0.1000 (+0.0 %) | +0.0 / +0.0 % |" in \
+        (tmp_path / "out" / "ladder.md").read_text()
+
+
 def test_alignments_on_workers_run_the_control_row_last(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.experiments import ladder
     from trafficrlhf_sdk.parallel import ExecutionConfig
 
     seen: list[str] = []
+    failing: set[str] = set()
 
     def fake_tasks(fn, shared, tasks, execution):  # type: ignore[no-untyped-def]
-        assert execution.workers == 2 and shared["log"] is None  # a worker has nowhere to print
+        # a worker runs in the driver's folder, with its data root and the worker's threads
+        assert execution.workers == 2 and shared["cwd"] == str(tmp_path) and shared["threads"] == 1
+        assert shared["env"] == {"TRAFFICRLHF_DATA": "/data/here"}
         for job in tasks:
             seen.append(job.folder)
-            yield StepResult("align", job.folder, "x", {"folder": job.folder})
+            if job.folder in failing:
+                yield TrafficRLHFError(f"{job.folder} finished with other settings"), []
+            else:
+                yield StepResult("align", job.folder, "x", {"folder": job.folder}), [f"logged by {job.folder}"]
 
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("TRAFFICRLHF_DATA", "/data/here")
     monkeypatch.setattr(ladder, "iter_tasks", fake_tasks)
     jobs = [ladder._AlignJob(key, draw, draw, f"{key}{draw}", None, []) for draw in range(2) for key in "abcd"]
-    done = ladder._align_rows(jobs, False, lambda _: None, ExecutionConfig(workers=2))
+    logged: list[str] = []
+    done = ladder._align_rows(jobs, False, logged.append, ExecutionConfig(workers=2))
     assert seen == ["a0", "b0", "c0", "a1", "b1", "c1", "d0", "d1"] and set(done) == {j.folder for j in jobs}
+    assert "logged by c1" in logged  # what a worker logged reaches the driver's log
+    failing.add("b1")  # an SDK error on a worker is raised in the driver as itself
+    with pytest.raises(TrafficRLHFError, match="b1 finished with other settings"):
+        ladder._align_rows(jobs, False, logged.append, ExecutionConfig(workers=2))
 
 
 def test_t_quantile_matches_scipy() -> None:

@@ -108,16 +108,15 @@ def parse_key_values(pairs: Sequence[str], option: str) -> dict[str, object]:
     return options
 
 
-def ray_options(what: str) -> Callable[[F], F]:
+def ray_options(what: str, numbers: str = "The numbers are the same either way.") -> Callable[[F], F]:
     """``--workers`` and ``--ray-address`` for a command that can run ``what`` (e.g. "each epoch's samples") on
-    Ray; the numbers are the same as in-process."""
+    Ray; ``numbers`` says how its results compare with the in-process run's."""
     def decorate(command: F) -> F:
         command = click.option("--ray-address", default=None, help=f"Run {what} on an existing Ray cluster at this "
                                "address (e.g. auto or HOST:6379) instead of a local one.")(command)
         return click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
                             help=f"Run {what} on N Ray workers started for the run (pip install "
-                                 "'trafficrlhf-sdk[ray]'); 0 runs in-process. The numbers are the same either "
-                                 "way.")(command)
+                                 f"'trafficrlhf-sdk[ray]'); 0 runs in-process. {numbers}")(command)
     return decorate
 
 

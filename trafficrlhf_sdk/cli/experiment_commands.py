@@ -76,7 +76,8 @@ def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str 
                                                    "training one on stand-in labels.")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings.")
 @ray_options("the rows' alignments side by side (one per worker), the evaluations' rollouts and the campaigns' "
-             "candidates")
+             "candidates", numbers="Each alignment on a worker runs on one thread: the numbers of an in-process "
+             "run with OMP_NUM_THREADS=1.")
 def ladder_command(model: str | None, out_dir: str, config_path: str | None, reward_model: str | None,
                    overwrite: bool, workers: int, ray_address: str | None) -> None:
     """The alignment ladder: one model and fine-tuning recipe, rewarded by (a) the built-in failure reward, (b) the

@@ -34,19 +34,23 @@ resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` a
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from collections.abc import Callable
-from typing import Any
-
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import resolve_path
-from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks
+from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks, ray_session
 from trafficrlhf_sdk.reward.config import RewardConfig
+
+if TYPE_CHECKING:
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+    from trafficrlhf_sdk.pipeline.step import StepResult
 
 __all__ = ["LADDER_ROWS", "LadderConfig", "run_ladder"]
 
@@ -120,17 +124,24 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
                overwrite: bool = False, execution: ExecutionConfig | None = None) -> dict[str, Any]:
     """Run (or resume) the ladder into ``out_dir``; returns the rows as written to ``ladder.json``.
 
-    With ``execution`` on Ray, the rows' alignments (every row and draw is independent of the others once the
-    reward model exists) run side by side, one per worker, and the evaluations' rollouts and the campaigns'
-    candidates run on the workers too; each worker uses its own torch threads, so the numbers are those of an
-    in-process run with as many threads."""
+    With ``execution`` on Ray, one Ray session serves the whole ladder: the rows' alignments (every row and draw is
+    independent of the others once the reward model exists) run side by side, one per worker with the worker's
+    torch threads (``threads_per_worker``, 1 by default: the numbers of an in-process run with ``--threads 1``),
+    and the evaluations' rollouts and the campaigns' candidates run on the workers too. On an existing cluster
+    (``ray_address``) the workers must see the driver's working directory and data on a shared file system."""
+    on_ray = execution if execution is not None and execution.uses_ray else None
+    with ray_session(on_ray or ExecutionConfig()):
+        return _run_ladder(config, out_dir, log, overwrite, on_ray)
+
+
+def _run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None], overwrite: bool,
+                on_ray: ExecutionConfig | None) -> dict[str, Any]:
     from trafficrlhf_sdk.experiments.steps import read_recipe
     from trafficrlhf_sdk.evaluation.runs import EvaluationRequest
     from trafficrlhf_sdk.feedback.synthetic import PROFILES
     from trafficrlhf_sdk.pipeline import evaluate_step, generate_step, label_step, reward_model_step
 
     steps = {"overwrite": overwrite, "log": log}
-    ray = execution if execution is not None and execution.uses_ray else None
     recipe = read_recipe(config.recipe)
     guidance = recipe.align.guidance
     os.makedirs(out_dir, exist_ok=True)
@@ -140,7 +151,7 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
         request = EvaluationRequest(model=recipe.model, checkpoint=checkpoint, guidance=guidance or "none",
                                     model_options=recipe.model_options, num_scenes=config.scenes,
                                     seeds=config.seeds, rollouts=config.rollouts,
-                                    **({"execution": ray} if ray is not None else {}))
+                                    **({"execution": on_ray} if on_ray is not None else {}))
         return evaluate_step(os.path.join(out_dir, "evaluations", label), request, metrics=METRICS, after=after,
                              **steps)
 
@@ -149,14 +160,19 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
     learned: list[Any] = []
     if reward_model is None:
         reward_model, learned = _learn_reward_model(config, recipe, db, out_dir, steps, generate_step, label_step,
-                                                    reward_model_step, PROFILES, ray)
+                                                    reward_model_step, PROFILES, on_ray)
     else:  # a given reward model: its weights stand in for the step that would have trained it
         reward_model = resolve_path(reward_model)
         learned = [_given_reward_model(reward_model)]
+    # With alpha = 0 and no imitation term, what is left of the objective (the KL and the passing anchor to the
+    # starting weights) is zero with a zero gradient there, so the weights never move: row (d) is the start itself.
+    still = recipe.align.imitation_coef == 0
     jobs = []
     for draw in range(config.draws):
         seed = recipe.align.seed + draw
         for key, (_, spec) in LADDER_ROWS.items():
+            if key == "d" and still:
+                continue
             fields: dict[str, Any] = {"alpha": 0.0} if key == "d" else {}
             if draw:  # draw 0 is the recipe as written (and keeps its folders and digests)
                 fields["seed"] = seed
@@ -165,8 +181,15 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
             # rows (a) and (b) read no learned reward: a retrained reward model leaves them done
             jobs.append(_AlignJob(key, draw, seed, os.path.join(out_dir, "rows", key + _suffix(draw, seed)), row,
                                   [] if spec else learned))
-    aligned = _align_rows(jobs, overwrite, log, ray)
+    aligned = _align_rows(jobs, overwrite, log, on_ray)
     for key, (label, spec) in LADDER_ROWS.items():
+        if key == "d" and still:
+            start = {"folder": recipe.checkpoint, "epochs": 0}
+            rows[key] = {"label": f"{label} (the start: nothing else in the recipe moves the weights)",
+                         "reward": reward_model, "align": start, "evaluation": rows["base"]["evaluation"],
+                         "draws": [{"seed": recipe.align.seed + draw, "align": start,
+                                    "evaluation": rows["base"]["evaluation"]} for draw in range(config.draws)]}
+            continue
         draws = [{"seed": job.seed, "align": _summary(aligned[job.folder]),
                   "evaluation": evaluate(f"row_{key}{_suffix(job.draw, job.seed)}", aligned[job.folder]["folder"],
                                          [aligned[job.folder]])}
@@ -177,7 +200,7 @@ def run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None] = 
         end = next(job for job in jobs if job.key == "c" and job.draw == 0)
         rows["agreement"] = {
             moment: _agreement(config, recipe, checkpoint, reward_model, db, out_dir, moment, steps, generate_step,
-                               policy, ray)
+                               policy, on_ray)
             for moment, checkpoint, policy in (("start", recipe.checkpoint, []),
                                                ("end", rows["c"]["align"]["folder"], [aligned[end.folder]]))}
     _write(rows, config, out_dir)
@@ -192,8 +215,8 @@ class _AlignJob:
     draw: int
     seed: int
     folder: str
-    recipe: Any
-    after: list[Any]
+    recipe: AlignRecipe
+    after: list[StepResult]
 
 
 def _suffix(draw: int, seed: int) -> str:
@@ -201,25 +224,42 @@ def _suffix(draw: int, seed: int) -> str:
     return f"_seed{seed}" if draw else ""
 
 
-def _align_job(shared: dict[str, Any], job: _AlignJob) -> Any:
-    """One alignment step (in-process, or a task on a Ray worker; a finished one is read from its folder)."""
+def _align_job(shared: dict[str, Any], job: _AlignJob) -> tuple[StepResult | TrafficRLHFError, list[str]]:
+    """One alignment step on a Ray worker (a finished one is read from its folder), in the driver's working
+    directory and data root, with the worker's torch threads; returns the step, or the SDK error it raised, and
+    the lines it logged (a worker has nowhere to print them)."""
     from trafficrlhf_sdk import pipeline
 
-    return pipeline.align_step(job.folder, job.recipe, after=job.after, overwrite=shared["overwrite"],
-                               log=shared["log"])
+    os.chdir(shared["cwd"])
+    os.environ.update(shared["env"])
+    lines: list[str] = []
+    recipe = job.recipe.model_copy(update={"threads": shared["threads"]})  # `threads` is not in the digest
+    try:
+        return pipeline.align_step(job.folder, recipe, after=job.after, overwrite=shared["overwrite"],
+                                   log=lines.append), lines
+    except TrafficRLHFError as exc:
+        return exc, lines
 
 
 def _align_rows(jobs: list[_AlignJob], overwrite: bool, log: Callable[[str], None],
-                execution: ExecutionConfig | None) -> dict[str, Any]:
+                execution: ExecutionConfig | None) -> dict[str, StepResult]:
     """Every job's alignment step, by folder: one after another in-process, or side by side on Ray workers (the
     control row (d) last, so the rows that move come first)."""
+    from trafficrlhf_sdk import pipeline
+
     if execution is None:
-        return {job.folder: _align_job({"overwrite": overwrite, "log": log}, job) for job in jobs}
+        return {job.folder: pipeline.align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite,
+                                                log=log) for job in jobs}
     order = sorted(jobs, key=lambda job: (job.key == "d", job.draw, job.key))
     log(f"align: {len(order)} rows x draws on Ray workers ({', '.join(os.path.basename(j.folder) for j in order)})")
+    shared = {"overwrite": overwrite, "cwd": os.getcwd(), "threads": execution.threads_per_worker,
+              "env": {k: v for k, v in os.environ.items() if k.startswith("TRAFFICRLHF_")}}
     done = {}
-    for job, result in zip(order, iter_tasks(_align_job, {"overwrite": overwrite, "log": None}, order, execution)):
-        log(f"align: {'done before' if result.cached else 'done'} ({job.folder})")
+    for job, (result, lines) in zip(order, list(iter_tasks(_align_job, shared, order, execution)), strict=True):
+        for line in lines:
+            log(line)
+        if isinstance(result, TrafficRLHFError):
+            raise result
         done[job.folder] = result
     return done
 
@@ -330,10 +370,12 @@ def _summary(aligned: Any) -> dict[str, Any]:
 
 
 def _plain_row(row: dict[str, Any]) -> dict[str, Any]:
-    """A row with its evaluation steps' outputs in place of the steps (what ``ladder.json`` holds)."""
+    """A row with its evaluation steps' outputs in place of the steps (what ``ladder.json`` holds): ``align`` and
+    ``evaluation`` are draw 0's, ``draws`` every draw's and ``mean`` the metrics' means over the draws."""
     plain = {**row, "evaluation": dict(row["evaluation"].outputs)}
     if "draws" in row:
         plain["draws"] = [{**d, "evaluation": dict(d["evaluation"].outputs)} for d in row["draws"]]
+        plain["mean"] = _mean_metrics(plain)
     return plain
 
 
@@ -349,9 +391,11 @@ def _changes(row: dict[str, Any], base_failure: float) -> list[float]:
             for d in row.get("draws") or [row]]
 
 
+@functools.lru_cache(maxsize=64)
 def _t_quantile(p: float, df: int) -> float:
     """The ``p`` quantile of Student's t with ``df`` degrees of freedom (``0.5 < p < 1``), by bisection on its
-    distribution function (the density integrated with Simpson's rule); within 1e-4 of the exact value."""
+    distribution function (the density integrated with Simpson's rule); within 1e-4 of the exact value for the
+    two-sided 90-99 % intervals used here (``p`` up to 0.995)."""
     import math
 
     if not 0.5 < p < 1 or df < 1:
@@ -420,11 +464,10 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
         change = f" ({100 * (m['failure_rate'] / max(base['failure_rate'], 1e-9) - 1):+.1f} %)" if changes else ""
         if not changes:
             interval = ""
-        elif len(changes) > 1:
-            _, low, high = _mean_interval(changes)  # type: ignore[misc]
-            interval = f"{low:+.1f} % to {high:+.1f} %"
         else:
-            interval = _failure_interval(out_dir, "base", f"row_{key}")
+            over_draws = _mean_interval(changes)
+            interval = (f"{over_draws[1]:+.1f} % to {over_draws[2]:+.1f} %" if over_draws is not None
+                        else _failure_interval(out_dir, "base", f"row_{key}"))
         each = " / ".join(f"{c:+.1f}" for c in changes) + (" %" if changes else "")
         lines.append(f"| {'' if key == 'base' else f'({key}) '}{row['label']} | {m['failure_rate']:.4f}{change} | "
                      f"{each} | {interval} | "
