@@ -140,8 +140,9 @@ def test_control_row_of_a_recipe_without_imitation_term_is_the_start(tmp_path, m
     # alpha = 0 leaves only terms that hold the policy to its start: (d) is not trained, it is the base
     assert sorted(aligned) == ["a", "a_seed1", "b", "b_seed1", "c", "c_seed1"]
     assert rows["d"]["evaluation"] is rows["base"]["evaluation"] and len(rows["d"]["draws"]) == 2
-    assert "the start: nothing else in the recipe moves the weights) | 0.1000 (+0.0 %) | +0.0 / +0.0 % |" in \
-        (tmp_path / "out" / "ladder.md").read_text()
+    table = (tmp_path / "out" / "ladder.md").read_text()
+    assert "(d) learned reward model, alpha = 0: the start | 0.1000 (+0.0 %) | +0.0 / +0.0 % |" in table
+    assert "Row (d) is the starting model itself, not trained" in table
 
 
 def test_alignments_on_workers_run_the_control_row_last(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]

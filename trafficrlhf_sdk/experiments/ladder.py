@@ -34,6 +34,7 @@ resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` a
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -185,8 +186,11 @@ def _run_ladder(config: LadderConfig, out_dir: str, log: Callable[[str], None], 
     for key, (label, spec) in LADDER_ROWS.items():
         if key == "d" and still:
             start = {"folder": recipe.checkpoint, "epochs": 0}
-            rows[key] = {"label": f"{label} (the start: nothing else in the recipe moves the weights)",
-                         "reward": reward_model, "align": start, "evaluation": rows["base"]["evaluation"],
+            rows[key] = {"label": f"{label}: the start", "reward": reward_model,
+                         "note": "Row (d) is the starting model itself, not trained: with alpha = 0 the recipe "
+                                 "has no term left but the KL and the passing anchor to the starting weights, "
+                                 "which are zero with a zero gradient there.",
+                         "align": start, "evaluation": rows["base"]["evaluation"],
                          "draws": [{"seed": recipe.align.seed + draw, "align": start,
                                     "evaluation": rows["base"]["evaluation"]} for draw in range(config.draws)]}
             continue
@@ -255,12 +259,15 @@ def _align_rows(jobs: list[_AlignJob], overwrite: bool, log: Callable[[str], Non
     shared = {"overwrite": overwrite, "cwd": os.getcwd(), "threads": execution.threads_per_worker,
               "env": {k: v for k, v in os.environ.items() if k.startswith("TRAFFICRLHF_")}}
     done = {}
-    for job, (result, lines) in zip(order, list(iter_tasks(_align_job, shared, order, execution)), strict=True):
-        for line in lines:
-            log(line)
-        if isinstance(result, TrafficRLHFError):
-            raise result
-        done[job.folder] = result
+    # closed before returning, so its workers are released to the evaluations in the same Ray session
+    with contextlib.closing(iter_tasks(_align_job, shared, order, execution)) as results:
+        for job, (result, lines) in zip(order, results, strict=True):
+            for line in lines:
+                log(line)
+            if isinstance(result, TrafficRLHFError):
+                raise result
+            log(f"align: {'done before' if result.cached else 'done'} ({job.folder})")
+            done[job.folder] = result
     return done
 
 
@@ -474,6 +481,7 @@ def _write(rows: dict[str, Any], config: LadderConfig, out_dir: str) -> None:
                      f"{m.get('collision_rate', float('nan')):.4f} | {m.get('offroad_rate', float('nan')):.4f} | "
                      f"{m.get('realism_ctg', float('nan')):.4f} / {m.get('realism_body', float('nan')):.4f} | "
                      f"{m.get('speed_ratio', float('nan')):.3f} | {m.get('stopped_share', float('nan')):.3f} |")
+    lines += ["", row["note"]] if (row := plain.get("d", {})).get("note") else []
     links = [("the annotator", "a", "b"), ("the reward model", "b", "c"), ("the reward itself", "c", "d")]
     if all(k in plain for _, *pair in links for k in pair):
         lines += ["", "What each link of the chain loses: the failure change of the lower row minus that of the "
