@@ -33,24 +33,30 @@ learning_rate = 0.001
 """
 
 
-def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+def _fake_steps(monkeypatch, aligned: dict[str, object], failure=lambda name: 0.05) -> None:  # type: ignore[no-untyped-def]
+    """Replace the ladder's alignment and evaluation steps: each alignment is recorded in ``aligned`` (folder name
+    -> recipe), each evaluation reports ``failure(folder name)`` (the base: 0.1)."""
     import trafficrlhf_sdk.pipeline as pipeline
-
-    recipe = tmp_path / "recipe.toml"
-    recipe.write_text(TINY_RECIPE)
-    aligned: dict[str, object] = {}
 
     def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
         aligned[folder.rsplit("/", 1)[-1]] = row
         return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
 
     def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
-        failure = 0.1 if folder.endswith("base") else 0.05
-        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
+        name = folder.rsplit("/", 1)[-1]
+        value = 0.1 if name == "base" else failure(name)
+        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": value, "speed_ratio": 1.0}})
 
-    (tmp_path / "rm").mkdir()
     monkeypatch.setattr(pipeline, "align_step", fake_align)
     monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
+
+
+def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    recipe = tmp_path / "recipe.toml"
+    recipe.write_text(TINY_RECIPE)
+    aligned: dict[str, object] = {}
+    _fake_steps(monkeypatch, aligned)
+    (tmp_path / "rm").mkdir()
     config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0, draws=1)
     rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
     assert sorted(aligned) == sorted(LADDER_ROWS) and set(rows) == {"base", *LADDER_ROWS}
@@ -69,35 +75,23 @@ def test_rows_share_every_fine_tuning_setting_but_the_reward(tmp_path, monkeypat
 
 
 def test_every_row_runs_in_each_draw_with_its_own_training_seed(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    import trafficrlhf_sdk.pipeline as pipeline
+    from trafficrlhf_sdk.experiments.steps import read_recipe
 
     recipe = tmp_path / "recipe.toml"
     recipe.write_text(TINY_RECIPE + "seed = 5\n")
     aligned: dict[str, object] = {}
     failures = {"a": (0.04, 0.05, 0.06), "b": (0.06, 0.07, 0.05), "c": (0.05, 0.05, 0.05), "d": (0.1, 0.1, 0.1)}
 
-    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
-        aligned[folder.rsplit("/", 1)[-1]] = row
-        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
+    def failure(name: str) -> float:
+        key, _, seed = name.removeprefix("row_").partition("_seed")
+        return failures[key][int(seed) - 5 if seed else 0]
 
-    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
-        name = folder.rsplit("/", 1)[-1]
-        if name == "base":
-            failure = 0.1
-        else:
-            key, _, seed = name.removeprefix("row_").partition("_seed")
-            failure = failures[key][int(seed) - 5 if seed else 0]
-        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
-
+    _fake_steps(monkeypatch, aligned, failure)
     (tmp_path / "rm").mkdir()
-    monkeypatch.setattr(pipeline, "align_step", fake_align)
-    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
     config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0)
     assert config.draws == 3
     rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
     assert sorted(aligned) == sorted(f"{k}{s}" for k in LADDER_ROWS for s in ("", "_seed6", "_seed7"))
-    from trafficrlhf_sdk.experiments.steps import read_recipe
-
     written = read_recipe(str(recipe)).align.model_dump(exclude_unset=True)
     for key in LADDER_ROWS:
         first = aligned[key].align  # type: ignore[attr-defined]
@@ -118,23 +112,11 @@ def test_every_row_runs_in_each_draw_with_its_own_training_seed(tmp_path, monkey
 
 
 def test_control_row_of_a_recipe_without_imitation_term_is_the_start(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    import trafficrlhf_sdk.pipeline as pipeline
-
     recipe = tmp_path / "recipe.toml"
     recipe.write_text(TINY_RECIPE + "imitation_coef = 0.0\n")
-    aligned: list[str] = []
-
-    def fake_align(folder, row, **_):  # type: ignore[no-untyped-def]
-        aligned.append(folder.rsplit("/", 1)[-1])
-        return StepResult("align", folder, "x", {"folder": folder, "epochs": 1})
-
-    def fake_evaluate(folder, request, **_):  # type: ignore[no-untyped-def]
-        failure = 0.1 if folder.endswith("base") else 0.05
-        return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": failure, "speed_ratio": 1.0}})
-
+    aligned: dict[str, object] = {}
+    _fake_steps(monkeypatch, aligned)
     (tmp_path / "rm").mkdir()
-    monkeypatch.setattr(pipeline, "align_step", fake_align)
-    monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
     config = LadderConfig(recipe=str(recipe), reward_model=str(tmp_path / "rm"), agreement_contexts=0, draws=2)
     rows = run_ladder(config, str(tmp_path / "out"), log=lambda _: None)
     # alpha = 0 leaves only terms that hold the policy to its start: (d) is not trained, it is the base
