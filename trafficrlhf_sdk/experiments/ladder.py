@@ -536,19 +536,21 @@ def _plot(rows: dict[str, Any], path: str) -> None:
     keys = [k for k in rows if k != "agreement"]
     names = ["base" if k == "base" else f"({k}) {rows[k]['label']}" for k in keys]
     failure = [_mean_metrics(rows[k])["failure_rate"] for k in keys]
-    fig, ax = plt.subplots(figsize=(7, 3.2))
+    draws = [[d["evaluation"]["metrics"]["failure_rate"] for d in rows[k].get("draws") or []] for k in keys]
+    fig, ax = plt.subplots(figsize=(8, 3.4))
     ax.barh(range(len(keys)), failure, color=["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2"][: len(keys)])
-    for i, key in enumerate(keys):  # each training draw of a row, over its bar
-        runs = [d["evaluation"]["metrics"]["failure_rate"] for d in rows[key].get("draws") or []]
+    for i, runs in enumerate(draws):  # each training draw of a row, over its bar
         if len(runs) > 1:
             ax.plot(runs, [i] * len(runs), "o", color="black", markersize=3.5, alpha=0.8)
     ax.set_yticks(range(len(keys)), names)
     ax.invert_yaxis()
-    draws = max(len(rows[k].get("draws") or []) for k in keys)
-    ax.set_xlabel("failure rate (closed loop, mean over seeds" + (f"; bars: mean of {draws} training draws, "
-                                                                 "dots: each draw)" if draws > 1 else ")"))
+    ax.set_xlabel("failure rate (closed loop, mean over evaluation seeds)")
+    most = max(len(runs) for runs in draws)
+    if most > 1:
+        ax.set_title(f"bars: mean of {most} training draws; dots: each draw", fontsize=9)
     for i, value in enumerate(failure):
-        ax.text(value, i, f" {value:.3f}", va="center", fontsize=8)
+        ax.text(max([value, *draws[i]]), i, f"  {value:.3f}", va="center", fontsize=8)
+    ax.set_xlim(0, 1.15 * max(max([v, *r]) for v, r in zip(failure, draws)))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
