@@ -118,38 +118,6 @@ def test_interrupted_and_resumed_run_matches_uninterrupted(train_scenes: Scenari
         assert torch.equal(value, _state(loaded)[key]), key
 
 
-def test_tail_average_keeps_the_mean_of_the_last_epochs_weights_and_resumes(train_scenes: ScenarioTensor,
-                                                                           tmp_path) -> None:
-    config = {**FAST, "epochs": 3, "save_every": 1, "imitation_coef": 0.0, "learning_rate": 3e-3}
-    seen: list[dict[str, torch.Tensor]] = []
-    plain = _model()
-    align(plain, SlowDownReward(), alpha=1.0, scenes=train_scenes,
-          callback=lambda epoch, stats: seen.append(_state(plain)) and None, **config)
-    averaged = _model()
-    align(averaged, SlowDownReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "full"),
-          average_last_epochs=2, **config)
-    moved = 0
-    for key, value in _state(averaged).items():  # the same run; it keeps the mean of epochs 2 and 3's weights
-        expected = ((seen[1][key].double() + seen[2][key].double()) / 2).to(value.dtype)
-        assert torch.allclose(value, expected, atol=1e-7), key
-        moved += not torch.equal(seen[1][key], seen[2][key])
-    assert moved, "the last two epochs must differ for the test to mean anything"
-    # interrupted inside the averaged epochs, then resumed: the same average (its sums are checkpointed)
-    cut = _model()
-    align(cut, SlowDownReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
-          average_last_epochs=2, callback=lambda epoch, stats: epoch < 1, **config)
-    assert os.path.isfile(tmp_path / "cut" / "checkpoints" / "checkpoint-2" / "weights_average.safetensors")
-    resumed = _model()
-    align(resumed, SlowDownReward(), alpha=1.0, scenes=train_scenes, output_dir=str(tmp_path / "cut"),
-          average_last_epochs=2, resume=True, **config)
-    for key, value in _state(averaged).items():
-        assert torch.equal(value, _state(resumed)[key]), key
-    with pytest.raises(ValueError, match="average at most `epochs`"):
-        AlignConfig(epochs=3, average_last_epochs=4)
-    with pytest.raises(ValueError, match="both choose the weights kept"):
-        AlignConfig(average_last_epochs=2, early_stopping_patience=3)
-
-
 def test_config_errors_are_clear(train_scenes: ScenarioTensor) -> None:
     with pytest.raises(ValueError, match="extra"):
         AlignConfig(learning_rat=1e-3)

@@ -32,7 +32,6 @@ __all__ = ["RESUME_FREE_FIELDS", "SAVE_TOTAL_LIMIT", "STATE_FILE", "TrainerCheck
 
 STATE_FILE = "trainer_state.json"
 OPTIMIZER_FILE = "optimizer.safetensors"
-AVERAGE_FILE = "weights_average.safetensors"  # the tail average's sums, while `average_last_epochs` accumulates
 SAVE_TOTAL_LIMIT = 2  # checkpoints kept; older ones are deleted
 # AlignConfig fields a resumed run may change without `resume_allow_changes`: bookkeeping, not training
 RESUME_FREE_FIELDS = frozenset({"resume", "resume_allow_changes", "progress_bar", "output_dir", "epochs",
@@ -124,8 +123,7 @@ def load_optimizer_state(optimizer: torch.optim.Optimizer, tensors: dict[str, to
 
 class TrainerCheckpoints:
     """Saving and restoring a trainer's state; mixed into :class:`~trafficrlhf_sdk.alignment.AlignTrainer`, whose
-    ``model``, ``optimizer``, ``config``, ``group_names``, ``history``, ``start_epoch`` and the tail average's
-    ``weight_sum`` and ``weight_count`` it reads and writes."""
+    ``model``, ``optimizer``, ``config``, ``group_names``, ``history`` and ``start_epoch`` it reads and writes."""
 
     model: Any
     optimizer: torch.optim.Optimizer
@@ -134,8 +132,6 @@ class TrainerCheckpoints:
     history: list[dict[str, float]]
     start_epoch: int
     config_changes: list[dict[str, Any]]
-    weight_sum: list[torch.Tensor]
-    weight_count: int
 
     def _checkpoint_root(self) -> str | None:
         return None if self.config.output_dir is None else os.path.join(self.config.output_dir, "checkpoints")
@@ -151,9 +147,6 @@ class TrainerCheckpoints:
             self.model.save_pretrained(folder)
             tensors, optimizer_meta = optimizer_state_files(self.optimizer)
             save_file(tensors, os.path.join(folder, OPTIMIZER_FILE), metadata={"format": "pt"})
-            if self.weight_sum:
-                save_file({str(i): t.contiguous() for i, t in enumerate(self.weight_sum)},
-                          os.path.join(folder, AVERAGE_FILE), metadata={"format": "pt"})
             payload = {
                 "epochs_done": epochs_done,
                 "groups": list(self.group_names),
@@ -163,7 +156,6 @@ class TrainerCheckpoints:
                 "optimizer_scalars": optimizer_meta["scalars"],
                 "torch_rng_state": torch.get_rng_state().tolist(),
                 "config_changes": list(getattr(self, "config_changes", [])),
-                "average_count": self.weight_count,
             }
             with open(os.path.join(folder, STATE_FILE), "w", encoding="utf-8") as handle:
                 json.dump(payload, handle, indent=1)
@@ -212,9 +204,3 @@ class TrainerCheckpoints:
         torch.set_rng_state(torch.tensor(payload["torch_rng_state"], dtype=torch.uint8))
         self.history = list(payload["history"])
         self.start_epoch = int(payload["epochs_done"])
-        self.weight_count = int(payload.get("average_count", 0))
-        if self.weight_count:
-            sums, _ = safe_load_file(os.path.join(directory, AVERAGE_FILE))
-            self.weight_sum = [sums[str(i)] for i in range(len(sums))]
-        else:
-            self.weight_sum = []

@@ -106,10 +106,6 @@ class AlignConfig(BaseModel):
                                                 "not improved for this many epochs, and keep the best weights "
                                                 "(possibly the starting ones). None: train every epoch, keep the "
                                                 "last.")
-    average_last_epochs: int = Field(0, ge=0, description="Keep the mean of the trained weights after each of the "
-                                     "last N epochs (Polyak tail averaging: a run's result then depends less on "
-                                     "where its epoch-to-epoch swing stands at the last epoch) instead of the last "
-                                     "weights; 0: the last weights.")
     resume: bool = Field(False, description="Continue from the newest intact checkpoint in output_dir (an error "
                          "when there is none).")
     resume_allow_changes: bool = Field(False, description="With `resume`, accept hyper-parameters that differ from "
@@ -126,10 +122,4 @@ class AlignConfig(BaseModel):
                              "passing agent is told apart from a failing one only with credit='agent'.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
-        if self.average_last_epochs > self.epochs:
-            raise ValueError(f"`average_last_epochs` is {self.average_last_epochs} but the run has only "
-                             f"{self.epochs} epochs; average at most `epochs` of them.")
-        if self.average_last_epochs and self.early_stopping_patience is not None:
-            raise ValueError(f"`average_last_epochs` ({self.average_last_epochs}) and `early_stopping_patience` "
-                             f"({self.early_stopping_patience}) both choose the weights kept; set one of them.")
         return self

@@ -159,8 +159,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.monitor_logged: ScenarioTensor | None = None
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
-        self.weight_sum: list[torch.Tensor] = []  # float64 sums of the trainable weights (average_last_epochs)
-        self.weight_count = 0
         self.logger: Any = None
         self.execution: Any = None  # an ExecutionConfig: where each epoch's sample chunks run (distribute_rollouts)
 
@@ -328,8 +326,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 scored = [p.detach().clone() for p in self.trainable] if cfg.early_stopping_patience else []
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
-                if cfg.average_last_epochs and epoch >= cfg.epochs - cfg.average_last_epochs:
-                    self._accumulate_weights()
                 # the held-out realism was measured before this epoch's update: it belongs to the weights after
                 # `epoch` updates (0: the starting weights), and those are the ones kept if it is the best
                 stop_early = self.monitor.update(epoch, stats["heldout_realism"], scored)
@@ -370,10 +366,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             self.history[-1].update({f"final_{k}": v for k, v in final.items()})
             self.monitor.update(cfg.epochs, final["heldout_realism"], [p.detach().clone() for p in self.trainable])
         best_epoch = self.monitor.restore_best(self.trainable) if cfg.early_stopping_patience else None
-        if finished and cfg.average_last_epochs:
-            with torch.no_grad():
-                for p, total in zip(self.trainable, self.weight_sum):
-                    p.copy_((total / self.weight_count).to(p.dtype))
         if cfg.output_dir is not None and self.history:
             plot_overoptimization(self.history, os.path.join(cfg.output_dir, "overoptimization.png"))
         if cfg.output_dir is not None and finished:
@@ -384,15 +376,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                            or type(self.reward_model).__name__, "best_epoch": best_epoch,
                            "history": self.history}, handle, indent=1)
         return self.history
-
-    def _accumulate_weights(self) -> None:
-        """Add the trainable weights as they are now to the tail average's sums."""
-        with torch.no_grad():
-            if not self.weight_sum:
-                self.weight_sum = [torch.zeros_like(p, dtype=torch.float64) for p in self.trainable]
-            for total, p in zip(self.weight_sum, self.trainable):
-                total += p.double()
-        self.weight_count += 1
 
     def _log(self, stats: dict[str, float]) -> None:
         rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share", "heldout_realism",
