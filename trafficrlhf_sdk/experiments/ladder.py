@@ -232,7 +232,7 @@ def _align_job(shared: dict[str, Any], job: _AlignJob) -> tuple[StepResult | Tra
     """One alignment step on a Ray worker (a finished one is read from its folder), in the driver's working
     directory and data root, with the worker's torch threads; returns the step, or the SDK error it raised, and
     the lines it logged (a worker has nowhere to print them)."""
-    from trafficrlhf_sdk import pipeline
+    import trafficrlhf_sdk.pipeline as pipeline
 
     os.chdir(shared["cwd"])
     os.environ.update(shared["env"])
@@ -249,7 +249,7 @@ def _align_rows(jobs: list[_AlignJob], overwrite: bool, log: Callable[[str], Non
                 execution: ExecutionConfig | None) -> dict[str, StepResult]:
     """Every job's alignment step, by folder: one after another in-process, or side by side on Ray workers (the
     control row (d) last, so the rows that move come first)."""
-    from trafficrlhf_sdk import pipeline
+    import trafficrlhf_sdk.pipeline as pipeline
 
     if execution is None:
         return {job.folder: pipeline.align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite,
@@ -276,7 +276,7 @@ def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str
                         execution: ExecutionConfig | None) -> tuple[str, list[Any]]:
     """The product path: the base model's candidates on train contexts, stand-in labels, a reward model; with
     ``rounds`` above 1, then each round's closed-loop contexts of the policy the previous reward model aligned."""
-    from trafficrlhf_sdk import pipeline
+    import trafficrlhf_sdk.pipeline as pipeline
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
 
     annotators = {name: profiles[name] for name in config.annotators}
