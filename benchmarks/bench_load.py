@@ -49,7 +49,7 @@ def main() -> None:
     steps = sum(s.num_steps for s in scenes)
     agents = sum(s.num_agents for s in scenes)
     state_mb = sum(s.states.numel() * 4 + s.valid.numel() for s in scenes) / 2**20
-    raster_mb = sum(s.map.raster.numel() for s in scenes if s.map is not None) / 2**20
+    raster_mb = sum(s.map.pixels.numel() for s in scenes if s.map is not None) / 2**20
     print(f"   scenes {len(scenes)} ({agents} agent tracks, {steps} steps at 0.1 s in all)")
     print(f"   total  {median:.2f} s median of {REPEATS} (min {totals[0]:.2f}, max {totals[-1]:.2f}); "
           f"listing/parsing for keyframe counts {sorted(listings)[len(listings) // 2]:.2f} s of it")

@@ -34,7 +34,7 @@ def main() -> None:
                          ("copied rows", lambda: contexts.repeat_scenes(SAMPLES).replace_unchecked(
                              map=contexts.repeat_scenes(SAMPLES).map.dense()))):  # type: ignore[union-attr]
         t_repeat, _, batch = timed(repeat, repeats=5)
-        held = batch.map.raster.numel() / 2**20  # type: ignore[union-attr]
+        held = batch.map.pixels.numel() / 2**20  # type: ignore[union-attr]
         t_crops, _, crops = timed(lambda b=batch: map_crops(b, size_px=48), repeats=3)
         xy = batch.xy.double()
         t_lookup, _, on = timed(lambda b=batch, p=xy: b.map.lookup(p), repeats=3)

@@ -115,7 +115,7 @@ def test_wrong_way_follows_the_lane_direction_where_the_map_has_one() -> None:
     def with_lane(direction: float) -> MapRaster:
         xs = torch.linspace(-60, 150, 50)
         line = torch.stack([xs if direction > 0 else xs.flip(0), torch.full_like(xs, -4.0)], -1)
-        return MapRaster(raster=m.raster, world_to_pixel=m.world_to_pixel, layers=m.layers,
+        return MapRaster(pixels=m.pixels, sizes=m.sizes, world_to_pixel=m.world_to_pixel, layers=m.layers,
                          polylines=line[None, None], polyline_valid=torch.ones(1, 1, 50, dtype=torch.bool),
                          polyline_type=torch.tensor([[PolylineType.LANE_CENTER]]))
 

@@ -220,8 +220,8 @@ def test_indexing_keeps_ids(index, picked):
     assert torch.equal(sub.states, s.states[picked])
     assert torch.equal(sub.valid, s.valid[picked])
     assert torch.equal(sub.origin, s.origin[picked])
-    assert torch.equal(sub.map.dense().raster, s.map.raster[picked])
-    assert sub.map.raster is s.map.raster  # the selection reads the same rows, no pixel is copied
+    assert torch.equal(sub.map.padded(), s.map.padded()[picked])
+    assert sub.map.pixels is s.map.pixels  # the selection reads the same rows, no pixel is copied
     assert sub.source == s.source and sub.dt == s.dt and sub.current_index == s.current_index
 
 
@@ -233,11 +233,11 @@ def test_repeat_scenes_matches_repeat_interleave(b):
     assert out.num_scenes == 4 * b
     for name in ("states", "valid", "extent", "agent_type", "controlled", "origin"):
         assert torch.equal(getattr(out, name), getattr(s, name)[picked]), name
-    assert torch.equal(out.map.dense().raster, s.map.raster[picked])
+    assert torch.equal(out.map.padded(), s.map.padded()[picked])
     assert torch.equal(out.map.world_to_pixel, s.map.world_to_pixel[picked])
     assert out.scene_ids == tuple(s.scene_ids[i] for i in picked.tolist())
     assert out.agent_ids == tuple(s.agent_ids[i] for i in picked.tolist())
-    assert out.map.raster is s.map.raster and torch.equal(out.map.rows, picked)  # rows, not copied pixels
+    assert out.map.pixels is s.map.pixels and torch.equal(out.map.rows, picked)  # rows, not copied pixels
 
 
 @pytest.mark.parametrize("copies", [0, -2, 2.0, True])
@@ -268,16 +268,18 @@ def test_concat_pads_agents_time_and_maps():
     b = make_scenario(b=2, a=3, t=6, map=make_map(2, h=5, w=2))
     out = ScenarioTensor.concat([a, b])
     assert out.states.shape == (3, 3, 6, 4) and out.valid.shape == (3, 3, 6)
-    assert out.map.raster.shape == (3, 3, 5, 7)
+    assert out.map.sizes.tolist() == [[3, 7], [5, 2], [5, 2]]  # each raster keeps its own size: no padding
+    assert out.map.pixels.shape == (3, 3 * 7 + 2 * 5 * 2) and out.map.padded().shape == (3, 3, 5, 7)
     assert torch.equal(out.states[:1, :2, :4], a.states) and torch.equal(out.states[1:], b.states)
     assert torch.equal(out.valid[:1, :2, :4], a.valid) and torch.equal(out.valid[1:], b.valid)
     assert not out.valid[0, 2].any() and not out.valid[0, :, 4:].any()
     assert (out.states[0, 2] == 0).all() and (out.states[0, :, 4:] == 0).all()
     assert torch.equal(out.extent[0, :2], a.extent[0]) and (out.extent[0, 2] == 0).all()
     assert out.agent_type[0, 2] == 0 and not out.controlled[0, 2]
-    assert torch.equal(out.map.raster[0, :, :3, :7], a.map.raster[0])
-    assert torch.equal(out.map.raster[1:, :, :5, :2], b.map.raster)
-    assert out.map.raster[0, :, 3:].sum() == 0 and out.map.raster[1:, :, :, 2:].sum() == 0
+    assert torch.equal(out.map.scene_raster(0), a.map.scene_raster(0))
+    assert all(torch.equal(out.map.scene_raster(k + 1), b.map.scene_raster(k)) for k in range(2))
+    padded = out.map.padded()
+    assert padded[0, :, 3:].sum() == 0 and padded[1:, :, :, 2:].sum() == 0
     assert torch.equal(out.origin, torch.cat([a.origin, b.origin]))
     assert out.scene_ids == a.scene_ids + b.scene_ids
     assert out.agent_ids[0] == (*a.agent_ids[0], "") and out.agent_ids[1:] == b.agent_ids
@@ -304,8 +306,8 @@ def test_concat_preserves_values_property(parts):
         assert torch.equal(out.states[sl, : p.num_agents, : p.num_steps], p.states)
         assert torch.equal(out.valid[sl, : p.num_agents, : p.num_steps], p.valid)
         assert int(out.valid[sl].sum()) == int(p.valid.sum())
-        h, w = p.map.raster.shape[-2:]
-        assert torch.equal(out.map.raster[sl, :, :h, :w], p.map.raster)
+        for k in range(p.num_scenes):
+            assert torch.equal(out.map.scene_raster(row + k), p.map.scene_raster(k))
         assert out.scene_ids[sl] == p.scene_ids
         row += p.num_scenes
     assert row == out.num_scenes
@@ -323,7 +325,7 @@ def test_to_cpu():
         assert torch.equal(getattr(moved, name), getattr(s, name))
         assert getattr(moved, name).dtype == getattr(s, name).dtype
     assert moved.origin.dtype == torch.float64
-    assert torch.equal(moved.map.raster, s.map.raster)
+    assert torch.equal(moved.map.pixels, s.map.pixels) and torch.equal(moved.map.sizes, s.map.sizes)
     assert moved.scene_ids == s.scene_ids and moved.agent_ids == s.agent_ids
 
 
@@ -350,8 +352,11 @@ def test_save_load_round_trip_is_bitwise_exact(scenario):
         assert _bitwise_equal(getattr(loaded, name), getattr(scenario, name)), name
     assert (loaded.map is None) == (scenario.map is None)
     if scenario.map is not None:
-        for name in ("raster", "world_to_pixel", "polylines", "polyline_valid", "polyline_type"):
+        for name in ("world_to_pixel", "polylines", "polyline_valid", "polyline_type"):
             assert _bitwise_equal(getattr(loaded.map, name), getattr(scenario.map, name)), name
+        assert torch.equal(loaded.map.scene_sizes(), scenario.map.scene_sizes())
+        assert all(torch.equal(loaded.map.scene_raster(b), scenario.map.scene_raster(b))
+                   for b in range(scenario.num_scenes))
         assert loaded.map.layers == scenario.map.layers
     for name in ("dt", "current_index", "scene_ids", "agent_ids", "source", "extras"):
         assert getattr(loaded, name) == getattr(scenario, name), name

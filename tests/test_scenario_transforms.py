@@ -27,7 +27,7 @@ def test_mirroring_twice_gives_the_scenario_back(scenario: ScenarioTensor) -> No
     assert bool(((yaw >= -torch.pi) & (yaw < torch.pi)).all())  # still wrapped, validated on construction
     if scenario.map is not None:
         assert torch.equal(back.map.world_to_pixel, scenario.map.world_to_pixel)
-        assert mirrored.map.raster is scenario.map.raster  # the raster is shared, only the transform changes
+        assert mirrored.map.pixels is scenario.map.pixels  # the raster is shared, only the transform changes
 
 
 @settings(deadline=None)

@@ -65,7 +65,7 @@ def _scenes() -> ScenarioTensor:
         states=states, valid=torch.ones(3, 2, STEPS, dtype=torch.bool),
         extent=torch.tensor([[4.5, 1.9], [4.6, 1.9]]).expand(3, 2, 2).clone(),
         agent_type=torch.ones(3, 2, dtype=torch.long), controlled=torch.ones(3, 2, dtype=torch.bool), dt=DT,
-        current_index=NOW, map=MapRaster(scene_map.raster, scene_map.world_to_pixel.expand(3, 3, 3).clone(),
+        current_index=NOW, map=MapRaster(scene_map.padded(), scene_map.world_to_pixel.expand(3, 3, 3).clone(),
                                          rows=torch.zeros(3, dtype=torch.long)),
         scene_ids=("tiny-plain", "tiny-offroad", "tiny-collision"), agent_ids=(("a", "b"),) * 3, source="tiny",
     )

@@ -252,7 +252,7 @@ def view_box(states: np.ndarray, valid: np.ndarray, sim: np.ndarray | None, sim_
 
 
 def _map_world_bounds(scene_map: MapRaster, b: int) -> tuple[float, float, float, float]:
-    h, w = scene_map.raster.shape[-2:]
+    h, w = scene_map.scene_raster(b).shape[-2:]
     inv = np.linalg.inv(scene_map.world_to_pixel[b].detach().to("cpu", torch.float64).numpy())
     corners = np.array([[i, j, 1.0] for i in (0, h) for j in (0, w)]) @ inv.T
     return corners[:, 0].min(), corners[:, 0].max(), corners[:, 1].min(), corners[:, 1].max()

@@ -171,15 +171,15 @@ def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene:
     from scipy.ndimage import distance_transform_edt
 
     drivable_index = rollout_map.layers.index("drivable")  # type: ignore[attr-defined]
-    raster = rollout_map.raster  # type: ignore[attr-defined]
     rows = rollout_map.scene_rows()  # type: ignore[attr-defined]
     m = rollout_map.world_to_pixel.to(torch.float64)[scene]  # type: ignore[attr-defined]
     ij = torch.floor(torch.einsum("nkc,nc->nk", m[:, :2, :2], corners.double()) + m[:, :2, 2]).long()
-    h, w = raster.shape[-2:]
-    inside = (ij[:, 0] >= 0) & (ij[:, 0] < h) & (ij[:, 1] >= 0) & (ij[:, 1] < w)
-    i, j = ij[:, 0].clamp(0, h - 1), ij[:, 1].clamp(0, w - 1)
-    out = torch.zeros(len(scene), dtype=torch.float64)
     point_rows = rows[scene]
+    size = rollout_map.sizes[point_rows]  # type: ignore[attr-defined]  # each point's raster (H, W)
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < size[:, 0]) & (ij[:, 1] >= 0) & (ij[:, 1] < size[:, 1])
+    i = torch.minimum(ij[:, 0].clamp_min(0), size[:, 0] - 1)
+    j = torch.minimum(ij[:, 1].clamp_min(0), size[:, 1] - 1)
+    out = torch.zeros(len(scene), dtype=torch.float64)
     cache = {} if cache is None else cache
     for row in point_rows.unique().tolist():
         picked = (point_rows == row).nonzero().squeeze(-1)
@@ -187,7 +187,9 @@ def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene:
         pad = math.ceil(EDGE_MARGIN_M * scale)
         lo = (int(i[picked].min()), int(j[picked].min()))
         hi = (int(i[picked].max()) + 1, int(j[picked].max()) + 1)
-        key = (id(raster), row)
+        raster = rollout_map.row_raster(row)  # type: ignore[attr-defined]
+        h, w = raster.shape[-2:]
+        key = (id(rollout_map.pixels), row)  # type: ignore[attr-defined]
         entry = cache.get(key)
         if entry is None or not (entry[0][0] <= lo[0] and entry[0][1] <= lo[1] and hi[0] <= entry[1][0]
                                  and hi[1] <= entry[1][1]):
@@ -196,7 +198,7 @@ def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene:
                 hi = (max(hi[0], entry[1][0]), max(hi[1], entry[1][1]))
             top, left = max(lo[0] - pad, 0), max(lo[1] - pad, 0)
             bottom, right = min(hi[0] + pad, h), min(hi[1] + pad, w)
-            layer = raster[row, drivable_index, top:bottom, left:right].numpy() > 0
+            layer = raster[drivable_index, top:bottom, left:right].numpy() > 0
             if layer.all():
                 signed = torch.full(layer.shape, -EDGE_MARGIN_M)
             elif not layer.any():

@@ -123,32 +123,27 @@ def map_crops(
     """
     if context.map is None:
         raise ValueError("map_crops needs `context.map`; load scenes from a source that provides rasters.")
-    raster = context.map.raster
-    r, c, h, w = raster.shape
+    scene_map = context.map
+    c = len(scene_map.layers)
     b, a = context.num_scenes, context.num_agents
-    cells = torch.arange(size_px, device=raster.device, dtype=torch.float32)
+    cells = torch.arange(size_px, device=scene_map.pixels.device, dtype=torch.float32)
     local_x = (cells - behind_fraction * size_px + 0.5) * resolution_m
     local_y = (cells - size_px / 2 + 0.5) * resolution_m
     grid = torch.stack(torch.meshgrid(local_x, local_y, indexing="ij"), -1)  # (S, S, 2)
     if agents is None:
         points = from_agent_frame(grid.reshape(1, 1, -1, 2).expand(b, a, -1, 2), agent_poses(context))
-        ij = torch.floor(context.map.to_pixel(points)).long()  # (B, A, S*S, 2)
-        inside = (ij[..., 0] >= 0) & (ij[..., 0] < h) & (ij[..., 1] >= 0) & (ij[..., 1] < w)
-        flat = (ij[..., 0].clamp(0, h - 1) * w + ij[..., 1].clamp(0, w - 1)).reshape(b, -1)
-        values = context.map.gather_pixels(flat).reshape(b, c, a, size_px * size_px)
-        values = values.permute(0, 2, 1, 3).float() * inside[:, :, None, :]
-        return values.reshape(b, a, c, size_px, size_px)
+        ij = torch.floor(scene_map.to_pixel(points)).long()  # (B, A, S*S, 2)
+        scene = torch.arange(b, device=ij.device)[:, None, None]
+        values = scene_map.read(scene, ij[..., 0], ij[..., 1])  # (C, B, A, S*S), 0 outside the raster
+        return values.permute(1, 2, 0, 3).float().reshape(b, a, c, size_px, size_px)
     scene, slot = agents.nonzero(as_tuple=True)
     n = len(scene)
     pose = agent_poses(context)[scene, slot][:, None]  # (N, 1, 3): one "scene" per row, one agent
     points = from_agent_frame(grid.reshape(1, 1, -1, 2).expand(n, 1, -1, 2), pose)[:, 0]  # (N, S*S, 2)
-    m = context.map.world_to_pixel.to(points.dtype)[scene]  # the scene's transform, as MapRaster.to_pixel
+    m = scene_map.world_to_pixel.to(points.dtype)[scene]  # the scene's transform, as MapRaster.to_pixel
     ij = torch.floor(torch.einsum("bkc,bnc->bnk", m[:, :2, :2], points) + m[:, None, :2, 2]).long()
-    inside = (ij[..., 0] >= 0) & (ij[..., 0] < h) & (ij[..., 1] >= 0) & (ij[..., 1] < w)
-    flat = ij[..., 0].clamp(0, h - 1) * w + ij[..., 1].clamp(0, w - 1)  # (N, S*S)
-    rows = scene if context.map.rows is None else context.map.rows[scene]
-    values = raster.reshape(r, c, h * w)[rows[:, None], :, flat]  # (N, S*S, C)
-    crops = (values.permute(0, 2, 1).float() * inside[:, None, :]).reshape(n, c, size_px, size_px)
+    values = scene_map.read(scene[:, None], ij[..., 0], ij[..., 1])  # (C, N, S*S)
+    crops = values.permute(1, 0, 2).float().reshape(n, c, size_px, size_px)
     out = crops.new_zeros(b, a, c, size_px, size_px)
     out[scene, slot] = crops
     return out

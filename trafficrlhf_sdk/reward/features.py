@@ -183,9 +183,7 @@ def _crops(scenario: ScenarioTensor, spec: FeatureSpec, scene: torch.Tensor, pos
     left = (torch.arange(fine, dtype=torch.float64) + 0.5) * cell - s * spec.crop_resolution_m / 2
     gx, gy = torch.meshgrid(ahead, left, indexing="ij")
     gx, gy = gx.reshape(1, -1), gy.reshape(1, -1)
-    raster, rows = scenario_map.raster, scenario_map.scene_rows()
-    _, _, h, w = raster.shape
-    layer_index = torch.tensor([src for _, src in channels])
+    layer_index = [src for _, src in channels]
     for lo in range(0, n, chunk):
         b = scene[lo:lo + chunk]
         p = pose[lo:lo + chunk].double()
@@ -195,10 +193,7 @@ def _crops(scenario: ScenarioTensor, spec: FeatureSpec, scene: torch.Tensor, pos
         m = scenario_map.world_to_pixel[b].double()
         i = torch.floor(m[:, 0, 0:1] * x + m[:, 0, 1:2] * y + m[:, 0, 2:3]).long()
         j = torch.floor(m[:, 1, 0:1] * x + m[:, 1, 1:2] * y + m[:, 1, 2:3]).long()
-        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        values = raster[rows[b][:, None, None], layer_index[None, :, None], i.clamp(0, h - 1)[:, None],
-                        j.clamp(0, w - 1)[:, None]]
-        values = (values > 0) & inside[:, None]  # (n, C', fine*fine)
+        values = scenario_map.read(b[:, None], i, j, layer_index).transpose(0, 1) > 0  # (n, C', fine*fine)
         pooled = values.reshape(-1, len(channels), s, ss, s, ss).sum((3, 5), dtype=torch.int32).to(torch.uint8)
         out[lo:lo + chunk, [k for k, _ in channels]] = pooled
     return out

@@ -32,56 +32,76 @@ def check_copies(copies: object) -> None:
         raise ValueError(f"`copies` must be a positive int; got {copies!r}.")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class MapRaster:
-    """Semantic map layers of a batch of scenes.
+    """Semantic map layers of a batch of scenes, each raster at its own size.
 
-    Shapes (B = scenes, C = layers, H x W = pixels, P = polylines, L = points per polyline):
+    Shapes (B = scenes, R = raster rows, C = layers, P = polylines, L = points per polyline):
 
-    - ``raster`` uint8 ``(R, C, H, W)``: 1 where the layer is present, 0 elsewhere (and in padding). Without
-      ``rows``, R = B and scene b reads row b.
-    - ``rows`` int64 ``(B,)`` or None: the raster row each scene reads. Scenes cut from the same map share a row:
-      ``index`` and ``repeat_scenes`` select rows and never copy pixels (``benchmarks/bench_map_rows.py`` measures
-      what that saves). Read pixels through
-      :meth:`lookup`, :meth:`lookup_points`, :meth:`layer`, :meth:`gather_pixels`, :meth:`scene_raster` or
-      ``models.features.map_crops``; :meth:`dense` gives one row per scene.
+    - ``pixels`` uint8 ``(C, N)``: the layers of every raster row, packed. Row r is an ``H_r x W_r`` image whose
+      pixels are ``pixels[:, offsets[r] : offsets[r] + H_r * W_r]`` in row-major order; 1 where the layer is
+      present, 0 elsewhere. Rows keep their own size, so a batch of maps of different extents holds no padding.
+    - ``sizes`` int64 ``(R, 2)``: each row's ``(H_r, W_r)``; ``offsets`` int64 ``(R,)``: where each row starts
+      (derived from ``sizes``).
+    - ``rows`` int64 ``(B,)`` or None: the raster row each scene reads (None: scene b reads row b). Scenes cut
+      from the same map share a row: ``index`` and ``repeat_scenes`` select rows and never copy pixels
+      (``benchmarks/bench_map_rows.py`` measures what that saves).
     - ``world_to_pixel`` float32 ``(B, 3, 3)``: affine map from scene-frame metres to *fractional pixel
       indices*: ``(i, j, 1) = M @ (x, y, 1)`` where ``i`` indexes H and ``j`` indexes W. The pixel that contains a
-      point is ``(floor(i), floor(j))``.
+      point is ``(floor(i), floor(j))``; a pixel outside its scene's ``H_r x W_r`` reads 0 in every layer.
     - ``layers``: the name of each of the C channels, e.g. ``("drivable", "road_divider", "lane_divider")``.
     - ``polylines`` float32 ``(B, P, L, 2)`` scene-frame metres, ``polyline_valid`` bool ``(B, P, L)`` and
       ``polyline_type`` int64 ``(B, P)`` (:class:`PolylineType`): optional vector map, ``None`` when absent.
+
+    Build one from an image batch, ``MapRaster(raster=(R, C, H, W) uint8, world_to_pixel=...)`` (with
+    ``sizes`` when the rows are zero-padded to a common size: each row keeps only its ``(H_r, W_r)`` corner).
+    Read pixels through :meth:`read`, :meth:`lookup`, :meth:`lookup_points`, :meth:`scene_raster` or
+    ``models.features.map_crops``; :meth:`padded` and :meth:`layer` give a rectangular (zero-padded) copy.
     """
 
-    raster: torch.Tensor
+    pixels: torch.Tensor
+    sizes: torch.Tensor
     world_to_pixel: torch.Tensor
-    layers: tuple[str, ...] = DEFAULT_LAYERS
-    polylines: torch.Tensor | None = None
-    polyline_valid: torch.Tensor | None = None
-    polyline_type: torch.Tensor | None = None
-    rows: torch.Tensor | None = None
-    _checked: bool = field(default=False, repr=False, compare=False)
+    layers: tuple[str, ...]
+    polylines: torch.Tensor | None
+    polyline_valid: torch.Tensor | None
+    polyline_type: torch.Tensor | None
+    rows: torch.Tensor | None
+    offsets: torch.Tensor = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self) -> None:
-        r = self.raster
-        if r.dim() != 4 or r.dtype != torch.uint8:
-            raise ScenarioValidationError(
-                f"`map.raster` must be a uint8 tensor of shape (B, C, H, W); got dtype {r.dtype}, shape "
-                f"{tuple(r.shape)}. Convert with `raster.to(torch.uint8)` and add the batch axis."
-            )
-        if r.shape[1] != len(self.layers):
-            raise ScenarioValidationError(
-                f"`map.layers` names {len(self.layers)} layers {self.layers} but `map.raster` has {r.shape[1]}"
-                " channels; pass one name per channel."
-            )
+    def __init__(self, raster: torch.Tensor | None = None, world_to_pixel: torch.Tensor | None = None,
+                 layers: tuple[str, ...] = DEFAULT_LAYERS, polylines: torch.Tensor | None = None,
+                 polyline_valid: torch.Tensor | None = None, polyline_type: torch.Tensor | None = None,
+                 rows: torch.Tensor | None = None, *, pixels: torch.Tensor | None = None,
+                 sizes: torch.Tensor | None = None) -> None:
+        layers = tuple(layers)
+        if raster is not None:
+            if pixels is not None:
+                raise ScenarioValidationError("pass the map as `raster` (R, C, H, W) or as `pixels` (C, N) with "
+                                              "`sizes`, not both.")
+            pixels, sizes = _pack(raster, sizes, layers)
+        elif pixels is None or sizes is None:
+            raise ScenarioValidationError("a MapRaster needs `raster` (uint8 (R, C, H, W)) or `pixels` (uint8 "
+                                          "(C, N)) with `sizes` (int64 (R, 2)).")
+        if world_to_pixel is None:
+            raise ScenarioValidationError("a MapRaster needs `world_to_pixel` (float32 (B, 3, 3)).")
+        _check_packed(pixels, sizes, layers)
+        values = {"pixels": pixels, "sizes": sizes, "world_to_pixel": world_to_pixel, "layers": layers,
+                  "polylines": polylines, "polyline_valid": polyline_valid, "polyline_type": polyline_type,
+                  "rows": rows, "offsets": torch.cumsum(sizes[:, 0] * sizes[:, 1], 0) - sizes[:, 0] * sizes[:, 1]}
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
+        self._check()
+
+    def _check(self) -> None:
         if self.rows is not None:
             rows = self.rows
             if rows.dim() != 1 or rows.dtype != torch.int64:
                 raise ScenarioValidationError(f"`map.rows` must be an int64 tensor of shape (B,); got dtype "
                                               f"{rows.dtype}, shape {tuple(rows.shape)}.")
-            if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= r.shape[0]):
-                raise ScenarioValidationError(f"`map.rows` must index the {r.shape[0]} raster rows; got values from "
-                                              f"{int(rows.min())} to {int(rows.max())}.")
+            if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= self.num_rows):
+                raise ScenarioValidationError(f"`map.rows` must index the {self.num_rows} raster rows; got values "
+                                              f"from {int(rows.min())} to {int(rows.max())}.")
         b = self.num_scenes
         if tuple(self.world_to_pixel.shape) != (b, 3, 3):
             raise ScenarioValidationError(
@@ -106,30 +126,60 @@ class MapRaster:
     @property
     def num_scenes(self) -> int:
         """Number of scenes B."""
-        return int(self.raster.shape[0] if self.rows is None else self.rows.shape[0])
+        return self.num_rows if self.rows is None else int(self.rows.shape[0])
+
+    @property
+    def num_rows(self) -> int:
+        """Number of raster rows R."""
+        return int(self.sizes.shape[0])
 
     def scene_rows(self) -> torch.Tensor:
         """``(B,)`` int64: the raster row each scene reads."""
         if self.rows is None:
-            return torch.arange(self.raster.shape[0], device=self.raster.device)
+            return torch.arange(self.num_rows, device=self.pixels.device)
         return self.rows
 
+    def scene_sizes(self) -> torch.Tensor:
+        """``(B, 2)`` int64: each scene's raster ``(H, W)``."""
+        return self.sizes[self.scene_rows()]
+
+    def row_raster(self, row: int) -> torch.Tensor:
+        """Raster row ``row``'s layers, uint8 ``(C, H_r, W_r)`` (a view, no copy)."""
+        h, w = (int(v) for v in self.sizes[row])
+        start = int(self.offsets[row])
+        return self.pixels[:, start : start + h * w].view(len(self.layers), h, w)
+
     def scene_raster(self, b: int) -> torch.Tensor:
-        """Scene ``b``'s layers, uint8 ``(C, H, W)`` (a view, no copy)."""
-        return self.raster[b if self.rows is None else int(self.rows[b])]
+        """Scene ``b``'s layers, uint8 ``(C, H, W)`` at its own size (a view, no copy)."""
+        return self.row_raster(b if self.rows is None else int(self.rows[b]))
+
+    def padded(self) -> torch.Tensor:
+        """Every scene's layers as one uint8 ``(B, C, H, W)`` tensor, zero-padded to the largest scene (a copy)."""
+        return self._padded(list(range(len(self.layers))))
+
+    def layer(self, name: str) -> torch.Tensor:
+        """The layer called ``name`` as a bool ``(B, H, W)`` tensor, zero-padded to the largest scene (a copy)."""
+        return self._padded([self._layer_index(name)])[:, 0].bool()
+
+    def _padded(self, channels: list[int]) -> torch.Tensor:
+        sizes = self.scene_sizes()
+        h, w = (int(v) for v in sizes.max(0).values) if len(sizes) else (0, 0)
+        out = torch.zeros(self.num_scenes, len(channels), h, w, dtype=torch.uint8, device=self.pixels.device)
+        for b in range(self.num_scenes):
+            scene = self.scene_raster(b)[channels]
+            out[b, :, : scene.shape[1], : scene.shape[2]] = scene
+        return out
 
     def dense(self) -> MapRaster:
         """The same map with one raster row per scene (``rows`` None); copies the shared rows."""
         if self.rows is None:
             return self
-        return replace(self, raster=self.raster[self.rows], rows=None)
+        return _from_rows(self, [self.scene_raster(b) for b in range(self.num_scenes)], rows=None)
 
-    def layer(self, name: str) -> torch.Tensor:
-        """The layer called ``name`` as a bool tensor ``(B, H, W)``."""
+    def _layer_index(self, name: str) -> int:
         if name not in self.layers:
             raise ScenarioValidationError(f"map layer {name!r} not found; available layers: {list(self.layers)}.")
-        grid = self.raster[:, self.layers.index(name)]
-        return (grid if self.rows is None else grid[self.rows]).bool()
+        return self.layers.index(name)
 
     def to_pixel(self, xy: torch.Tensor) -> torch.Tensor:
         """Fractional pixel indices ``(B, ..., 2)`` (i along H, j along W) of scene-frame points ``xy (B, ..., 2)``."""
@@ -139,59 +189,48 @@ class MapRaster:
         ij = torch.einsum("bkc,bnc->bnk", m[:, :2, :2], flat) + m[:, None, :2, 2]
         return ij.reshape(shape)
 
+    def inside(self, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+        """Whether integer pixel ``(i, j)`` lies in scene ``scene``'s raster (all three broadcast together)."""
+        size = self.sizes[self.scene_rows()[scene]]
+        return (i >= 0) & (i < size[..., 0]) & (j >= 0) & (j < size[..., 1])
+
+    def read(self, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor,
+             layers: Sequence[int] | None = None) -> torch.Tensor:
+        """uint8 ``(C', ...)``: the layers ``layers`` (indices; default all C) at integer pixel ``(i, j)`` of scene
+        ``scene`` (int64 tensors that broadcast to ``...``); a pixel outside its scene's raster reads 0."""
+        i, j = torch.broadcast_tensors(i, j)
+        rows = self.scene_rows()[scene]  # per-scene quantities at the scenes' shape, broadcast in the arithmetic
+        h, w = self.sizes[rows, 0], self.sizes[rows, 1]
+        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        flat = self.offsets[rows] + torch.minimum(i.clamp_min(0), h - 1) * w + torch.minimum(j.clamp_min(0), w - 1)
+        if layers is None:
+            values = self.pixels[:, flat]
+        elif len(layers) == 1:
+            values = self.pixels[layers[0]][flat][None]
+        else:
+            channel = torch.as_tensor(list(layers), device=flat.device).reshape((-1,) + (1,) * flat.dim())
+            values = self.pixels[channel, flat[None]]
+        return values * inside[None]
+
     def lookup(self, xy: torch.Tensor, layer: str = "drivable") -> torch.Tensor:
         """Whether each scene-frame point ``xy (B, ..., 2)`` (m) lies on ``layer``; ``(B, ...)`` bool.
 
-        Points outside the raster count as *not* on the layer.
+        Points outside the scene's raster count as *not* on the layer.
         """
-        if layer not in self.layers:
-            raise ScenarioValidationError(f"map layer {layer!r} not found; available layers: {list(self.layers)}.")
-        grid = self.raster[:, self.layers.index(layer)]  # uint8; avoids copying the whole layer to bool
-        _, h, w = grid.shape
+        index = self._layer_index(layer)
         ij = torch.floor(self.to_pixel(xy)).long()
-        i, j = ij[..., 0], ij[..., 1]
-        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        flat_index = i.clamp(0, h - 1) * w + j.clamp(0, w - 1)
-        values = self.gather_pixels(flat_index.reshape(flat_index.shape[0], -1), self.layers.index(layer))
-        return (values[:, 0].reshape(flat_index.shape) > 0) & inside
-
-    def gather_pixels(self, flat_index: torch.Tensor, layer: int | None = None) -> torch.Tensor:
-        """uint8 ``(B, C, K)`` (``(B, 1, K)`` for one ``layer``): each scene's layers at the flat pixel indices
-        ``flat_index (B, K)`` (``i * W + j``, within ``0 .. H*W - 1``). Scenes sharing a raster row are gathered
-        from it together, without copying the row."""
-        raster = self.raster if layer is None else self.raster[:, layer : layer + 1]
-        r, c = raster.shape[:2]
-        b, k = flat_index.shape
-        if self.rows is None:
-            return raster.reshape(r, c, -1).gather(2, flat_index[:, None].expand(b, c, k))
-        out = torch.empty(b, c, k, dtype=raster.dtype, device=raster.device)
-        for row in self.rows.unique().tolist():
-            scenes = (self.rows == row).nonzero().flatten()
-            n = len(scenes)
-            shared = raster[row : row + 1].reshape(1, c, -1).expand(n, c, -1)  # the row once, read n times
-            first = int(scenes[0])
-            if int(scenes[-1]) - first + 1 == n:  # a run of scenes (what repeat_scenes gives): no scatter
-                torch.gather(shared, 2, flat_index[first : first + n, None].expand(n, c, k), out=out[first : first + n])
-            else:
-                out[scenes] = shared.gather(2, flat_index[scenes, None].expand(n, c, k))
-        return out
+        scene = torch.arange(xy.shape[0], device=xy.device).reshape((-1,) + (1,) * (xy.dim() - 2))
+        return self.read(scene, ij[..., 0], ij[..., 1], [index])[0] > 0
 
     def lookup_points(self, scene: torch.Tensor, xy: torch.Tensor, layer: str = "drivable") -> torch.Tensor:
         """Like :meth:`lookup` for a flat list of points: ``xy (N, 2)`` (m) in scenes ``scene (N,)``; ``(N,)`` bool.
 
         Cheaper than :meth:`lookup` when most agent slots are padding: only the listed points are transformed.
         """
-        if layer not in self.layers:
-            raise ScenarioValidationError(f"map layer {layer!r} not found; available layers: {list(self.layers)}.")
-        grid = self.raster[:, self.layers.index(layer)]
-        _, h, w = grid.shape
+        index = self._layer_index(layer)
         m = self.world_to_pixel.to(xy.dtype)[scene]  # (N, 3, 3)
         ij = torch.floor(torch.einsum("nkc,nc->nk", m[:, :2, :2], xy) + m[:, :2, 2]).long()
-        i, j = ij[:, 0], ij[:, 1]
-        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        rows = scene if self.rows is None else self.rows[scene]
-        values = grid[rows, i.clamp(0, h - 1), j.clamp(0, w - 1)]
-        return (values > 0) & inside
+        return self.read(scene, ij[:, 0], ij[:, 1], [index])[0] > 0
 
     # ----------------------------------------------------------- batch ops
     def to(self, device: torch.device | str) -> MapRaster:
@@ -199,7 +238,8 @@ class MapRaster:
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
         return replace(
             self,
-            raster=self.raster.to(device),
+            pixels=self.pixels.to(device),
+            sizes=self.sizes.to(device),
             rows=move(self.rows),
             world_to_pixel=self.world_to_pixel.to(device),
             polylines=move(self.polylines),
@@ -213,7 +253,7 @@ class MapRaster:
             index = slice(index, index + 1)
         pick = lambda t: None if t is None else t[index]  # noqa: E731
         if isinstance(index, torch.Tensor):
-            index = index.to(self.raster.device)
+            index = index.to(self.pixels.device)
         return replace(
             self,
             rows=self.scene_rows()[index],
@@ -226,11 +266,12 @@ class MapRaster:
     def repeat_scenes(self, copies: int) -> MapRaster:
         """Each scene's map ``copies`` times in a row (``B * copies`` scenes), sharing this map's raster rows."""
         check_copies(copies)
-        return self.index(torch.arange(self.num_scenes, device=self.raster.device).repeat_interleave(copies))
+        return self.index(torch.arange(self.num_scenes, device=self.pixels.device).repeat_interleave(copies))
 
     @staticmethod
     def concat(maps: Sequence[MapRaster]) -> MapRaster:
-        """Stack maps along B, zero-padding rasters to the largest H, W and polylines to the largest P, L."""
+        """Stack maps along B; each keeps its rasters at their own size (once per distinct row its scenes read)
+        and polylines are zero-padded to the largest P, L."""
         layers = maps[0].layers
         for m in maps[1:]:
             if m.layers != layers:
@@ -238,17 +279,22 @@ class MapRaster:
                     f"cannot concatenate maps with different layers: {layers} vs {m.layers}; rasterize all scenes"
                     " with the same layer set."
                 )
-        h = max(m.raster.shape[2] for m in maps)
-        w = max(m.raster.shape[3] for m in maps)
-        # keep only the rows each map's scenes read, once per distinct row
-        parts, rows, offset = [], [], 0
+        pixels, sizes, rows, offset = [], [], [], 0
         for m in maps:
-            used, local = m.scene_rows().unique(return_inverse=True) if m.rows is not None else (None, None)
-            kept = m.raster if used is None else m.raster[used]
-            parts.append(torch.nn.functional.pad(kept, (0, w - kept.shape[3], 0, h - kept.shape[2])))
-            rows.append(offset + (m.scene_rows() if local is None else local))
-            offset += kept.shape[0]
-        raster = torch.cat(parts)
+            if m.rows is None:
+                pixels.append(m.pixels)
+                sizes.append(m.sizes)
+                rows.append(offset + m.scene_rows())
+            else:
+                used, local = m.rows.unique(return_inverse=True)
+                if len(used) == m.num_rows:  # every row is read: keep the buffer as it is
+                    used, local = torch.arange(m.num_rows, device=m.pixels.device), m.rows
+                    pixels.append(m.pixels)
+                else:
+                    pixels.append(torch.cat([m.row_raster(int(r)).reshape(len(layers), -1) for r in used], 1))
+                sizes.append(m.sizes[used])
+                rows.append(offset + local)
+            offset += len(sizes[-1])
         shared = any(m.rows is not None for m in maps)
         polylines = polyline_valid = polyline_type = None
         if all(m.polylines is not None for m in maps):
@@ -263,7 +309,8 @@ class MapRaster:
             polyline_valid = torch.cat([pad(m.polyline_valid, 3) for m in maps])  # type: ignore[arg-type]
             polyline_type = torch.cat([pad(m.polyline_type, 1) for m in maps])  # type: ignore[arg-type]
         return MapRaster(
-            raster=raster,
+            pixels=torch.cat(pixels, 1),
+            sizes=torch.cat(sizes),
             rows=torch.cat(rows) if shared else None,
             world_to_pixel=torch.cat([m.world_to_pixel for m in maps]),
             layers=layers,
@@ -271,6 +318,52 @@ class MapRaster:
             polyline_valid=polyline_valid,
             polyline_type=polyline_type,
         )
+
+
+def _pack(raster: torch.Tensor, sizes: torch.Tensor | None, layers: tuple[str, ...]) -> tuple[torch.Tensor, ...]:
+    """``(pixels, sizes)`` of an image batch ``raster (R, C, H, W)``, each row cut to ``sizes`` (default H, W)."""
+    if raster.dim() != 4 or raster.dtype != torch.uint8:
+        raise ScenarioValidationError(
+            f"`map.raster` must be a uint8 tensor of shape (B, C, H, W); got dtype {raster.dtype}, shape "
+            f"{tuple(raster.shape)}. Convert with `raster.to(torch.uint8)` and add the batch axis."
+        )
+    r, c, h, w = raster.shape
+    if c != len(layers):
+        raise ScenarioValidationError(f"`map.layers` names {len(layers)} layers {layers} but `map.raster` has {c}"
+                                      " channels; pass one name per channel.")
+    if sizes is None:
+        sizes = torch.tensor([[h, w]] * r, dtype=torch.int64, device=raster.device).reshape(r, 2)
+        return raster.permute(1, 0, 2, 3).reshape(c, -1), sizes
+    if tuple(sizes.shape) != (r, 2) or sizes.dtype != torch.int64:
+        raise ScenarioValidationError(f"`map.sizes` must be an int64 tensor of shape ({r}, 2); got dtype "
+                                      f"{sizes.dtype}, shape {tuple(sizes.shape)}.")
+    if r and (int(sizes.min()) < 1 or int(sizes[:, 0].max()) > h or int(sizes[:, 1].max()) > w):
+        raise ScenarioValidationError(f"`map.sizes` must lie between 1 and the raster's ({h}, {w}); got "
+                                      f"{sizes.tolist()}.")
+    parts = [raster[k, :, : int(sizes[k, 0]), : int(sizes[k, 1])].reshape(c, -1) for k in range(r)]
+    return torch.cat(parts, 1) if parts else raster.new_zeros(c, 0), sizes
+
+
+def _check_packed(pixels: torch.Tensor, sizes: torch.Tensor, layers: tuple[str, ...]) -> None:
+    if pixels.dim() != 2 or pixels.dtype != torch.uint8 or pixels.shape[0] != len(layers):
+        raise ScenarioValidationError(f"`map.pixels` must be a uint8 tensor of shape (C={len(layers)}, N); got "
+                                      f"dtype {pixels.dtype}, shape {tuple(pixels.shape)}.")
+    if sizes.dim() != 2 or sizes.shape[1] != 2 or sizes.dtype != torch.int64:
+        raise ScenarioValidationError(f"`map.sizes` must be an int64 tensor of shape (R, 2); got dtype "
+                                      f"{sizes.dtype}, shape {tuple(sizes.shape)}.")
+    if len(sizes) and int(sizes.min()) < 1:
+        raise ScenarioValidationError(f"`map.sizes` must be at least 1 pixel each way; got {sizes.tolist()}.")
+    if int((sizes[:, 0] * sizes[:, 1]).sum()) != pixels.shape[1]:
+        raise ScenarioValidationError(f"`map.pixels` holds {pixels.shape[1]} pixels per layer but `map.sizes` "
+                                      f"adds up to {int((sizes[:, 0] * sizes[:, 1]).sum())}.")
+
+
+def _from_rows(like: MapRaster, rasters: Sequence[torch.Tensor], **changes: object) -> MapRaster:
+    """``like`` with the raster rows ``rasters`` (each uint8 ``(C, H_r, W_r)``) and ``changes``."""
+    c = len(like.layers)
+    pixels = torch.cat([r.reshape(c, -1) for r in rasters], 1)
+    sizes = torch.tensor([list(r.shape[1:]) for r in rasters], dtype=torch.int64, device=pixels.device)
+    return replace(like, pixels=pixels, sizes=sizes.reshape(-1, 2), **changes)
 
 
 def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRaster:
@@ -281,11 +374,11 @@ def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRast
     """
     if xy.numel() == 0:
         return scene_map
-    scene_map = scene_map.dense()
+    raster = scene_map.scene_raster(0)
     lo, hi = xy.min(0).values.double() - margin_m, xy.max(0).values.double() + margin_m
     corners = torch.tensor([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])], dtype=torch.float64)
     ij = scene_map.to_pixel(corners[None].to(scene_map.world_to_pixel.dtype))[0].double()
-    h, w = scene_map.raster.shape[-2:]
+    h, w = raster.shape[-2:]
     i0, i1 = max(math.floor(ij[:, 0].min()), 0), min(math.ceil(ij[:, 0].max()) + 1, h)
     j0, j1 = max(math.floor(ij[:, 1].min()), 0), min(math.ceil(ij[:, 1].max()) + 1, w)
     if i0 >= i1 or j0 >= j1:  # agents entirely off the raster: keep one empty pixel
@@ -293,5 +386,4 @@ def crop_map(scene_map: MapRaster, xy: torch.Tensor, margin_m: float) -> MapRast
     m = scene_map.world_to_pixel.clone()
     m[:, 0, 2] -= i0
     m[:, 1, 2] -= j0
-    return MapRaster(raster=scene_map.raster[:, :, i0:i1, j0:j1].contiguous(), world_to_pixel=m,
-                     layers=scene_map.layers)
+    return MapRaster(raster=raster[None, :, i0:i1, j0:j1].contiguous(), world_to_pixel=m, layers=scene_map.layers)

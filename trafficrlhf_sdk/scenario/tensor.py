@@ -359,7 +359,7 @@ class ScenarioTensor:
 # safetensors: the tensors as they are, the metadata as JSON strings in the header
 FORMAT_VERSION = "1"
 _TENSOR_FIELDS = ("states", "valid", "extent", "agent_type", "controlled", "origin")
-_MAP_FIELDS = ("raster", "world_to_pixel", "polylines", "polyline_valid", "polyline_type")
+_MAP_FIELDS = ("world_to_pixel", "polylines", "polyline_valid", "polyline_type")
 
 
 def save_scenario(scenario: ScenarioTensor, path: str | os.PathLike[str]) -> None:
@@ -393,9 +393,11 @@ def scenario_tensors(scenario: ScenarioTensor) -> tuple[dict[str, torch.Tensor],
         if value is not None:
             tensors[name] = value.detach().cpu().contiguous()
     if scenario.map is not None:
-        dense_map = scenario.map.dense()  # one raster row per scene, as the file format stores it
+        scene_map = scenario.map  # the file stores one zero-padded raster per scene and each one's own size
+        tensors["map.raster"] = scene_map.padded().detach().cpu().contiguous()
+        tensors["map.sizes"] = scene_map.scene_sizes().detach().cpu().contiguous()
         for name in _MAP_FIELDS:
-            value = getattr(dense_map, name)
+            value = getattr(scene_map, name)
             if value is not None:
                 tensors[f"map.{name}"] = value.detach().cpu().contiguous()
     metadata = {
@@ -441,6 +443,7 @@ def scenario_from_tensors(tensors: dict[str, torch.Tensor], meta: dict[str, str]
         if "map.raster" in tensors:
             scenario_map = MapRaster(
                 layers=tuple(decoded["map_layers"]),
+                raster=tensors["map.raster"], sizes=tensors.get("map.sizes"),
                 **{name: tensors.get(f"map.{name}") for name in _MAP_FIELDS},  # type: ignore[arg-type]
             )
         return ScenarioTensor(

@@ -119,15 +119,16 @@ def reference_offroad(scene_map: Any, xy: Any, valid: Any) -> np.ndarray:
     if scene_map is None:
         raise ValueError("reference_offroad needs a map raster; the scenario has `map=None`.")
     layer = scene_map.layers.index("drivable")
-    raster = _numpy(scene_map.dense().raster)[:, layer]
+    rasters = [_numpy(scene_map.scene_raster(b))[layer] for b in range(scene_map.num_scenes)]  # each its own size
     transforms = np.asarray(_numpy(scene_map.world_to_pixel), dtype=np.float64)
     xy = np.asarray(_numpy(xy), dtype=np.float64)
     valid = np.asarray(_numpy(valid), dtype=bool)
     num_scenes, num_agents, num_steps = valid.shape
-    height, width = raster.shape[1], raster.shape[2]
     off = np.zeros((num_scenes, num_agents, num_steps), dtype=bool)
     for b in range(num_scenes):
         m = transforms[b]
+        raster = rasters[b]
+        height, width = raster.shape
         for a in range(num_agents):
             for t in range(num_steps):
                 if not valid[b, a, t]:
@@ -135,7 +136,7 @@ def reference_offroad(scene_map: Any, xy: Any, valid: Any) -> np.ndarray:
                 x, y = float(xy[b, a, t, 0]), float(xy[b, a, t, 1])
                 i = math.floor(m[0, 0] * x + m[0, 1] * y + m[0, 2])
                 j = math.floor(m[1, 0] * x + m[1, 1] * y + m[1, 2])
-                on_road = 0 <= i < height and 0 <= j < width and raster[b, i, j] > 0
+                on_road = 0 <= i < height and 0 <= j < width and raster[i, j] > 0
                 off[b, a, t] = not on_road
     return off
 

@@ -77,11 +77,12 @@ def map_rasters(
     with_polylines: bool | None = None,
 ) -> MapRaster:
     """A :class:`MapRaster` of ``num_scenes`` scenes: 0/1 uint8 rasters of at most ``max_size`` x ``max_size``
-    pixels, ``world_to_pixel = [[s, 0, ti], [0, s, tj], [0, 0, 1]]`` with a scale ``s`` in {0.5, 1, 2, 3} px/m,
+    pixels, each scene's of its own size, ``world_to_pixel = [[s, 0, ti], [0, s, tj], [0, 0, 1]]`` with a scale ``s`` in {0.5, 1, 2, 3} px/m,
     and (when ``with_polylines`` is True, or at random when None) polylines with masks and type codes."""
     h = draw(st.integers(1, max_size), label="H")
     w = draw(st.integers(1, max_size), label="W")
     raster = draw(arrays(np.uint8, (num_scenes, len(layers), h, w), elements=st.integers(0, 1)), label="raster")
+    sizes = [[draw(st.integers(1, h), label="H_b"), draw(st.integers(1, w), label="W_b")] for _ in range(num_scenes)]
     w2p = np.zeros((num_scenes, 3, 3), np.float32)
     for b in range(num_scenes):
         scale = draw(st.sampled_from((0.5, 1.0, 2.0, 3.0)), label="scale")
@@ -100,6 +101,7 @@ def map_rasters(
         )
     return MapRaster(
         raster=torch.from_numpy(raster),
+        sizes=torch.tensor(sizes, dtype=torch.int64).reshape(num_scenes, 2),
         world_to_pixel=torch.from_numpy(w2p),
         layers=tuple(layers),
         polylines=polylines,

@@ -598,4 +598,4 @@ def test_campaign_contexts_made_together_equal_those_made_one_by_one(scenes) -> 
         for x, y in zip(made[1:], alone[1:]):
             assert torch.equal(x, y)
         assert torch.equal(made[0].states, alone[0].states) and torch.equal(made[0].controlled, alone[0].controlled)
-        assert torch.equal(made[0].map.raster, alone[0].map.raster)
+        assert torch.equal(made[0].map.scene_raster(0), alone[0].map.scene_raster(0))

@@ -320,7 +320,7 @@ def _check_on_map(label_path: str, table: LabelTable, scene_map: MapRaster, orig
     """Refuse a scene whose agents lie far outside its map raster, or (``need_road``) whose vehicles are never on
     its drivable layer: the map's origin or scale (``maps/meta_<scene>.txt``) does not belong to the labels."""
     line = table.line if table.line is not None else np.arange(1, len(table.frame) + 1)
-    extent = max(scene_map.raster.shape[-2:]) / float(scene_map.world_to_pixel[0, 0, 0])
+    extent = int(scene_map.sizes[0].max()) / float(scene_map.world_to_pixel[0, 0, 0])
     x, y = table.x - origin[0], table.y - origin[1]
     outside = (np.minimum(x, y) < -MAP_MARGIN_M) | (np.maximum(x, y) > extent + MAP_MARGIN_M)
     if outside.any():

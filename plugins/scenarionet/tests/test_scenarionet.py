@@ -106,7 +106,7 @@ def test_synthetic_scene(synthetic_root):
     assert s.valid[0, 2].sum() == 100 and (s.states[0, 2][~s.valid[0, 2]] == 0).all()
     # origin = min corner of the valid positions minus the 20 m margin; x runs along rows (H)
     assert s.origin[0].tolist() == pytest.approx([ORIGIN[0] - 20.0, ORIGIN[1] - 3.0 - 20.0])
-    h, w = s.map.raster.shape[2:]
+    h, w = s.map.scene_raster(0).shape[1:]
     assert (h, w) == (math.ceil((99.5 + 40) * 3), math.ceil((13.0 + 40) * 3))
     road = lambda dx, dy: torch.tensor([[[ORIGIN[0] + dx, ORIGIN[1] + dy]]]) - s.origin.float()  # noqa: E731
     assert s.map.lookup(s.xy[:, :2]).all()  # both cars always on the road
@@ -247,7 +247,7 @@ def test_mini_scenes(mini_batch):
     assert s.current_index == 30 and s.num_steps == 201 and s.dt == pytest.approx(0.1)
     assert s.states.dtype == torch.float32 and s.valid.dtype == torch.bool and s.agent_type.dtype == torch.int64
     assert s.origin.dtype == torch.float64 and s.origin.shape == (10, 2)
-    assert s.map.raster.dtype == torch.uint8 and s.map.layers == ("drivable", "road_divider", "lane_divider")
+    assert s.map.pixels.dtype == torch.uint8 and s.map.layers == ("drivable", "road_divider", "lane_divider")
     assert s.map.polylines.shape[0] == 10 and s.map.polylines.shape[2:] == (20, 2)
     assert all(ids[0] == "ego" for ids in s.agent_ids) and s.controlled[:, 0].all()
     kinds = set(s.agent_type[s.valid.any(-1)].tolist())
@@ -304,7 +304,7 @@ def test_mini_round_trip(mini_batch, tmp_path):
     back = ScenarioTensor.load(path)
     for name in ("states", "valid", "extent", "agent_type", "controlled", "origin"):
         assert torch.equal(getattr(back, name), getattr(s, name)), name
-    for name in ("raster", "world_to_pixel", "polylines", "polyline_valid", "polyline_type"):
+    for name in ("pixels", "sizes", "world_to_pixel", "polylines", "polyline_valid", "polyline_type"):
         assert torch.equal(getattr(back.map, name), getattr(s.map.dense(), name)), name
     assert (back.dt, back.current_index, back.scene_ids, back.agent_ids, back.source, back.extras, back.map.layers) \
         == (s.dt, s.current_index, s.scene_ids, s.agent_ids, s.source, s.extras, s.map.layers)
