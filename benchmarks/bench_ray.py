@@ -1,6 +1,7 @@
 """In-process against Ray workers: closed-loop evaluation (scenes x rollouts) and feedback-campaign candidate
 generation with CTG, the same seeds in both modes. **Asserts** the results are identical, then prints both wall
-times and the speed-up (Ray start-up included: a local Ray is started for each Ray run).
+times and the speed-up (Ray start-up included: a local Ray is started for each Ray run, unless ``--ray-address``
+names a running one, e.g. one started with ``ray start --head --num-cpus 2``).
 
 Run: .venv/bin/python benchmarks/bench_ray.py candidates --scenes 300 --split train --seconds 4 --workers 2
      .venv/bin/python benchmarks/bench_ray.py evaluate --scenes 100 --rollouts 8 --workers 2
@@ -21,17 +22,18 @@ from _common import header, load_val, peak_rss_mb
 from trafficrlhf_sdk.parallel import ExecutionConfig
 
 
-def bench_evaluate(scenes: int, rollouts: int, workers: int) -> None:
+def bench_evaluate(scenes: int, rollouts: int, execution: ExecutionConfig) -> None:
     from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, evaluate_policy
     from trafficrlhf_sdk.plugins import build_policy
 
     batch, _ = load_val(scenes)
+    print(f"   map rasters of the {batch.num_scenes} scenes: {batch.map.pixels.numel() / 2**20:.0f} MB")  # type: ignore[union-attr]
     config = EvaluationConfig(rollouts=rollouts, seed=0)
     runs = {}
-    for label, execution in (("in-process", None), (f"ray x{workers}", ExecutionConfig(workers=workers))):
+    for label, where in (("in-process", None), (f"ray x{execution.workers}", execution)):
         policy = build_policy(None, {"checkpoint": "ctg-4s", "guidance": "no_collision", "seed": 0})
         tic = time.perf_counter()
-        runs[label] = evaluate_policy(policy, batch, config, execution=execution)
+        runs[label] = evaluate_policy(policy, batch, config, execution=where)
         print(f"   {label:<12} {time.perf_counter() - tic:8.1f} s  realism_meta "
               f"{runs[label].values['realism_meta']:.4f}  failure {runs[label].values['failure_rate']:.4f}")
     first, second = runs.values()
@@ -40,7 +42,7 @@ def bench_evaluate(scenes: int, rollouts: int, workers: int) -> None:
     print("   identical: values, per-scene values and rollout states")
 
 
-def bench_candidates(scenes: int, workers: int, split: str, seconds: float) -> None:
+def bench_candidates(scenes: int, execution: ExecutionConfig, split: str, seconds: float) -> None:
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign
     from trafficrlhf_sdk.feedback.store import FeedbackStore
 
@@ -48,10 +50,10 @@ def bench_candidates(scenes: int, workers: int, split: str, seconds: float) -> N
                             candidate_seconds=seconds, model_options={"checkpoint": "ctg-4s"})
     stores = {}
     with tempfile.TemporaryDirectory() as folder:
-        for label, execution in (("in-process", None), (f"ray x{workers}", ExecutionConfig(workers=workers))):
+        for label, where in (("in-process", None), (f"ray x{execution.workers}", execution)):
             store = FeedbackStore(os.path.join(folder, f"{label[:3]}.db"))
             tic = time.perf_counter()
-            report = create_campaign(store, config, execution=execution)
+            report = create_campaign(store, config, execution=where)
             wall = time.perf_counter() - tic
             print(f"   {label:<12} {wall:8.1f} s  {len(report.added)} contexts, {wall / len(report.added):.2f} s/scene")
             stores[label] = (store, report.added)
@@ -69,12 +71,16 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--split", default="val", help="candidates: the split of the contexts.")
     parser.add_argument("--seconds", type=float, default=5.0, help="candidates: seconds per candidate.")
+    parser.add_argument("--ray-address", default=None, help="A running Ray cluster (e.g. auto) instead of a local "
+                        "Ray started for the run.")
     args = parser.parse_args()
-    header(f"in-process vs {args.workers} Ray workers: {args.what}, {args.scenes} scenes")
+    execution = ExecutionConfig(workers=args.workers, ray_address=args.ray_address)
+    where = f"the Ray cluster at {args.ray_address}" if args.ray_address else "a local Ray started for the run"
+    header(f"in-process vs {args.workers} Ray workers on {where}: {args.what}, {args.scenes} scenes")
     if args.what == "evaluate":
-        bench_evaluate(args.scenes, args.rollouts, args.workers)
+        bench_evaluate(args.scenes, args.rollouts, execution)
     else:
-        bench_candidates(args.scenes, args.workers, args.split, args.seconds)
+        bench_candidates(args.scenes, execution, args.split, args.seconds)
     print(f"   peak RSS of the driver {peak_rss_mb():.0f} MB")
 
 

@@ -48,6 +48,7 @@ def _fake_steps(monkeypatch, aligned: dict[str, object], failure=lambda name: 0.
         return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": value, "speed_ratio": 1.0}})
 
     monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline.stages, "align_step", fake_align)  # what align_steps calls
     monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
 
 
@@ -128,6 +129,7 @@ def test_control_row_of_a_recipe_without_imitation_term_is_the_start(tmp_path, m
 
 
 def test_alignments_on_workers_run_the_control_row_last(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.parallel as parallel
     from trafficrlhf_sdk.errors import TrafficRLHFError
     from trafficrlhf_sdk.experiments import ladder
     from trafficrlhf_sdk.parallel import ExecutionConfig
@@ -148,7 +150,7 @@ def test_alignments_on_workers_run_the_control_row_last(tmp_path, monkeypatch) -
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("TRAFFICRLHF_DATA", "/data/here")
-    monkeypatch.setattr(ladder, "iter_tasks", fake_tasks)
+    monkeypatch.setattr(parallel, "iter_tasks", fake_tasks)
     jobs = [ladder._AlignJob(key, draw, draw, f"{key}{draw}", None, []) for draw in range(2) for key in "abcd"]
     logged: list[str] = []
     done = ladder._align_rows(jobs, False, logged.append, ExecutionConfig(workers=2))
@@ -201,6 +203,7 @@ def test_later_rounds_label_the_previous_policys_closed_loop_contexts(tmp_path, 
                        ("reward_model_step", fake_reward), ("align_step", fake_align),
                        ("evaluate_step", fake_evaluate)):
         monkeypatch.setattr(pipeline, name, fake)
+    monkeypatch.setattr(pipeline.stages, "align_step", fake_align)  # what align_steps calls
     out = tmp_path / "out"
     config = LadderConfig(recipe=str(recipe), campaigns=((5, 1),), rounds=2, round_contexts=3, agreement_contexts=0)
     run_ladder(config, str(out), log=lambda _: None)
@@ -362,6 +365,7 @@ def test_rows_c_and_d_follow_the_weights_of_a_given_reward_model(tmp_path, monke
         return StepResult("evaluate", folder, "x", {"metrics": {"failure_rate": 0.1, "speed_ratio": 1.0}})
 
     monkeypatch.setattr(pipeline, "align_step", fake_align)
+    monkeypatch.setattr(pipeline.stages, "align_step", fake_align)  # what align_steps calls
     monkeypatch.setattr(pipeline, "evaluate_step", fake_evaluate)
     rm = tmp_path / "rm"
     rm.mkdir()

@@ -175,3 +175,29 @@ def test_align_command_samples_on_ray_and_trains_like_in_process(ray_head, data_
     assert result.exit_code == 0, result.output
     a, b = (load_file(os.path.join(folder, "model.safetensors")) for folder in (local, remote))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.data
+def test_alignments_side_by_side_on_ray_equal_those_in_process(ray_head, data_root: str, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """`align_steps` runs independent alignments one per Ray worker (the ladder's rows, a paper table's
+    variants): each one's weights equal the same recipe aligned in this process with one thread."""
+    import os
+
+    from safetensors.torch import load_file
+
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+    from trafficrlhf_sdk.pipeline import AlignJob, align_steps
+
+    recipes = [AlignRecipe(model="example_gru", reward_model=reward, threads=1,
+                           align={"epochs": 1, "num_scenes": 3, "progress_bar": False, "seed": seed})
+               for reward, seed in (("builtin:collision", 0), ("builtin:failure", 1))]
+    local = align_steps([AlignJob(str(tmp_path / f"local{k}"), r) for k, r in enumerate(recipes)])
+    logged: list[str] = []
+    remote = align_steps([AlignJob(str(tmp_path / f"ray{k}"), r) for k, r in enumerate(recipes)], log=logged.append,
+                         execution=ExecutionConfig(ray_address="auto", workers=2))
+    assert any("side by side" in line for line in logged)
+    for a, b in zip(local, remote, strict=True):
+        left, right = (load_file(os.path.join(step["folder"], "model.safetensors")) for step in (a, b))
+        assert left.keys() == right.keys() and all(torch.equal(left[k], right[k]) for k in left)
+    first, second = (load_file(os.path.join(step["folder"], "model.safetensors")) for step in remote)
+    assert any(not torch.equal(first[k], second[k]) for k in first)  # two different jobs, not one run twice

@@ -34,7 +34,6 @@ resumes where it stopped. It writes ``ladder.md`` (the table), ``ladder.json`` a
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import os
@@ -46,7 +45,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
 from trafficrlhf_sdk.experiments.config import resolve_path
-from trafficrlhf_sdk.parallel import ExecutionConfig, iter_tasks, ray_session
+from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.reward.config import RewardConfig
 
 if TYPE_CHECKING:
@@ -228,47 +227,16 @@ def _suffix(draw: int, seed: int) -> str:
     return f"_seed{seed}" if draw else ""
 
 
-def _align_job(shared: dict[str, Any], job: _AlignJob) -> tuple[StepResult | TrafficRLHFError, list[str]]:
-    """One alignment step on a Ray worker (a finished one is read from its folder), in the driver's working
-    directory and data root, with the worker's torch threads; returns the step, or the SDK error it raised, and
-    the lines it logged (a worker has nowhere to print them)."""
-    import trafficrlhf_sdk.pipeline as pipeline
-
-    os.chdir(shared["cwd"])
-    os.environ.update(shared["env"])
-    lines: list[str] = []
-    recipe = job.recipe.model_copy(update={"threads": shared["threads"]})  # `threads` is not in the digest
-    try:
-        return pipeline.align_step(job.folder, recipe, after=job.after, overwrite=shared["overwrite"],
-                                   log=lines.append), lines
-    except TrafficRLHFError as exc:
-        return exc, lines
-
-
 def _align_rows(jobs: list[_AlignJob], overwrite: bool, log: Callable[[str], None],
                 execution: ExecutionConfig | None) -> dict[str, StepResult]:
-    """Every job's alignment step, by folder: one after another in-process, or side by side on Ray workers (the
-    control row (d) last, so the rows that move come first)."""
+    """Every job's alignment step, by folder: one after another in-process, or side by side on Ray workers
+    (:func:`~trafficrlhf_sdk.pipeline.align_steps`; the control row (d) last, so the rows that move come first)."""
     import trafficrlhf_sdk.pipeline as pipeline
 
-    if execution is None:
-        return {job.folder: pipeline.align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite,
-                                                log=log) for job in jobs}
-    order = sorted(jobs, key=lambda job: (job.key == "d", job.draw, job.key))
-    log(f"align: {len(order)} rows x draws on Ray workers ({', '.join(os.path.basename(j.folder) for j in order)})")
-    shared = {"overwrite": overwrite, "cwd": os.getcwd(), "threads": execution.threads_per_worker,
-              "env": {k: v for k, v in os.environ.items() if k.startswith("TRAFFICRLHF_")}}
-    done = {}
-    # closed before returning, so its workers are released to the evaluations in the same Ray session
-    with contextlib.closing(iter_tasks(_align_job, shared, order, execution)) as results:
-        for job, (result, lines) in zip(order, results, strict=True):
-            for line in lines:
-                log(line)
-            if isinstance(result, TrafficRLHFError):
-                raise result
-            log(f"align: {'done before' if result.cached else 'done'} ({job.folder})")
-            done[job.folder] = result
-    return done
+    order = jobs if execution is None else sorted(jobs, key=lambda job: (job.key == "d", job.draw, job.key))
+    done = pipeline.align_steps([pipeline.AlignJob(job.folder, job.recipe, job.after) for job in order],
+                                overwrite=overwrite, log=log, execution=execution)
+    return {job.folder: result for job, result in zip(order, done, strict=True)}
 
 
 def _learn_reward_model(config: LadderConfig, recipe: Any, db: str, out_dir: str, steps: dict[str, Any],

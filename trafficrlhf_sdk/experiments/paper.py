@@ -35,7 +35,8 @@ from trafficrlhf_sdk.experiments.config import TABLES, PaperConfig
 from trafficrlhf_sdk.experiments.report import COLUMNS, direction_rows, fmt, markdown_table, plot_bars, write_result
 from trafficrlhf_sdk.experiments.steps import (
     ExperimentRun,
-    align,
+    align_all,
+    align_recipe,
     evaluate,
     labelled_campaign,
     read_recipe,
@@ -100,13 +101,6 @@ def table1(run: ExperimentRun) -> dict[str, Any]:
                       "distance m)."]}
 
 
-def _align_pair(run: ExperimentRun, name: str, model: str, checkpoint: str, reward: str, recipe: str,
-                ensemble: bool) -> str:
-    summary = align(run, name, model, checkpoint, reward, _recipe(run.config, recipe),
-                    _aggregation(run.config, ensemble))
-    return summary["folder"]
-
-
 def _is_ensemble(path: str) -> bool:
     with open(os.path.join(path, "config.json"), encoding="utf-8") as handle:
         return json.load(handle).get("architecture") == "ensemble"
@@ -118,9 +112,11 @@ def table2(run: ExperimentRun) -> dict[str, Any]:
     reward = resolve_path(cfg.reward_model)
     rm = {"rm": reward}
     ensemble = _is_ensemble(reward)
-    bits_rm = _align_pair(run, "table2_bits_rm", "bits", cfg.bits, reward, cfg.align_bits, ensemble)
-    tg_rm = _align_pair(run, "table2_trafficgen_rm", "trafficgen", cfg.trafficgen, reward, cfg.align_trafficgen,
-                        ensemble)
+    aggregation = _aggregation(cfg, ensemble)
+    bits_rm, tg_rm = (step["folder"] for step in align_all(run, [
+        ("table2_bits_rm", align_recipe(run, "bits", cfg.bits, reward, _recipe(cfg, cfg.align_bits), aggregation)),
+        ("table2_trafficgen_rm", align_recipe(run, "trafficgen", cfg.trafficgen, reward,
+                                              _recipe(cfg, cfg.align_trafficgen), aggregation))]))
     entries = [("CTG", "ctg", cfg.ctg_base, cfg.ctg_base), ("CTG + RM", "ctg", cfg.ctg_aligned, cfg.ctg_aligned),
                ("BITS", "bits", cfg.bits, cfg.bits), ("BITS + RM", "bits", bits_rm, "table2_bits_rm"),
                ("TrafficGen", "trafficgen", cfg.trafficgen, cfg.trafficgen),
@@ -151,10 +147,12 @@ def table3(run: ExperimentRun) -> dict[str, Any]:
     rows = [{"variant": "CTG (not fine-tuned)", "groups": "", "epochs": None, "align_s": None,
              **{m: base.get(m) for m in METRICS}}]
     pairs = []
-    for variant, groups in cfg.table3_groups.items():
-        name = f"table3_ctg_{variant}"
-        summary = align(run, name, "ctg", cfg.ctg_base, reward, _recipe(cfg, cfg.align_ctg, groups=groups),
-                        _aggregation(cfg, ensemble))
+    names = {variant: f"table3_ctg_{variant}" for variant in cfg.table3_groups}
+    aligned = align_all(run, [(names[variant], align_recipe(run, "ctg", cfg.ctg_base, reward,
+                                                            _recipe(cfg, cfg.align_ctg, groups=groups),
+                                                            _aggregation(cfg, ensemble)))
+                              for variant, groups in cfg.table3_groups.items()])
+    for (variant, name), summary in zip(names.items(), aligned, strict=True):
         values = _flat(evaluate(run, name, "ctg", summary["folder"], cfg.guidance, rm))
         rows.append({"variant": f"CTG + RM, {variant}", "groups": ",".join(summary.get("groups") or []),
                      "epochs": summary.get("epochs"), "align_s": summary.get("wall_time_s"),
@@ -199,13 +197,17 @@ def table4(run: ExperimentRun) -> dict[str, Any]:
     bases = {"BITS": ("bits", cfg.bits, cfg.align_bits), "TrafficGen": ("trafficgen", cfg.trafficgen,
                                                                         cfg.align_trafficgen)}
     rows, pairs = [], []
-    for model_name, (model, checkpoint, recipe) in bases.items():
+    aggregation = _aggregation(cfg, ensemble)
+    jobs = {(model, index): (f"table4_{model}_rm{index}",
+                             align_recipe(run, model, checkpoint, path, _recipe(cfg, recipe), aggregation))
+            for model, checkpoint, recipe in bases.values() for index, path in enumerate(reward_models.values())}
+    done = dict(zip(jobs, align_all(run, list(jobs.values())), strict=True))  # every alignment side by side
+    for model_name, (model, checkpoint, _) in bases.items():
         base_eval = evaluate(run, checkpoint, model, checkpoint, cfg.guidance, costs)
         rows.append({"model": model_name, "backbone": "", "rm_val_accuracy": None,
                      **base_eval["metrics"], "costs": base_eval["reward_cost"]})
-        for index, (backbone, path) in enumerate(reward_models.items()):
-            name = f"table4_{model}_rm{index}"
-            summary = align(run, name, model, checkpoint, path, _recipe(cfg, recipe), _aggregation(cfg, ensemble))
+        for index, backbone in enumerate(reward_models):
+            name, summary = jobs[(model, index)][0], done[(model, index)]
             aligned = evaluate(run, name, model, summary["folder"], cfg.guidance, costs)
             rows.append({"model": f"{model_name} + RM", "backbone": backbone, "rm_val_accuracy": accuracy[backbone],
                          **aligned["metrics"], "costs": aligned["reward_cost"]})

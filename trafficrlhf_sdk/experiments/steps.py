@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from trafficrlhf_sdk.experiments.config import PaperConfig
     from trafficrlhf_sdk.pipeline.step import StepResult
 
-__all__ = ["ExperimentRun", "align", "evaluate", "labelled_campaign", "read_recipe", "resolve_path",
-           "train_reward_model"]
+__all__ = ["ExperimentRun", "align", "align_all", "align_recipe", "evaluate", "labelled_campaign", "read_recipe",
+           "resolve_path", "train_reward_model"]
 
 SUMMARY_METRICS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_meta",
                    "speed_ratio", "stopped_share", "guidance_speed_limit", "guidance_target_speed",
@@ -132,21 +132,38 @@ def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, rew
     """Align ``model`` from ``checkpoint`` against ``reward_model`` with the AlignConfig ``fields`` into
     ``out_dir/models/<name>`` (the run's guidance, seed, source and progress bar unless ``fields`` set them).
     Outputs the run's summary plus its ``folder``."""
+    recipe = align_recipe(run, model, checkpoint, reward_model, fields, aggregation, model_options)
+    return align_all(run, [(name, recipe)], after)[0]
+
+
+def align_recipe(run: ExperimentRun, model: str, checkpoint: str | None, reward_model: str, fields: dict[str, Any],
+                 aggregation: str = "mean", model_options: dict[str, Any] | None = None) -> Any:
+    """The :class:`~trafficrlhf_sdk.alignment.recipe.AlignRecipe` of :func:`align`."""
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe
-    from trafficrlhf_sdk.pipeline.stages import align_step
 
     cfg = run.config
     settings = {"guidance": cfg.guidance, "seed": cfg.seed, "progress_bar": cfg.progress,
                 **({"source": cfg.source} if cfg.source != "nuscenes_pred" else {}),
                 **({"root": cfg.root} if cfg.root else {}), **fields}
-    recipe = AlignRecipe(model=model, checkpoint=checkpoint, reward_model=reward_model,
-                         model_options=model_options or {}, reward_aggregation=aggregation,  # type: ignore[arg-type]
-                         align=settings)
-    done = run.count(align_step(os.path.join(run.out_dir, "models", name), recipe, after=after,
-                                execution=cfg.execution, **run.steps))
-    if not done.cached:
-        run.log(f"aligned {name} ({model} from {checkpoint or 'its bundled weights'} against {reward_model}) in "
-                f"{done['wall_time_s']:.0f} s ({done['epochs']} epochs)")
+    return AlignRecipe(model=model, checkpoint=checkpoint, reward_model=reward_model,
+                       model_options=model_options or {}, reward_aggregation=aggregation,  # type: ignore[arg-type]
+                       align=settings)
+
+
+def align_all(run: ExperimentRun, named: Sequence[tuple[str, Any]], after: Sequence[StepResult] = ()
+              ) -> list[StepResult]:
+    """Independent alignments ``(name, recipe)`` into ``out_dir/models/<name>``: one after another in-process, side
+    by side on the run's Ray workers (:func:`~trafficrlhf_sdk.pipeline.stages.align_steps`). Results in order."""
+    from trafficrlhf_sdk.pipeline.stages import AlignJob, align_steps
+
+    cfg = run.config
+    jobs = [AlignJob(os.path.join(run.out_dir, "models", name), recipe, tuple(after)) for name, recipe in named]
+    done = align_steps(jobs, execution=cfg.execution if cfg.execution.uses_ray else None, **run.steps)
+    for (name, recipe), step in zip(named, done, strict=True):
+        run.count(step)
+        if not step.cached:
+            run.log(f"aligned {name} ({recipe.model} from {recipe.checkpoint or 'its bundled weights'} against "
+                    f"{recipe.reward_model}) in {step['wall_time_s']:.0f} s ({step['epochs']} epochs)")
     return done
 
 

@@ -22,7 +22,9 @@ Example: one rung of an alignment ladder, a built-in reward against a learned on
 """
 
 from trafficrlhf_sdk.pipeline.stages import (
+    AlignJob,
     align_step,
+    align_steps,
     evaluate_step,
     generate_step,
     label_step,
@@ -39,6 +41,7 @@ from trafficrlhf_sdk.pipeline.step import (
     run_step,
 )
 
-__all__ = ["MANIFEST", "StepConfigError", "StepResult", "align_step", "evaluate_step", "generate_step",
+__all__ = ["MANIFEST", "AlignJob", "StepConfigError", "StepResult", "align_step", "align_steps", "evaluate_step",
+           "generate_step",
            "input_differences", "inputs_digest", "label_step", "rank_step", "read_manifest", "reward_model_step",
            "run_step"]

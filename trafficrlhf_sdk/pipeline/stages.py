@@ -10,6 +10,7 @@ label_step         :class:`~trafficrlhf_sdk.feedback.SyntheticAnnotator`       `
 rank_step          :func:`~trafficrlhf_sdk.feedback.selection.rank_by_disagreement`  ``ranked`` items per campaign
 reward_model_step  :func:`~trafficrlhf_sdk.reward.card.train_and_save`         ``folder``, ``metrics``, ``probes``
 align_step         :func:`~trafficrlhf_sdk.alignment.recipe.run_recipe`        the run's summary and ``folder``
+align_steps        several ``align_step`` side by side on Ray workers          one ``align_step`` result per job
 evaluate_step      :func:`~trafficrlhf_sdk.evaluation.runs.evaluate_seeds`     ``metrics`` (mean over seeds), per seed
 =================  =========================================================  ==========================================
 
@@ -23,6 +24,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from trafficrlhf_sdk.errors import TrafficRLHFError
@@ -36,7 +38,8 @@ if TYPE_CHECKING:
     from trafficrlhf_sdk.parallel import ExecutionConfig
     from trafficrlhf_sdk.reward.config import RewardConfig
 
-__all__ = ["align_step", "evaluate_step", "generate_step", "label_step", "rank_step", "reward_model_step"]
+__all__ = ["AlignJob", "align_step", "align_steps", "evaluate_step", "generate_step", "label_step", "rank_step",
+           "reward_model_step"]
 
 Log = Callable[[str], None]
 # the fields of a campaign an interrupted generation may not change (the contexts are filled in afterwards)
@@ -231,6 +234,63 @@ def align_step(folder: str, recipe: AlignRecipe, *, after: Sequence[StepResult] 
         return {**summary, "folder": folder}
 
     return run_step("align", folder, inputs, work, after=after, overwrite=overwrite, log=log)
+
+
+@dataclass(frozen=True)
+class AlignJob:
+    """One alignment of :func:`align_steps`: its output folder, its recipe and the steps it reads from."""
+
+    folder: str
+    recipe: AlignRecipe
+    after: Sequence[StepResult] = ()
+
+
+def align_steps(jobs: Sequence[AlignJob], *, overwrite: bool = False, log: Log | None = None,
+                execution: ExecutionConfig | None = None) -> list[StepResult]:
+    """Several independent :func:`align_step` calls, results in job order.
+
+    In-process (or a single job) they run one after another, each with ``execution`` for its own sampling. On Ray
+    with two jobs or more they run side by side, one alignment per worker with the worker's torch threads
+    (``threads_per_worker``; 1 gives the numbers of an in-process run with one thread; a recipe's ``threads`` is
+    set to it), in the driver's working directory and ``TRAFFICRLHF_*`` environment; the jobs' log lines and
+    SDK errors come back to the driver. On an existing cluster the workers must see the driver's files."""
+    log = log or (lambda line: None)
+    if execution is None or not execution.uses_ray or len(jobs) < 2:
+        return [align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite, log=log,
+                           execution=execution) for job in jobs]
+    import contextlib
+
+    from trafficrlhf_sdk.parallel import iter_tasks
+
+    log(f"align: {len(jobs)} alignments side by side on Ray workers "
+        f"({', '.join(os.path.basename(job.folder) for job in jobs)})")
+    shared = {"overwrite": overwrite, "cwd": os.getcwd(), "threads": execution.threads_per_worker,
+              "env": {k: v for k, v in os.environ.items() if k.startswith("TRAFFICRLHF_")}}
+    done = []
+    # closed before returning, so its workers are released to the next steps of the same Ray session
+    with contextlib.closing(iter_tasks(_align_on_worker, shared, list(jobs), execution)) as results:
+        for job, (result, lines) in zip(jobs, results, strict=True):
+            for line in lines:
+                log(line)
+            if isinstance(result, TrafficRLHFError):
+                raise result
+            log(f"align: {'done before' if result.cached else 'done'} ({job.folder})")
+            done.append(result)
+    return done
+
+
+def _align_on_worker(shared: dict[str, Any], job: AlignJob) -> tuple[StepResult | TrafficRLHFError, list[str]]:
+    """One :func:`align_step` on a Ray worker, in the driver's working directory and data root, with the worker's
+    torch threads; returns the step, or the SDK error it raised, and the lines it logged (a worker has nowhere to
+    print them)."""
+    os.chdir(shared["cwd"])
+    os.environ.update(shared["env"])
+    lines: list[str] = []
+    recipe = job.recipe.model_copy(update={"threads": shared["threads"]})  # `threads` is not in the digest
+    try:
+        return align_step(job.folder, recipe, after=job.after, overwrite=shared["overwrite"], log=lines.append), lines
+    except TrafficRLHFError as exc:
+        return exc, lines
 
 
 # --------------------------------------------------------------------------------------------------- evaluation

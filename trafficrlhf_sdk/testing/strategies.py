@@ -77,8 +77,9 @@ def map_rasters(
     with_polylines: bool | None = None,
 ) -> MapRaster:
     """A :class:`MapRaster` of ``num_scenes`` scenes: 0/1 uint8 rasters of at most ``max_size`` x ``max_size``
-    pixels, each scene's of its own size, ``world_to_pixel = [[s, 0, ti], [0, s, tj], [0, 0, 1]]`` with a scale ``s`` in {0.5, 1, 2, 3} px/m,
-    and (when ``with_polylines`` is True, or at random when None) polylines with masks and type codes."""
+    pixels, each scene's of its own size, ``world_to_pixel = [[s, 0, ti], [0, s, tj], [0, 0, 1]]`` with a scale
+    ``s`` in {0.5, 1, 2, 3} px/m, and (when ``with_polylines`` is True, or at random when None) polylines with
+    masks and type codes."""
     h = draw(st.integers(1, max_size), label="H")
     w = draw(st.integers(1, max_size), label="W")
     raster = draw(arrays(np.uint8, (num_scenes, len(layers), h, w), elements=st.integers(0, 1)), label="raster")
