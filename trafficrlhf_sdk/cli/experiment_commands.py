@@ -27,7 +27,9 @@ def experiment_group() -> None:
 @click.option("--threads", type=click.IntRange(min=1), default=None, help="torch threads [default: torch's].")
 @click.option("--overwrite", is_flag=True, help="Run again the steps --out finished with other settings (instead "
                                                 "of refusing them).")
-@ray_options("the evaluations' rollouts, the campaigns' candidates and the alignments' samples")
+@ray_options("the evaluations' rollouts, the campaigns' candidates and a table's alignments (side by side, one per "
+             "worker, on the worker's one thread)",
+             numbers="The numbers are those of an in-process run with --threads 1.")
 def paper_command(out_dir: str, quick: bool, only: str | None, config_path: str | None, scenes: int | None,
                   threads: int | None, overwrite: bool, workers: int, ray_address: str | None) -> None:
     """Tables 1-4 and Figure 3 of the paper (arXiv 2309.00709) on nuScenes val scenes, with stand-in annotators

@@ -82,8 +82,9 @@ class PaperConfig(BaseModel):
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default).")
     progress: bool = Field(True, description="Progress bars for simulation and alignment.")
     execution: ExecutionConfig = Field(default_factory=ExecutionConfig, description="Where the evaluations' "
-                                       "rollouts, the campaigns' candidates and the alignments' samples run: "
-                                       "in-process or on Ray workers, with the same numbers.")
+                                       "rollouts, the campaigns' candidates and the alignments run: in-process, "
+                                       "or on Ray workers (a table's alignments side by side, one per worker on "
+                                       "its threads; the numbers of an in-process run with those threads).")
     guidance: str | None = Field("no_collision", description="Guidance of Tables 2-4 (sampling, alignment, "
                                                              "evaluation).")
     guidances: tuple[str, ...] = Field(GUIDANCES, min_length=1, description="Guidances of Table 1.")
