@@ -150,3 +150,11 @@ def test_rasters_of_different_sizes_are_packed_without_padding():
         MapRaster(raster=both.padded(), sizes=torch.tensor([[2, 3], [41, 50]]), world_to_pixel=both.world_to_pixel)
     with pytest.raises(ScenarioValidationError, match=r"`map\.pixels` holds 2006 pixels per layer"):
         MapRaster(pixels=both.pixels, sizes=torch.tensor([[2, 3], [40, 49]]), world_to_pixel=both.world_to_pixel)
+
+
+def test_an_empty_selection_concatenates_and_copies_to_nothing():
+    scene_map = MapRaster(raster=torch.ones(2, 3, 4, 5, dtype=torch.uint8), world_to_pixel=torch.eye(3).expand(2, 3, 3))
+    empty = scene_map.index(torch.zeros(2, dtype=torch.bool))
+    assert empty.num_scenes == 0 and empty.dense().pixels.shape == (3, 0)
+    both = MapRaster.concat([empty, scene_map])
+    assert both.num_scenes == 2 and torch.equal(both.padded(), scene_map.padded())

@@ -3,7 +3,8 @@ folder lies under the experiment folder, and the settings every table shares (sc
 
 Nothing here runs a stage or caches on its own: an evaluation is an
 :func:`~trafficrlhf_sdk.pipeline.stages.evaluate_step` in ``DIR/evaluations/<label>__<guidance>__<rewards>``, an
-alignment an :func:`~trafficrlhf_sdk.pipeline.stages.align_step` in ``DIR/models/<name>``, a labelled campaign a
+alignment an :func:`~trafficrlhf_sdk.pipeline.stages.align_step` in ``DIR/models/<name>`` (a table's alignments
+side by side on Ray, :func:`~trafficrlhf_sdk.pipeline.stages.align_steps`), a labelled campaign a
 :func:`~trafficrlhf_sdk.pipeline.stages.generate_step` and a
 :func:`~trafficrlhf_sdk.pipeline.stages.label_step` beside the table's ``feedback.sqlite``, and a reward model a
 :func:`~trafficrlhf_sdk.pipeline.stages.reward_model_step`. So an interrupted ``trafficrlhf experiment paper``
@@ -24,7 +25,7 @@ if TYPE_CHECKING:
     from trafficrlhf_sdk.experiments.config import PaperConfig
     from trafficrlhf_sdk.pipeline.step import StepResult
 
-__all__ = ["ExperimentRun", "align", "align_all", "align_recipe", "evaluate", "labelled_campaign", "read_recipe",
+__all__ = ["ExperimentRun", "align_all", "align_recipe", "evaluate", "labelled_campaign", "read_recipe",
            "resolve_path", "train_reward_model"]
 
 SUMMARY_METRICS = ("failure_rate", "collision_rate", "offroad_rate", "realism_ctg", "realism_body", "realism_meta",
@@ -126,19 +127,11 @@ def evaluate(run: ExperimentRun, label: str, model: str, checkpoint: str | None,
                                    progress=cfg.progress, after=after, **run.steps))
 
 
-def align(run: ExperimentRun, name: str, model: str, checkpoint: str | None, reward_model: str,
-          fields: dict[str, Any], aggregation: str = "mean", model_options: dict[str, Any] | None = None,
-          after: Sequence[StepResult] = ()) -> StepResult:
-    """Align ``model`` from ``checkpoint`` against ``reward_model`` with the AlignConfig ``fields`` into
-    ``out_dir/models/<name>`` (the run's guidance, seed, source and progress bar unless ``fields`` set them).
-    Outputs the run's summary plus its ``folder``."""
-    recipe = align_recipe(run, model, checkpoint, reward_model, fields, aggregation, model_options)
-    return align_all(run, [(name, recipe)], after)[0]
-
-
 def align_recipe(run: ExperimentRun, model: str, checkpoint: str | None, reward_model: str, fields: dict[str, Any],
                  aggregation: str = "mean", model_options: dict[str, Any] | None = None) -> Any:
-    """The :class:`~trafficrlhf_sdk.alignment.recipe.AlignRecipe` of :func:`align`."""
+    """The :class:`~trafficrlhf_sdk.alignment.recipe.AlignRecipe` that aligns ``model`` from ``checkpoint`` against
+    ``reward_model`` with the AlignConfig ``fields`` (the run's guidance, seed, source and progress bar unless
+    ``fields`` set them)."""
     from trafficrlhf_sdk.alignment.recipe import AlignRecipe
 
     cfg = run.config

@@ -50,7 +50,7 @@ class PreferenceDataset:
 
     Fields:
         contexts: the K logged scenes ``(K, A, T, 4)`` (history + logged future; ``current_index`` = the start
-            of the candidates), padded to common A and T, maps included.
+            of the candidates), padded to common A and T, with their maps.
         futures: float32 ``(K, N + 1, A, H, 4)``: the N candidates then, at index N, the logged future.
         future_valid: bool ``(K, N + 1, A, H)``.
         pairs: int64 ``(P, 3)``: (context, winner, loser) with winner/loser indices into ``futures`` axis 1.

@@ -42,6 +42,5 @@ from trafficrlhf_sdk.pipeline.step import (
 )
 
 __all__ = ["MANIFEST", "AlignJob", "StepConfigError", "StepResult", "align_step", "align_steps", "evaluate_step",
-           "generate_step",
-           "input_differences", "inputs_digest", "label_step", "rank_step", "read_manifest", "reward_model_step",
-           "run_step"]
+           "generate_step", "input_differences", "inputs_digest", "label_step", "rank_step", "read_manifest",
+           "reward_model_step", "run_step"]

@@ -15,7 +15,8 @@ evaluate_step      :func:`~trafficrlhf_sdk.evaluation.runs.evaluate_seeds`     `
 =================  =========================================================  ==========================================
 
 Every step takes its output ``folder`` first, then what it runs with, then the keywords ``after`` (the steps it
-reads from), ``overwrite`` and ``log`` of :func:`run_step`. A reward is a spec string wherever one is given (a
+reads from), ``overwrite`` and ``log`` of :func:`run_step` (``align_steps`` takes jobs, each a folder, a recipe and
+its ``after``). A reward is a spec string wherever one is given (a
 reward-model folder or ``builtin:NAME``), so a step's output folder is another step's input.
 """
 
@@ -249,15 +250,15 @@ def align_steps(jobs: Sequence[AlignJob], *, overwrite: bool = False, log: Log |
                 execution: ExecutionConfig | None = None) -> list[StepResult]:
     """Several independent :func:`align_step` calls, results in job order.
 
-    In-process (or a single job) they run one after another, each with ``execution`` for its own sampling. On Ray
-    with two jobs or more they run side by side, one alignment per worker with the worker's torch threads
-    (``threads_per_worker``; 1 gives the numbers of an in-process run with one thread; a recipe's ``threads`` is
-    set to it), in the driver's working directory and ``TRAFFICRLHF_*`` environment; the jobs' log lines and
-    SDK errors come back to the driver. On an existing cluster the workers must see the driver's files."""
+    In-process they run one after another. On Ray they run side by side, one alignment per worker with the
+    worker's torch threads (``threads_per_worker``; 1 gives the numbers of an in-process run with one thread; a
+    recipe's ``threads`` is set to it), in the driver's working directory and ``TRAFFICRLHF_*`` environment; the
+    jobs' log lines and SDK errors come back to the driver. On an existing cluster the workers must see the
+    driver's files. (One alignment whose epochs' samples should spread over the workers is an
+    :func:`align_step` with ``execution``.)"""
     log = log or (lambda line: None)
-    if execution is None or not execution.uses_ray or len(jobs) < 2:
-        return [align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite, log=log,
-                           execution=execution) for job in jobs]
+    if execution is None or not execution.uses_ray or not jobs:
+        return [align_step(job.folder, job.recipe, after=job.after, overwrite=overwrite, log=log) for job in jobs]
     import contextlib
 
     from trafficrlhf_sdk.parallel import iter_tasks

@@ -78,13 +78,15 @@ class MapRaster:
         if raster is not None:
             if pixels is not None:
                 raise ScenarioValidationError("pass the map as `raster` (R, C, H, W) or as `pixels` (C, N) with "
-                                              "`sizes`, not both.")
+                                              "`sizes`, not both (`dataclasses.replace` passes `pixels` and "
+                                              "`sizes`: build a new MapRaster from a new raster instead).")
             pixels, sizes = _pack(raster, sizes, layers)
         elif pixels is None or sizes is None:
             raise ScenarioValidationError("a MapRaster needs `raster` (uint8 (R, C, H, W)) or `pixels` (uint8 "
                                           "(C, N)) with `sizes` (int64 (R, 2)).")
         if world_to_pixel is None:
             raise ScenarioValidationError("a MapRaster needs `world_to_pixel` (float32 (B, 3, 3)).")
+        sizes = sizes.to(pixels.device)  # offsets and every per-scene look-up live beside the pixels
         _check_packed(pixels, sizes, layers)
         values = {"pixels": pixels, "sizes": sizes, "world_to_pixel": world_to_pixel, "layers": layers,
                   "polylines": polylines, "polyline_valid": polyline_valid, "polyline_type": polyline_type,
@@ -290,8 +292,9 @@ class MapRaster:
                 if len(used) == m.num_rows:  # every row is read: keep the buffer as it is
                     used, local = torch.arange(m.num_rows, device=m.pixels.device), m.rows
                     pixels.append(m.pixels)
-                else:
-                    pixels.append(torch.cat([m.row_raster(int(r)).reshape(len(layers), -1) for r in used], 1))
+                else:  # only the rows its scenes read (none for an empty selection)
+                    pixels.append(torch.cat([m.pixels.new_zeros(len(layers), 0)]
+                                            + [m.row_raster(int(r)).reshape(len(layers), -1) for r in used], 1))
                 sizes.append(m.sizes[used])
                 rows.append(offset + local)
             offset += len(sizes[-1])
@@ -361,7 +364,7 @@ def _check_packed(pixels: torch.Tensor, sizes: torch.Tensor, layers: tuple[str, 
 def _from_rows(like: MapRaster, rasters: Sequence[torch.Tensor], **changes: object) -> MapRaster:
     """``like`` with the raster rows ``rasters`` (each uint8 ``(C, H_r, W_r)``) and ``changes``."""
     c = len(like.layers)
-    pixels = torch.cat([r.reshape(c, -1) for r in rasters], 1)
+    pixels = torch.cat([like.pixels.new_zeros(c, 0)] + [r.reshape(c, -1) for r in rasters], 1)
     sizes = torch.tensor([list(r.shape[1:]) for r in rasters], dtype=torch.int64, device=pixels.device)
     return replace(like, pixels=pixels, sizes=sizes.reshape(-1, 2), **changes)
 
