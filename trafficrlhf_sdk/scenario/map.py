@@ -193,18 +193,24 @@ class MapRaster:
 
     def inside(self, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
         """Whether integer pixel ``(i, j)`` lies in scene ``scene``'s raster (all three broadcast together)."""
-        size = self.sizes[self.scene_rows()[scene]]
-        return (i >= 0) & (i < size[..., 0]) & (j >= 0) & (j < size[..., 1])
+        return self._locate(scene, i, j)[1]
+
+    def _locate(self, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(flat, inside)``: each pixel's index into ``pixels``' second axis (clamped into its scene's raster) and
+        whether it lies inside that raster. Per-scene quantities are gathered at the scenes' own shape and broadcast
+        in the arithmetic."""
+        rows = self.scene_rows()[scene]
+        h, w = self.sizes[rows, 0], self.sizes[rows, 1]
+        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        flat = self.offsets[rows] + torch.minimum(i.clamp_min(0), h - 1) * w + torch.minimum(j.clamp_min(0), w - 1)
+        return flat, inside
 
     def read(self, scene: torch.Tensor, i: torch.Tensor, j: torch.Tensor,
              layers: Sequence[int] | None = None) -> torch.Tensor:
         """uint8 ``(C', ...)``: the layers ``layers`` (indices; default all C) at integer pixel ``(i, j)`` of scene
         ``scene`` (int64 tensors that broadcast to ``...``); a pixel outside its scene's raster reads 0."""
         i, j = torch.broadcast_tensors(i, j)
-        rows = self.scene_rows()[scene]  # per-scene quantities at the scenes' shape, broadcast in the arithmetic
-        h, w = self.sizes[rows, 0], self.sizes[rows, 1]
-        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        flat = self.offsets[rows] + torch.minimum(i.clamp_min(0), h - 1) * w + torch.minimum(j.clamp_min(0), w - 1)
+        flat, inside = self._locate(scene, i, j)
         if layers is None:
             values = self.pixels[:, flat]
         elif len(layers) == 1:
