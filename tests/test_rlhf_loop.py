@@ -60,3 +60,43 @@ def test_the_stand_ins_label_contrast_items_unless_told_the_log_wins(fields: dic
     from trafficrlhf_sdk.loop import _judged_contrast
 
     assert _judged_contrast(RLHFConfig(model="ctg", **fields)) is judged
+
+
+@pytest.mark.parametrize(("scenes", "start", "count"),
+                         [(5, 0, 3), (5, 0, 5), (5, 0, 12), (5, 3, 4), (5, 7, 9), (1, 0, 3)])
+def test_passes_take_scenes_in_order_and_never_repeat_one_within_a_pass(scenes: int, start: int, count: int) -> None:
+    from trafficrlhf_sdk.loop import _passes
+
+    train = [f"s{i}" for i in range(scenes)]
+    passes = _passes(train, start, count)
+    flat = [scene for part in passes for scene in part]
+    assert flat == [train[(start + i) % scenes] for i in range(count)]  # in order, wrapping round
+    assert all(len(set(part)) == len(part) for part in passes)  # no scene twice within a campaign
+    assert len(passes) == -(-((start % scenes) + count) // scenes)  # a new pass exactly at each wrap
+
+
+def test_passes_refuse_an_empty_split() -> None:
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+    from trafficrlhf_sdk.loop import _passes
+
+    with pytest.raises(TrafficRLHFError, match="no scene left"):
+        _passes([], 0, 3)
+
+
+def test_a_round_labels_more_contexts_than_there_are_scenes(data_root: str, tmp_path, monkeypatch) -> None:
+    from trafficrlhf_nuscenes_pred.source import NuScenesPredSource
+    from trafficrlhf_sdk.feedback.store import FeedbackStore
+
+    listed = NuScenesPredSource.scene_ids
+    monkeypatch.setattr(NuScenesPredSource, "scene_ids", lambda self, split: listed(self, split)[:3])  # 3 scenes
+    scenes = NuScenesPredSource(root=os.path.join(data_root, "nuscenes_pred")).scene_ids("train")
+    config = RLHFConfig(**{**SMALL, "rounds": 1, "contexts_per_round": len(scenes) + 2, "contrast_scenes": 0,
+                           "probe_scenes": 0, "annotators": ["attentive"],
+                           "reward": {**SMALL["reward"], "ensemble_size": 1}})
+    result = rlhf(config, str(tmp_path / "run"), log=lambda line: None)
+    assert result["rounds"][0]["campaigns"] == ["round0", "round0_pass1"]
+    store = FeedbackStore(str(tmp_path / "run" / "feedback.sqlite"))
+    first, second = (store.context_keys(store.campaign(name)) for name in ("round0", "round0_pass1"))
+    assert len(first) == len(scenes) and [key["scene_id"] for key in second] == scenes[:2]  # the first two, drawn again
+    assert store.campaign("round0").config["seed"] != store.campaign("round0_pass1").config["seed"]
+    store.close()

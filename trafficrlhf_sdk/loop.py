@@ -58,7 +58,11 @@ class RLHFConfig(BaseModel):
                                           "from the base without them.")
     guidance: str | None = Field("no_collision", description="Guidance of the candidates and of alignment.")
     rounds: int = Field(2, ge=1, description="Rounds of generate -> label -> reward model -> align.")
-    contexts_per_round: int = Field(40, ge=2, description="Contexts labelled per round.")
+    contexts_per_round: int = Field(40, ge=2, description="Contexts labelled per round. Each round draws its "
+                                    "scenes in order after the previous round's; past the last train scene it "
+                                    "starts again from the first, and a scene drawn again gets new candidates (its "
+                                    "own campaign and seed), so a round may label more contexts than there are "
+                                    "scenes.")
     candidate_pool: int = Field(2, ge=1, description="Rounds after the first generate this many times more "
                                 "contexts and label those the reward-model ensemble disagrees on most.")
     candidates: int = Field(5, ge=2, le=9, description="N candidate futures per context.")
@@ -130,13 +134,11 @@ def _rounds(config: RLHFConfig, out_dir: str, db: str, train: list[str], log: Ca
         folder = os.path.join(out_dir, f"round_{r}")
         policy = config.checkpoint if r == 0 else rounds[-1]["aligned"]
         pool = config.contexts_per_round * (1 if r == 0 else config.candidate_pool)
-        scenes = train[used: used + pool]
+        passes = _passes(train, used, pool)
         used += pool
-        if len(scenes) < pool:
-            raise TrafficRLHFError(f"round {r} needs {pool} new train scenes but only {len(scenes)} are left; lower "
-                                   "`contexts_per_round`, `candidate_pool` or `rounds`.")
         steps = {"overwrite": overwrite, "log": log}
-        campaigns = _generate(config, db, r, policy, scenes, folder, steps)
+        campaigns = [c for k, scenes in enumerate(passes) for c in _generate(config, db, r, k, policy, scenes, folder,
+                                                                           steps)]
         if r > 0 and config.candidate_pool > 1 and reward is not None:
             from trafficrlhf_sdk.pipeline.stages import rank_step
 
@@ -153,16 +155,29 @@ def _rounds(config: RLHFConfig, out_dir: str, db: str, train: list[str], log: Ca
     return {"rounds": rounds}
 
 
-def _generate(config: RLHFConfig, db: str, r: int, policy: str | None, scenes: list[str], folder: str,
+def _passes(train: list[str], start: int, count: int) -> list[list[str]]:
+    """The ``count`` scenes after the first ``start`` of ``train``, taken in order and from the start again once
+    all are used, cut into passes in which no scene repeats (a scene drawn again gets new candidates)."""
+    if not train:
+        raise TrafficRLHFError("the train split has no scene left for campaigns; lower `contrast_scenes` or give "
+                               "a source with more train scenes.")
+    order = [train[(start + i) % len(train)] for i in range(count)]
+    first = len(train) - start % len(train)
+    cuts = [0, *range(first, count, len(train)), count]
+    return [order[a:b] for a, b in zip(cuts, cuts[1:]) if b > a]
+
+
+def _generate(config: RLHFConfig, db: str, r: int, k: int, policy: str | None, scenes: list[str], folder: str,
               steps: dict[str, Any]) -> list[StepResult]:
-    """Campaigns ``round<r>`` (guided) and ``round<r>_unguided`` over ``scenes`` (split by ``unguided_share``)."""
+    """Campaigns ``round<r>`` (guided) and ``round<r>_unguided`` over ``scenes`` (split by ``unguided_share``);
+    pass ``k`` > 0 over scenes drawn again names them ``round<r>_pass<k>`` and ``round<r>_pass<k>_unguided``."""
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig
     from trafficrlhf_sdk.pipeline.stages import generate_step
 
     split = round(len(scenes) * (1 - config.unguided_share)) if config.guidance else len(scenes)
     made: list[StepResult] = []
-    for name, part, guidance in ((f"round{r}", scenes[:split], config.guidance),
-                                 (f"round{r}_unguided", scenes[split:], None)):
+    stem = f"round{r}" if k == 0 else f"round{r}_pass{k}"
+    for name, part, guidance in ((stem, scenes[:split], config.guidance), (f"{stem}_unguided", scenes[split:], None)):
         if not part:
             continue
         # round 0 samples the base as it is (a head added by `model_options` starts with zero effect); later
@@ -171,7 +186,7 @@ def _generate(config: RLHFConfig, db: str, r: int, policy: str | None, scenes: l
         campaign = CampaignConfig(name=name, model=config.model, guidance=guidance, model_options=options,
                                   source=config.source, split="train", root=config.root, scene_ids=part,
                                   num_candidates=config.candidates, contexts=config.contexts,
-                                  candidate_seconds=config.seconds, seed=config.seed + 1000 * r + len(made))
+                                  candidate_seconds=config.seconds, seed=config.seed + 1000 * r + 2 * k + len(made))
         done = generate_step(os.path.join(folder, "campaigns", name), db, campaign, execution=config.execution,
                              **steps)
         if not done.cached:
