@@ -72,6 +72,40 @@ def test_ray_hands_a_free_worker_the_next_task_while_an_earlier_one_runs(ray_hea
     assert len(fast) == 1 and slow not in fast
 
 
+def test_ray_workers_serve_the_next_call_and_let_go_on_other_threads(ray_head) -> None:  # type: ignore[no-untyped-def]
+    def _pid_and_threads(shared: dict, task: int) -> tuple[int, int, int]:  # shipped by value (see above)
+        import os
+
+        import torch
+
+        return os.getpid(), torch.get_num_threads(), shared["offset"] + task
+
+    first = run_tasks(_pid_and_threads, {"offset": 0}, list(range(6)), RAY)
+    second = run_tasks(_pid_and_threads, {"offset": 100}, list(range(6)), RAY)
+    assert [r[2] for r in first] == list(range(6)) and [r[2] for r in second] == list(range(100, 106))
+    assert {r[0] for r in second} == {r[0] for r in first}  # the same two workers, each with its new payload
+    assert len({r[0] for r in first}) == 2 and {r[1] for r in first} == {1}
+    # two threads each: the idle one-thread workers must free the 2 CPUs, or the new worker could never start
+    wide = run_tasks(_pid_and_threads, {"offset": 0}, [1, 2], ExecutionConfig(workers=1, threads_per_worker=2))
+    assert {r[1] for r in wide} == {2} and not {r[0] for r in wide} & {r[0] for r in first}
+    again = run_tasks(_pid_and_threads, {"offset": 0}, [1, 2], RAY)  # and back: new one-thread workers
+    assert {r[1] for r in again} == {1} and [r[2] for r in again] == [1, 2]
+
+
+def test_a_call_that_fails_lets_its_ray_workers_go(ray_head) -> None:  # type: ignore[no-untyped-def]
+    import trafficrlhf_sdk.parallel as parallel
+
+    def fail_on_two(shared: dict, task: int) -> int:
+        if task == 2:
+            raise ValueError("task 2")
+        return task
+
+    with pytest.raises(Exception, match="task 2"):
+        run_tasks(fail_on_two, {}, [1, 2, 3], RAY)
+    assert not any(parallel._IDLE.values())  # nothing half-used goes back to the session
+    assert run_tasks(lambda shared, task: shared["offset"] + task, {"offset": 1}, [3, 1, 2], RAY) == [4, 2, 3]
+
+
 @pytest.mark.data
 def test_evaluation_on_ray_equals_in_process(ray_head, val_scenes) -> None:  # type: ignore[no-untyped-def]
     scenes = val_scenes[:3]

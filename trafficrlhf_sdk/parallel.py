@@ -1,9 +1,13 @@
 """Run independent tasks in this process (the default) or on Ray workers (``pip install trafficrlhf-sdk[ray]``).
 
 One function and one shared payload (a model, a batch of scenes) serve every task. On Ray the payload is put in
-the object store once and each worker (an actor) receives it once, at start; tasks then carry only their own
+the object store once and each worker (an actor) receives it once per call; tasks then carry only their own
 small arguments (a rollout and a chunk index, a scene id). Results come back in task order, and every task seeds
 its own randomness from its arguments, so the same seeds give the same numbers in-process and on Ray.
+
+The workers outlive a call: a call that ends normally hands its workers back to the Ray session, and the next
+call with the same threads per worker takes them with their torch already imported (an alignment samples on the
+workers several times per epoch). A call that fails or stops early lets its workers go.
 """
 
 from __future__ import annotations
@@ -78,21 +82,47 @@ def ray_session(execution: ExecutionConfig) -> Iterator[Any]:
         yield ray
     finally:
         if started:
+            _IDLE.clear()
             ray.shutdown()
 
 
 class _Worker:
-    """A Ray actor holding the shared payload; runs ``fn(shared, task)`` per task."""
+    """A Ray actor with ``threads`` torch threads; holds one call's function and shared payload at a time and runs
+    ``fn(shared, task)`` per task."""
 
-    def __init__(self, fn: Callable[[Any, Any], Any], shared: Any, threads: int) -> None:
+    def __init__(self, threads: int) -> None:
         import torch
 
         torch.set_num_threads(threads)
         os.environ["OMP_NUM_THREADS"] = str(threads)
+        self.fn: Callable[[Any, Any], Any] | None = None
+        self.shared: Any = None
+
+    def load(self, fn: Callable[[Any, Any], Any] | None, shared: Any) -> None:
         self.fn, self.shared = fn, shared
 
     def run(self, task: Any) -> Any:
+        assert self.fn is not None, "load() first"
         return self.fn(self.shared, task)
+
+
+_IDLE: dict[str, list[tuple[int, Any]]] = {}
+"""Workers between calls, per Ray job (a new ``ray.init`` starts a new job): ``(threads, actor)``."""
+
+
+def _take_workers(ray: Any, count: int, threads: int) -> list[Any]:
+    """``count`` workers with ``threads`` torch threads: idle ones of this Ray job first, then new ones; idle
+    workers with other threads are let go first, so they do not hold CPUs the new ones need."""
+    job = ray.get_runtime_context().get_job_id()
+    for other in [key for key in _IDLE if key != job]:  # handles of an earlier Ray session (shut down since)
+        del _IDLE[other]
+    idle = _IDLE.pop(job, [])
+    taken = [actor for t, actor in idle if t == threads][:count]
+    for _, actor in idle:
+        if not any(actor is mine for mine in taken):
+            ray.kill(actor)
+    remote = ray.remote(num_cpus=threads)(_Worker)
+    return taken + [remote.remote(threads) for _ in range(count - len(taken))]
 
 
 def run_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
@@ -116,13 +146,18 @@ def iter_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
             yield fn(shared, task)
         return
     with ray_session(execution) as ray:
-        cpus = int(ray.cluster_resources().get("CPU", 1)) // execution.threads_per_worker
+        threads = execution.threads_per_worker
+        cpus = int(ray.cluster_resources().get("CPU", 1)) // threads
         workers = execution.workers or max(1, cpus)
         workers = min(workers, len(tasks))
-        actor = ray.remote(num_cpus=execution.threads_per_worker)(_Worker)
+        actors = _take_workers(ray, workers, threads)
         shared_ref = ray.put(shared)  # once into the object store; each actor fetches it once
-        actors = [actor.remote(fn, shared_ref, execution.threads_per_worker) for _ in range(workers)]
+        for worker in actors:  # runs before the worker's tasks: Ray keeps one caller's calls to an actor in order
+            worker.load.remote(fn, shared_ref)
         yield from _in_task_order(ray, actors, list(tasks))
+        for worker in actors:  # back to the session without the payload (only after every result was read)
+            worker.load.remote(None, None)
+        _IDLE.setdefault(ray.get_runtime_context().get_job_id(), []).extend((threads, a) for a in actors)
 
 
 def _in_task_order(ray: Any, actors: Sequence[Any], tasks: Sequence[Any]) -> Iterator[Any]:

@@ -42,6 +42,7 @@ import torch
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
+from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
@@ -292,7 +293,12 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
     # ------------------------------------------------------------------ main loop
     def train(self, callback: Callable[[int, dict[str, float]], bool | None] | None = None) -> list[dict[str, float]]:
         """Run the remaining epochs; returns the history. ``callback(epoch, stats)`` after each epoch may return
-        False to stop (the state is checkpointed first when ``output_dir`` is set)."""
+        False to stop (the state is checkpointed first when ``output_dir`` is set). With ``execution`` on Ray, one
+        Ray session (and its workers) serves every epoch's samples."""
+        with ray_session(self.execution or ExecutionConfig()):
+            return self._train(callback)
+
+    def _train(self, callback: Callable[[int, dict[str, float]], bool | None] | None) -> list[dict[str, float]]:
         cfg = self.config
         if self.monitor_contexts is None:  # from the starting weights, also when resuming
             self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
