@@ -122,6 +122,22 @@ def test_evaluation_on_ray_equals_in_process(ray_head, val_scenes) -> None:  # t
 
 
 @pytest.mark.data
+def test_several_seeds_on_ray_equal_in_process(ray_head, val_scenes) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_sdk.evaluation.runs import evaluate_seeds
+
+    scenes = val_scenes[:3]
+    config = EvaluationConfig(batch_size=2, metrics=("failure", "realism_ctg"))
+
+    def build(seed: int) -> NoisyLogPolicy:
+        return NoisyLogPolicy(position_noise_m=2.0, seed=seed)
+
+    local = evaluate_seeds(build, scenes, (3, 4), config)
+    remote = evaluate_seeds(build, scenes, (3, 4), config, execution=RAY)
+    assert [r.values for r in local.reports] == [r.values for r in remote.reports]
+    assert local.reports[0].values != local.reports[1].values  # the seeds differ
+
+
+@pytest.mark.data
 @pytest.mark.parametrize("contexts", ["log", "closed_loop"])
 def test_campaign_candidates_on_ray_equal_in_process(ray_head, tmp_path, nuscenes_source, contexts) -> None:  # type: ignore[no-untyped-def]
     from trafficrlhf_sdk.feedback.campaign import CampaignConfig, create_campaign

@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from trafficrlhf_sdk.errors import DataFormatError, TrafficRLHFError
 from trafficrlhf_sdk.evaluation.compare import run_label
 from trafficrlhf_sdk.evaluation.protocol import EvaluationConfig, EvaluationReport, evaluate_policy, seeds_summary
-from trafficrlhf_sdk.parallel import ExecutionConfig
+from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig
 
 __all__ = ["EvaluationOutcome", "EvaluationRequest", "SceneSelection", "SeedRuns", "check_out_dir", "evaluate_seeds",
@@ -146,9 +146,10 @@ def evaluate_seeds(build: Callable[[int], Any], scenario: Any, seeds: Sequence[i
         raise TrafficRLHFError(f"seeds {list(seeds)}: give one or more distinct seeds, e.g. [0, 1, 2].")
     config = config or EvaluationConfig()
     reports = []
-    for seed in seeds:
-        torch.manual_seed(seed)
-        reports.append(evaluate_policy(build(seed), scenario, config.model_copy(update={"seed": seed}), **kwargs))
+    with ray_session(kwargs.get("execution") or ExecutionConfig()):  # one Ray (and its workers) for every seed
+        for seed in seeds:
+            torch.manual_seed(seed)
+            reports.append(evaluate_policy(build(seed), scenario, config.model_copy(update={"seed": seed}), **kwargs))
     return SeedRuns(reports)
 
 
