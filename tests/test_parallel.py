@@ -90,6 +90,9 @@ def test_ray_workers_serve_the_next_call_and_let_go_on_other_threads(ray_head) -
     assert {r[1] for r in wide} == {2} and not {r[0] for r in wide} & {r[0] for r in first}
     again = run_tasks(_pid_and_threads, {"offset": 0}, [1, 2], RAY)  # and back: new one-thread workers
     assert {r[1] for r in again} == {1} and [r[2] for r in again] == [1, 2]
+    one = run_tasks(_pid_and_threads, {"offset": 0}, [5], RAY)  # one task takes one of them; the other waits
+    last = run_tasks(_pid_and_threads, {"offset": 0}, [1, 2, 3, 4], RAY)
+    assert {one[0][0]} < {r[0] for r in last} == {r[0] for r in again}
 
 
 def test_a_call_that_fails_lets_its_ray_workers_go(ray_head) -> None:  # type: ignore[no-untyped-def]

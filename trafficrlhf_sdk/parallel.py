@@ -111,16 +111,21 @@ _IDLE: dict[str, list[tuple[int, Any]]] = {}
 
 
 def _take_workers(ray: Any, count: int, threads: int) -> list[Any]:
-    """``count`` workers with ``threads`` torch threads: idle ones of this Ray job first, then new ones; idle
-    workers with other threads are let go first, so they do not hold CPUs the new ones need."""
+    """``count`` workers with ``threads`` torch threads: idle ones of this Ray job first, then new ones. Before
+    new ones start, the other idle workers are let go, so they do not hold CPUs the new ones need; otherwise they
+    stay idle for a later call."""
     job = ray.get_runtime_context().get_job_id()
     for other in [key for key in _IDLE if key != job]:  # handles of an earlier Ray session (shut down since)
         del _IDLE[other]
     idle = _IDLE.pop(job, [])
-    taken = [actor for t, actor in idle if t == threads][:count]
-    for _, actor in idle:
-        if not any(actor is mine for mine in taken):
-            ray.kill(actor)
+    mine = [i for i, (t, _) in enumerate(idle) if t == threads][:count]
+    taken = [idle[i][1] for i in mine]
+    rest = [entry for i, entry in enumerate(idle) if i not in mine]
+    if len(taken) == count:
+        _IDLE[job] = rest
+        return taken
+    for _, actor in rest:
+        ray.kill(actor)
     remote = ray.remote(num_cpus=threads)(_Worker)
     return taken + [remote.remote(threads) for _ in range(count - len(taken))]
 

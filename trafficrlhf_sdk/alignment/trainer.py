@@ -42,7 +42,6 @@ import torch
 from trafficrlhf_sdk.alignment.checkpointing import TrainerCheckpoints
 from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, REWARD_HISTORY_STEPS, AlignConfig
 from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
-from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
@@ -52,6 +51,7 @@ from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_sc
 from trafficrlhf_sdk.alignment.sample_scenarios import SampleScenarios
 from trafficrlhf_sdk.console import warn
 from trafficrlhf_sdk.errors import DataNotFoundError, TrafficRLHFError
+from trafficrlhf_sdk.parallel import ExecutionConfig, ray_session
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet
 from trafficrlhf_sdk.models.adapter import TrafficModelAdapter
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
