@@ -217,3 +217,43 @@ def test_the_loop_refuses_a_changed_setting_naming_it(tmp_path, monkeypatch) -> 
     assert counting.calls == ["reward_model", "align"]  # the reward model and what reads it; nothing upstream
     with open(os.path.join(out, "round_0", "aligned", MANIFEST), encoding="utf-8") as handle:
         assert json.load(handle)["inputs"]["after"][0].startswith("reward_model:")
+
+
+# --------------------------------------------------------------------------------------- weights among the inputs
+def _checkpoint(folder: Any, digest: str) -> str:
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "config.json"), "w", encoding="utf-8") as handle:
+        json.dump({"adapter": "example_gru", "weights": {"file": "model.safetensors", "sha256": digest}}, handle)
+    return str(folder)
+
+
+def test_new_weights_under_the_same_name_are_a_changed_setting(tmp_path, monkeypatch) -> None:
+    """A step that read a checkpoint or reward-model folder records its weights' digest: new weights in the same
+    folder make the finished step differ (refused naming the weights) instead of returning the old result."""
+    import trafficrlhf_sdk.alignment.recipe as recipe_module
+    from trafficrlhf_sdk.alignment.recipe import AlignRecipe
+    from trafficrlhf_sdk.pipeline.stages import align_step
+
+    calls: list[str] = []
+    monkeypatch.setattr(recipe_module, "run_recipe", lambda recipe, folder, **_: calls.append("ran") or {"epochs": 1})
+    start = _checkpoint(tmp_path / "start", "a" * 64)
+    reward = _checkpoint(tmp_path / "rm", "b" * 64)
+    recipe = AlignRecipe(model="example_gru", checkpoint=start, reward_model=reward)
+    out = str(tmp_path / "aligned")
+    first = align_step(out, recipe)
+    assert read_manifest(out)["inputs"]["weights"] == {"checkpoint": "a" * 64, "reward_model": "b" * 64}  # type: ignore[index]
+    assert align_step(out, recipe).cached and calls == ["ran"]
+    _checkpoint(tmp_path / "rm", "c" * 64)  # the reward model retrained in place
+    with pytest.raises(StepConfigError, match="weights.reward_model"):
+        align_step(out, recipe)
+    assert not first.cached and calls == ["ran"]
+
+
+def test_the_weights_digest_of_bundled_names_folders_and_builtins(tmp_path) -> None:
+    from trafficrlhf_sdk.pipeline.stages import _weights_digest
+
+    assert _weights_digest(_checkpoint(tmp_path / "x", "d" * 64)) == "d" * 64
+    assert _weights_digest("builtin:failure") is None and _weights_digest(None) is None
+    assert _weights_digest(str(tmp_path)) is None  # a folder without config.json
+    bundled = _weights_digest("ctg-4s")
+    assert bundled is not None and len(bundled) == 64

@@ -50,6 +50,32 @@ _HOW_NOT_WHAT = ("progress_bar", "resume", "resume_allow_changes", "output_dir")
 
 
 # ----------------------------------------------------------------------------------------------------- feedback
+def _weights_digest(reference: str | None) -> str | None:
+    """The SHA-256 of the weights a checkpoint or reward-model ``reference`` (a folder, or a bundled checkpoint's
+    name) records in its ``config.json``; None for anything else (``builtin:`` rewards, a model's default
+    weights). Steps put it among their inputs, so new weights under the same name redo the step instead of reusing
+    a result of the old ones."""
+    import json
+
+    if not reference:
+        return None
+    folder = reference
+    if not os.path.isdir(folder):
+        from trafficrlhf_sdk.plugins import registry
+
+        bundled = registry("pretrained")
+        if reference not in bundled.names():
+            return None
+        folder = str(bundled.get(reference))
+    try:
+        with open(os.path.join(folder, "config.json"), encoding="utf-8") as handle:
+            weights = json.load(handle).get("weights")
+    except (OSError, ValueError, AttributeError):
+        return None
+    digest = weights.get("sha256") if isinstance(weights, dict) else None
+    return digest if isinstance(digest, str) else None
+
+
 def generate_step(folder: str, db: str, campaign: CampaignConfig, *, after: Sequence[StepResult] = (),
                   overwrite: bool = False, log: Log | None = None, execution: ExecutionConfig | None = None
                   ) -> StepResult:
@@ -224,6 +250,8 @@ def align_step(folder: str, recipe: AlignRecipe, *, after: Sequence[StepResult] 
     (``AlignConfig.resume``). Outputs: the run's summary (epochs, rewards, wall time) and ``folder``."""
     inputs = recipe.model_dump(mode="json", exclude={"threads"})
     inputs["align"] = {k: v for k, v in inputs["align"].items() if k not in _HOW_NOT_WHAT}
+    inputs["weights"] = {"checkpoint": _weights_digest(recipe.checkpoint),
+                         "reward_model": _weights_digest(recipe.reward_model)}
 
     def work() -> dict[str, Any]:
         from trafficrlhf_sdk.alignment.recipe import run_recipe
@@ -313,7 +341,9 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
     ``num_controlled_agents`` and ``wall_time_s``."""
     rewards = dict(reward_models or {})
     inputs = {"request": request.model_dump(mode="json", exclude={"execution", "reward_model"}),
-              "reward_models": rewards, "metrics": None if metrics is None else list(metrics)}
+              "reward_models": rewards, "metrics": None if metrics is None else list(metrics),
+              "weights": {"checkpoint": _weights_digest(request.checkpoint),
+                          **{name: _weights_digest(path) for name, path in rewards.items()}}}
     if request.reward_model is not None:
         raise TrafficRLHFError(f"evaluate_step takes rewards as `reward_models` (name -> folder); got "
                                f"request.reward_model={request.reward_model!r}: pass "
