@@ -49,7 +49,6 @@ _FILLED_LATER = ("scene_ids", "num_contexts", "root", "provenance")
 _HOW_NOT_WHAT = ("progress_bar", "resume", "resume_allow_changes", "output_dir")
 
 
-# ----------------------------------------------------------------------------------------------------- feedback
 def _weights_digest(reference: str | None) -> str | None:
     """The SHA-256 of the weights a checkpoint or reward-model ``reference`` (a folder, or a bundled checkpoint's
     name) records in its ``config.json``; None for anything else (``builtin:`` rewards, a model's default
@@ -57,25 +56,20 @@ def _weights_digest(reference: str | None) -> str | None:
     a result of the old ones."""
     import json
 
+    from trafficrlhf_sdk.plugins import resolve_checkpoint
+
     if not reference:
         return None
-    folder = reference
-    if not os.path.isdir(folder):
-        from trafficrlhf_sdk.plugins import registry
-
-        bundled = registry("pretrained")
-        if reference not in bundled.names():
-            return None
-        folder = str(bundled.get(reference))
     try:
-        with open(os.path.join(folder, "config.json"), encoding="utf-8") as handle:
+        with open(os.path.join(resolve_checkpoint(reference), "config.json"), encoding="utf-8") as handle:
             weights = json.load(handle).get("weights")
-    except (OSError, ValueError, AttributeError):
+    except (TrafficRLHFError, OSError, ValueError, AttributeError):
         return None
     digest = weights.get("sha256") if isinstance(weights, dict) else None
     return digest if isinstance(digest, str) else None
 
 
+# ----------------------------------------------------------------------------------------------------- feedback
 def generate_step(folder: str, db: str, campaign: CampaignConfig, *, after: Sequence[StepResult] = (),
                   overwrite: bool = False, log: Log | None = None, execution: ExecutionConfig | None = None
                   ) -> StepResult:
@@ -343,7 +337,7 @@ def evaluate_step(folder: str, request: EvaluationRequest, *, reward_models: Map
     inputs = {"request": request.model_dump(mode="json", exclude={"execution", "reward_model"}),
               "reward_models": rewards, "metrics": None if metrics is None else list(metrics),
               "weights": {"checkpoint": _weights_digest(request.checkpoint),
-                          **{name: _weights_digest(path) for name, path in rewards.items()}}}
+                          "reward_models": {name: _weights_digest(path) for name, path in rewards.items()}}}
     if request.reward_model is not None:
         raise TrafficRLHFError(f"evaluate_step takes rewards as `reward_models` (name -> folder); got "
                                f"request.reward_model={request.reward_model!r}: pass "
