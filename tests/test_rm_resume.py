@@ -99,8 +99,9 @@ def test_resume_refuses_other_settings_and_a_missing_checkpoint(tiny_db: str, tm
 
 
 def test_ctrl_c_in_rm_train_then_resume_equals_an_uninterrupted_run(tiny_db: str, tmp_path: Path) -> None:
-    args = ["rm", "train", "--db", tiny_db, "--campaign", "tiny", "--annotator", "noisy", "--epochs", "40",
-            "--patience", "40", "--batch-size", "2", "--threads", "1", "--quiet", *SMALL_OPTIONS]
+    # long enough (150 epochs of a few ms) that Ctrl-C lands mid-run even when the test process is scheduled late
+    args = ["rm", "train", "--db", tiny_db, "--campaign", "tiny", "--annotator", "noisy", "--epochs", "150",
+            "--patience", "150", "--batch-size", "2", "--threads", "1", "--quiet", *SMALL_OPTIONS]
     whole = tmp_path / "whole"
     result = CliRunner().invoke(get_cli(), [*args, "--out", str(whole)], catch_exceptions=False)
     assert result.exit_code == 0, result.output
