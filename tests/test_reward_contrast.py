@@ -259,3 +259,13 @@ def test_each_probe_catches_a_reward_broken_its_way(kind: str) -> None:
     result = probe_reward_model(_Broken(kind), scenes, (kind,))[kind]
     assert result["scenes"] >= 1 and result["pass_rate"] == 0.0, result
     assert probe_reward_model(_LikesTheLog(scenes), scenes, (kind,))[kind]["pass_rate"] == 1.0
+
+
+def test_the_stand_in_judgment_takes_the_probes_like_a_reward_model() -> None:
+    from trafficrlhf_sdk.reward.oracle import JudgmentReward
+
+    scenes = _scenes()
+    judge = JudgmentReward("attentive")
+    assert torch.allclose(judge.score(scenes), judge.step_rewards(scenes)[:, -1])
+    report = probe_reward_model(judge, scenes, ("faster", "jerky", "off_lane", "weave", "stall"))
+    assert all(entry["windows"] == 3 and entry["pass_rate"] == 1.0 for entry in report.values())

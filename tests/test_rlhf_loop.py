@@ -31,6 +31,7 @@ def test_two_rounds_with_active_selection_then_a_rerun_does_nothing(data_root: s
         assert os.path.isfile(os.path.join(entry["reward_model"], "model.safetensors"))
         assert os.path.isfile(os.path.join(entry["aligned"], "model.safetensors"))
         assert set(entry["probes"]) == set(PERTURBATIONS)
+        assert all(0 <= probe["judges"] <= 1 for probe in entry["probes"].values())  # the stand-ins took them too
         assert entry["campaigns"] == [f"round{r}"]  # no guidance: one campaign per round
     assert read_manifest(os.path.join(out, "round_1", "rank"))["outputs"]["ranked"] == {"round1": 4}  # type: ignore
     # round 1's candidates come from round 0's aligned model, and its reward model saw both rounds' labels
@@ -100,3 +101,17 @@ def test_a_round_labels_more_contexts_than_there_are_scenes(data_root: str, tmp_
     assert len(first) == len(scenes) and [key["scene_id"] for key in second] == scenes[:2]  # the first two, drawn again
     assert store.campaign("round0").config["seed"] != store.campaign("round0_pass1").config["seed"]
     store.close()
+
+
+def test_weak_probes_are_told_apart_by_what_the_stand_ins_see() -> None:
+    from trafficrlhf_sdk.loop import _probe_warnings
+
+    assert _probe_warnings({"faster": {"pass_rate": 0.95, "judges": 0.9}}) == []
+    missed, unseen = _probe_warnings({"faster": {"pass_rate": 0.6, "judges": 0.95},
+                                      "slower": {"pass_rate": 0.56, "judges": 0.32},
+                                      "weave": {"pass_rate": 0.97, "judges": 0.99}})
+    assert "faster (0.60)" in missed and "contrast_weight help" in missed and "slower" not in missed
+    assert "slower (0.56; the stand-in annotators 0.32)" in unseen and "will not help" in unseen
+    assert "faster" not in unseen and "weave" not in unseen
+    # without the annotators' own probes (labels from people) a weak probe reads as the reward model's miss
+    assert len(_probe_warnings({"slower": {"pass_rate": 0.5}})) == 1

@@ -248,7 +248,7 @@ def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult],
         os.path.join(folder, "reward_model"), settings, db, campaigns, val_fraction=0.15, split_seed=config.seed,
         contrast_scenes=config.contrast_scenes,
         contrast_annotators=config.annotators if _judged_contrast(config) else (),
-        probe_scenes=config.probe_scenes, source=config.source,
+        probe_scenes=config.probe_scenes, probe_judges=() if config.people else config.annotators, source=config.source,
         root=config.root, candidate_seconds=config.seconds, title=f"Reward model of RLHF round {r} ({config.model})",
         after=labels, **steps)
     if reward.cached:
@@ -258,13 +258,31 @@ def _reward_model(config: RLHFConfig, db: str, r: int, labels: list[StepResult],
     steps["log"](f"round {r}: reward model on {info['train_pairs']} pairs (+ {info.get('contrast_pairs', 0)} "
                  f"contrast): val accuracy {reward['metrics'].get('val_accuracy', float('nan')):.3f}"
                  + ("; probes " + ", ".join(f"{k} {v['pass_rate']:.2f}" for k, v in probes.items()) if probes else ""))
-    weak = {k: v["pass_rate"] for k, v in probes.items() if v["pass_rate"] < PROBE_PASS}
-    if weak:
-        steps["log"](f"round {r}: warning: the reward model ranks the log below its perturbation in more than "
-                     f"{1 - PROBE_PASS:.0%} of the probes for " + ", ".join(f"{k} ({v:.2f})" for k, v in weak.items())
+    for line in _probe_warnings(probes):
+        steps["log"](f"round {r}: warning: {line}")
+    return reward
+
+
+def _probe_warnings(probes: dict[str, dict[str, Any]]) -> list[str]:
+    """What a round's weak probes (pass rate below :data:`PROBE_PASS`) mean, one line per cause: the reward model
+    missing what its stand-in annotators see (``judges`` pass), or the annotators not seeing it themselves."""
+    weak = {k: v for k, v in probes.items() if v["pass_rate"] < PROBE_PASS}
+    missed = {k: v for k, v in weak.items() if v.get("judges", 1.0) >= PROBE_PASS}
+    unseen = {k: v for k, v in weak.items() if k not in missed}
+    lines = []
+    if missed:
+        lines.append(f"the reward model ranks the log below its perturbation in more than {1 - PROBE_PASS:.0%} of "
+                     "the probes for " + ", ".join(f"{k} ({v['pass_rate']:.2f})" for k, v in missed.items())
                      + "; PPO is likely to exploit that (more contrast scenes or a higher reward.contrast_weight "
                      "help)")
-    return reward
+    if unseen:
+        lines.append("the reward model ranks the log below its perturbation in more than "
+                     f"{1 - PROBE_PASS:.0%} of the probes for "
+                     + ", ".join(f"{k} ({v['pass_rate']:.2f}; the stand-in annotators {v['judges']:.2f})"
+                                 for k, v in unseen.items())
+                     + ": the annotators themselves do not prefer the log there, so their labels cannot teach it "
+                     "(more contrast items will not help)")
+    return lines
 
 
 def _align(config: RLHFConfig, r: int, reward: StepResult, folder: str, steps: dict[str, Any]) -> StepResult:

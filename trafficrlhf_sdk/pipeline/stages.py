@@ -193,13 +193,15 @@ def rank_step(folder: str, db: str, campaigns: Sequence[str], reward_model: str,
 def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Sequence[str], *,
                       val_fraction: float = 0.15, split_seed: int = 0, annotators: Sequence[str] = (),
                       contrast_scenes: int = 0, contrast_annotators: Sequence[str] = (), probe_scenes: int = 0,
-                      source: str | None = None, root: str | None = None, candidate_seconds: float = 4.0,
+                      probe_judges: Sequence[str] = (), source: str | None = None, root: str | None = None,
+                      candidate_seconds: float = 4.0,
                       title: str | None = None, notes: Sequence[str] = (), after: Sequence[StepResult] = (),
                       overwrite: bool = False, log: Log | None = None) -> StepResult:
     """A reward model trained with ``config`` on the labels of ``campaigns`` in ``db`` (``val_fraction`` of the
     contexts held out, split by ``split_seed``; only ``annotators``' labels when given), plus contrast pairs from
     the logs of the last ``contrast_scenes`` train scenes of ``source`` (labelled by the stand-in profiles named in
-    ``contrast_annotators``; none named: the log wins), probed on ``probe_scenes`` val scenes;
+    ``contrast_annotators``; none named: the log wins), probed on ``probe_scenes`` val scenes (and the stand-in
+    profiles ``probe_judges`` with it);
     saved in ``folder`` with its card by :func:`~trafficrlhf_sdk.reward.card.train_and_save`. A training stopped
     midway continues from its newest epoch checkpoint in ``folder/checkpoints``, to the weights of an
     uninterrupted run.
@@ -210,6 +212,7 @@ def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Seq
               "campaigns": list(campaigns), "val_fraction": val_fraction, "split_seed": split_seed,
               "annotators": list(annotators), "contrast_scenes": contrast_scenes, "probe_scenes": probe_scenes,
               **({"contrast_annotators": list(contrast_annotators)} if contrast_annotators else {}),
+              **({"probe_judges": list(probe_judges)} if probe_judges else {}),
               "source": source, "root": root, "candidate_seconds": candidate_seconds, "title": title,
               "notes": list(notes)}
 
@@ -224,6 +227,7 @@ def reward_model_step(folder: str, config: RewardConfig, db: str, campaigns: Seq
                                      contrast_annotators=contrast_annotators,
                                      notes=notes, source=source, root=root,
                                      future_steps=round(candidate_seconds * 10), probe_scenes=probe_scenes,
+                                     probe_judges=probe_judges,
                                      resume=None)  # an interrupted training continues from its newest epoch
         finally:
             if store is not None:

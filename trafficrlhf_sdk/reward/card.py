@@ -79,7 +79,7 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
                    log: Callable[[dict[str, float]], None] | None = None,
                    on_start: Callable[[dict[str, Any]], None] | None = None, source: str | None = None,
                    root: str | None = None, future_steps: int = 40, probe_scenes: int = 0,
-                   resume: bool | None = False) -> TrainedRewardModel:
+                   probe_judges: Sequence[str] = (), resume: bool | None = False) -> TrainedRewardModel:
     """Train a reward model on ``dataset`` with ``config`` (a :class:`RewardConfig`), test it on a held-out
     campaign, and write ``out_dir``: ``config.json`` + ``model.safetensors`` + ``README.md`` (the card) and
     ``training_log.json``.
@@ -97,7 +97,10 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     The recorded driving comes from scenario source ``source`` (default: the dataset's) in data directory
     ``root``: contrast windows of ``future_steps`` steps, and with ``probe_scenes`` N the probes on N val scenes
     (:func:`~trafficrlhf_sdk.reward.contrast.probe_reward_model`), recorded in the card as ``probe_<kind>`` (the
-    pass rate) and returned as ``probes``.
+    pass rate) and returned as ``probes``. ``probe_judges`` names stand-in profiles whose own noise-free judgment
+    takes the same probes (``judges`` in each kind's entry, ``probe_<kind>_judges`` in the card: their mean pass
+    rate), so a weak probe tells a reward model that missed what its annotators see from annotators that do not
+    see it.
 
     Every epoch is checkpointed in ``out_dir/checkpoints`` (removed once the model is saved); ``resume`` continues
     an interrupted run from there, with the same final weights as an uninterrupted one. ``resume=None`` continues
@@ -119,6 +122,10 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     from trafficrlhf_sdk.feedback.synthetic import PROFILES
 
     unknown = sorted(set(contrast_annotators) - set(PROFILES))
+    unknown_judges = sorted(set(probe_judges) - set(PROFILES))
+    if unknown_judges:
+        raise TrafficRLHFError(f"`probe_judges` {unknown_judges}: not stand-in profiles; use some of "
+                               f"{', '.join(PROFILES)}.")
     if unknown:
         raise TrafficRLHFError(f"--contrast-annotator {unknown}: not stand-in profiles; use some of "
                                f"{', '.join(PROFILES)}.")
@@ -160,8 +167,16 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
             "decided_by": list(contrast_annotators) or "the log wins every pair"}
     probes = None
     if probe_scenes:
-        probes = probe_reward_model(model.eval(), recorded_windows(source, "val", probe_scenes, root))
+        windows = recorded_windows(source, "val", probe_scenes, root)
+        probes = probe_reward_model(model.eval(), windows)
         card["metrics"].update({f"probe_{kind}": entry["pass_rate"] for kind, entry in probes.items()})
+        if probe_judges:
+            from trafficrlhf_sdk.reward.oracle import JudgmentReward
+
+            judged = [probe_reward_model(JudgmentReward(name), windows) for name in probe_judges]
+            for kind, entry in probes.items():
+                entry["judges"] = sum(j[kind]["pass_rate"] for j in judged) / len(judged)
+                card["metrics"][f"probe_{kind}_judges"] = entry["judges"]
     model.save_pretrained(out_dir, card, dtype=torch.float16 if half else None)
     with open(os.path.join(out_dir, "training_log.json"), "w", encoding="utf-8") as handle:
         json.dump({"history": result.history, "best_epochs": result.best_epochs,

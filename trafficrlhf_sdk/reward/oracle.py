@@ -106,6 +106,10 @@ class JudgmentReward:
         out[:, scenario.current_index + 1:] = scene[:, None]
         return out
 
+    def score(self, scenario: ScenarioTensor) -> torch.Tensor:
+        """``(B,)``: the mean reward of the judged agents (0 where none is judged)."""
+        return self.step_rewards(scenario)[:, -1]
+
 
 def judgment_agreement(reward: Any, store: FeedbackStore, campaign: str,
                        config: SyntheticAnnotatorConfig | None = None, tolerance: float = 0.0) -> dict[str, Any]:
