@@ -111,7 +111,10 @@ def test_weak_probes_are_told_apart_by_what_the_stand_ins_see() -> None:
                                       "slower": {"pass_rate": 0.56, "judges": 0.32},
                                       "weave": {"pass_rate": 0.97, "judges": 0.99}})
     assert "faster (0.60)" in missed and "contrast_weight help" in missed and "slower" not in missed
-    assert "slower (0.56; the stand-in annotators 0.32)" in unseen and "will not help" in unseen
+    assert "slower (0.56; the stand-in annotators 0.320)" in unseen and "will not help" in unseen
     assert "faster" not in unseen and "weave" not in unseen
+    # just under the line: the annotators' rate is printed finely enough to show it is under
+    assert "off_lane (0.10; the stand-in annotators 0.899)" in _probe_warnings(
+        {"off_lane": {"pass_rate": 0.1, "judges": 71 / 79}})[0]
     # without the annotators' own probes (labels from people) a weak probe reads as the reward model's miss
     assert len(_probe_warnings({"slower": {"pass_rate": 0.5}})) == 1

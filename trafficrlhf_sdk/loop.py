@@ -278,7 +278,7 @@ def _probe_warnings(probes: dict[str, dict[str, Any]]) -> list[str]:
     if unseen:
         lines.append("the reward model ranks the log below its perturbation in more than "
                      f"{1 - PROBE_PASS:.0%} of the probes for "
-                     + ", ".join(f"{k} ({v['pass_rate']:.2f}; the stand-in annotators {v['judges']:.2f})"
+                     + ", ".join(f"{k} ({v['pass_rate']:.2f}; the stand-in annotators {v['judges']:.3f})"
                                  for k, v in unseen.items())
                      + ": the annotators themselves do not prefer the log there, so their labels cannot teach it "
                      "(more contrast items will not help)")
