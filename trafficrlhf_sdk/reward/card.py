@@ -122,12 +122,12 @@ def train_and_save(config: Any, dataset: Any, out_dir: str, *, store: Any = None
     from trafficrlhf_sdk.feedback.synthetic import PROFILES
 
     unknown = sorted(set(contrast_annotators) - set(PROFILES))
-    unknown_judges = sorted(set(probe_judges) - set(PROFILES))
-    if unknown_judges:
-        raise TrafficRLHFError(f"`probe_judges` {unknown_judges}: not stand-in profiles; use some of "
-                               f"{', '.join(PROFILES)}.")
     if unknown:
         raise TrafficRLHFError(f"--contrast-annotator {unknown}: not stand-in profiles; use some of "
+                               f"{', '.join(PROFILES)}.")
+    unknown = sorted(set(probe_judges) - set(PROFILES))
+    if unknown:
+        raise TrafficRLHFError(f"`probe_judges` {unknown}: not stand-in profiles; use some of "
                                f"{', '.join(PROFILES)}.")
     if contrast_annotators and not contrast_scenes:
         raise TrafficRLHFError(f"--contrast-annotator {list(contrast_annotators)} labels contrast items, but there "
