@@ -114,11 +114,6 @@ class CTGOptions(AdapterOptions):
                                              "least this (0.7: within about 45 degrees), so oncoming and crossing "
                                              "agents driven on at constant velocity do not open its gate. None "
                                              "keeps the checkpoint's setting (a new head: every agent in the path).")
-    follow_decel: float | None = Field(None, gt=0, description="Gate the gap-keeping head by the deceleration that "
-                                       "would stop the closing at contact, closing speed² / (2 gap), as clamp("
-                                       "required / follow_decel - 1, 0, 1) (m/s²), instead of the desired gap or "
-                                       "follow_ttc (set one of the two). A plan already braking at a constant rate "
-                                       "below follow_decel reads no hazard. None keeps the checkpoint's setting.")
     follow_gate_steps: int | None = Field(None, ge=1, description="The gap-keeping head's gate reads only the first "
                                           "this many plan steps (0.1 s each; 5 is what runs before the next 2 Hz "
                                           "replan), while the head still reads them all. None keeps the "
@@ -132,16 +127,6 @@ class CTGOptions(AdapterOptions):
                                     "off-road share and neighbour proximity along it, largest value), so plans "
                                     "with a clear road and nobody near are not steered; None keeps the "
                                     "checkpoint's setting. Applies to a fresh head or a saved one.")
-    steer_gate_offset: float | None = Field(None, gt=0, description="With `steer_gate`: metres to either side of "
-                                           "the plan at which the gate reads the road (default: the head's own "
-                                           "1 m); None keeps the checkpoint's setting.")
-    steer_gate_traffic: bool | None = Field(None, description="With `steer_gate` and a head that reads the "
-                                            "traffic: whether neighbour proximity opens the gate as well as the "
-                                            "road (false: the road alone gates). None keeps the checkpoint's "
-                                            "setting (true for a new head).")
-    steer_lateral_only: bool | None = Field(None, description="The steering head shifts the yaw-rate channel "
-                                            "only; acceleration is sampled as by the frozen model. None keeps the "
-                                            "checkpoint's setting. Applies to a fresh head or a saved one.")
 
 
 class CTGAdapter(TrafficModelAdapter):
@@ -174,37 +159,18 @@ class CTGAdapter(TrafficModelAdapter):
                                    "follow=true to a checkpoint without one (a saved head keeps its weights).")
         gaps = {"follow_standstill": opts.follow_standstill, "follow_headway": opts.follow_headway,
                 "follow_ttc": opts.follow_ttc, "follow_heading_cos": opts.follow_heading_cos,
-                "follow_decel": opts.follow_decel, "follow_gate_steps": opts.follow_gate_steps}
+                "follow_gate_steps": opts.follow_gate_steps}
         gaps = {key: value for key, value in gaps.items() if value is not None}
-        if "follow_ttc" in gaps and "follow_decel" in gaps:
-            raise TrafficRLHFError(f"follow_ttc={opts.follow_ttc} and follow_decel={opts.follow_decel} are two "
-                                   "gates for the gap-keeping head; set one of them.")
         if gaps and not self.cfg.follow:
             raise TrafficRLHFError(f"{', '.join(f'{k}={v}' for k, v in gaps.items())} sets the gap-keeping head's "
                                    "desired gap or gate; add follow=true (or load a checkpoint saved with that head).")
         if gaps:
             self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **gaps)
-        head = {"steer_gate": opts.steer_gate, "steer_gate_offset": opts.steer_gate_offset,
-                "steer_gate_traffic": opts.steer_gate_traffic, "steer_lateral_only": opts.steer_lateral_only}
-        head = {key: value for key, value in head.items() if value is not None}
-        if head:
-            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, **head)
-            if self.cfg.steer_lateral_only and not self.cfg.steer:
-                raise TrafficRLHFError("steer_lateral_only=true needs a steering head; add steer=true or "
-                                       "steer_road=true (or load a checkpoint with one).")
+        if opts.steer_gate is not None:
+            self.cfg = self.model.cfg = dataclasses.replace(self.cfg, steer_gate=opts.steer_gate)
             if self.cfg.steer_gate and not (self.cfg.steer and (self.cfg.steer_road or self.cfg.steer_neighbours)):
                 raise TrafficRLHFError("steer_gate=true needs a steering head that reads the road or the traffic; "
                                        "add steer_road=true or steer_neighbours=true (or load a checkpoint with one).")
-            if opts.steer_gate_traffic is not None and not (self.cfg.steer_gate and self.cfg.steer_neighbours):
-                value = str(opts.steer_gate_traffic).lower()
-                raise TrafficRLHFError(f"steer_gate_traffic={value} only acts with a gated head that reads the "
-                                       "traffic; add steer_gate=true and steer_neighbours=true.")
-            if self.cfg.steer_gate and not (self.cfg.steer_road or self.cfg.steer_gate_traffic):
-                raise TrafficRLHFError("steer_gate_traffic=false leaves this head's gate nothing to read (it does "
-                                       "not read the road); set steer_gate_traffic=true or steer_gate=false.")
-            if opts.steer_gate_offset is not None and not self.cfg.steer_gate:
-                raise TrafficRLHFError(f"steer_gate_offset={opts.steer_gate_offset} only acts with a gate; add "
-                                       "steer_gate=true (or load a checkpoint saved with one).")
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
         self.model.eval()

@@ -60,14 +60,6 @@ class CTGConfig:
     # (inside the crop) and the neighbour proximity: a plan with the road clear around it and nobody near is
     # left as the frozen model draws it, so steering cannot change driving that needed no change
     steer_gate: bool = False
-    steer_gate_offset: float | None = None  # m to either side of the plan the gate's road hazard is read at
-    # (None: steer_road_offset); wider than the head's own probes, it opens before a plan reaches the road edge
-    # with steer_neighbours: whether the neighbour proximity opens the gate too (False: the road alone gates, and
-    # the head reads the traffic only once the road has opened the gate)
-    steer_gate_traffic: bool = True
-    # the head shifts the yaw-rate channel only; acceleration is drawn as the frozen model draws it (a head that
-    # moves the speed profile too can close gaps to the agent ahead)
-    steer_lateral_only: bool = False
     # gap keeping (FollowHead): a second head, acceleration channel only, reading the gap to the agent ahead in
     # each step's clean plan (lead_gaps: neighbours at constant velocity) and gated by the headway hazard
     # clamp(1 - gap / (follow_standstill + follow_headway * speed), 0, 1); zero until fine-tuned, and exactly
@@ -83,9 +75,6 @@ class CTGConfig:
     follow_ttc: float | None = None
     # if set, only agents heading the plan's way lead (cosine of the heading difference at least this)
     follow_heading_cos: float | None = None
-    # m/s²: if set, the gate reads the deceleration that would stop the closing at contact, closing speed² / (2 gap),
-    # as clamp(required / follow_decel - 1, 0, 1) instead (a plan braking at a constant a <= follow_decel reads none)
-    follow_decel: float | None = None
     # if set, the gate reads only the first this many plan steps (5 at 0.1 s: what runs before the next 2 Hz replan);
     # the head still reads them all. Plans that stop in time read a short time to collision at their end, which a
     # gate over the whole plan would brake too

@@ -27,8 +27,8 @@ This module holds the diffusion model; its configuration is in :mod:`ctg_referen
 * Gap keeping (``follow``): a :class:`FollowHead` adds ``sigma_k * gate * tanh(g)`` to the acceleration channel
   only, reading the gap to the agent ahead in ``x0_k``'s path (:func:`lead_gaps`); the gate is the plan's
   largest headway hazard, 0 unless someone is ahead closer than the desired gap (with ``follow_ttc``: the largest
-  time-to-collision hazard, 0 unless closing in on someone ahead; with ``follow_decel``: the braking one; with
-  ``follow_gate_steps``: read over the plan's first steps only).
+  time-to-collision hazard, 0 unless closing in on someone ahead; with ``follow_gate_steps``: read over the
+  plan's first steps only).
 
 Agent frame: origin at the agent's current position, x along its current heading. States are
 ``(x, y, speed, yaw)``; actions ``(acceleration m/s^2, yaw rate rad/s)``; one unicycle step of ``dt``::
@@ -199,14 +199,8 @@ class CTGModel(nn.Module):
     def _steer_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
                      n: int, states: torch.Tensor | None = None) -> torch.Tensor:
         """The steering head's shift ``(M, H, 2)`` for ``M = n * R`` rows ordered row-major by the ``n``
-        conditioning rows (R samples, or samples x steps, each); 0 on the acceleration channel with
-        ``steer_lateral_only``. ``states``: :meth:`_plan_states` of ``x0``, when already computed."""
-        shift = self._head_shift(cond, x0, k, steer_map, n, states)
-        return shift * shift.new_tensor([0.0, 1.0]) if self.cfg.steer_lateral_only else shift
-
-    def _head_shift(self, cond: torch.Tensor, x0: torch.Tensor, k: torch.Tensor | int, steer_map: SteerMap | None,
-                    n: int, states: torch.Tensor | None = None) -> torch.Tensor:
-        """:meth:`_steer_shift` on both channels."""
+        conditioning rows (R samples, or samples x steps, each). ``states``: :meth:`_plan_states` of ``x0``, when
+        already computed."""
         assert self.steer is not None
         cfg = self.cfg
         if not (cfg.steer_road or cfg.steer_neighbours):
@@ -227,10 +221,9 @@ class CTGModel(nn.Module):
         shift = self.steer(cond, x0, k, surroundings.reshape(*x0.shape[:2], surroundings.shape[-1]))
         if not cfg.steer_gate:
             return shift
-        hazards = [parts[-1]] if cfg.steer_neighbours and cfg.steer_gate_traffic else []
+        hazards = [parts[-1]] if cfg.steer_neighbours else []
         if cfg.steer_road:  # the off-road share, 0 past the crop's edge (a plan leaving the crop is no hazard)
-            offset = cfg.steer_road_offset if cfg.steer_gate_offset is None else cfg.steer_gate_offset
-            hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, offset))
+            hazards.append(road_profile(1 - drivable, states, cfg.map_resolution, cfg.steer_road_offset))
         gate = torch.cat(hazards, -1).amax((-2, -1)).reshape(-1, 1, 1)  # (M, 1, 1) in [0, 1]
         return gate * shift
 
@@ -247,10 +240,9 @@ class CTGModel(nn.Module):
                              "neighbour_valid (N, K), extent (N, 2)).")
         v0 = steer_map[1]
         states = self._plan_states(x0, v0, n) if states is None else states
-        ttc, decel, gate_steps = cfg.follow_ttc, cfg.follow_decel, cfg.follow_gate_steps
         lead = lead_gaps(*steer_map[2:5], states, cfg.dt, cfg.follow_lane_margin, cfg.follow_standstill,
-                         cfg.follow_headway, ttc, cfg.follow_heading_cos, decel)
-        gate = lead[..., :gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1); lead (N, R, H, 3)
+                         cfg.follow_headway, cfg.follow_ttc, cfg.follow_heading_cos)
+        gate = lead[..., :cfg.follow_gate_steps, 2].amax(-1).reshape(-1, 1, 1)  # (M, 1, 1); lead (N, R, H, 3)
         features = torch.stack([lead[..., 0] / LEAD_GAP_CLIP, lead[..., 1] / 10.0, lead[..., 2]], -1)
         v_rows = v0[:, None].expand(states.shape[:2]).reshape(-1)
         return gate * head(x0, k, v_rows, features.reshape(*x0.shape[:2], 3))

@@ -146,8 +146,7 @@ class FollowHead(nn.Module):
 
 def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: torch.Tensor, states: torch.Tensor,
               dt: float, lane_margin: float, standstill: float, headway: float,
-              ttc: float | None = None, min_heading_cos: float | None = None,
-              decel: float | None = None) -> torch.Tensor:
+              ttc: float | None = None, min_heading_cos: float | None = None) -> torch.Tensor:
     """The agent ahead in each plan's path, per planned step: ``(N, S, H, 3)`` = (gap m, closing speed m/s, headway
     hazard in [0, 1]).
 
@@ -159,9 +158,6 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
     ``clamp(1 - gap / (standstill + headway * planned speed), 0, 1)``: 0 from the desired gap (m, s) on, 1 at contact.
     With ``ttc`` (s) the hazard is the time-to-collision one instead, ``clamp(1 - (gap / closing speed) / ttc, 0, 1)``
     while closing in and 0 otherwise: a follower keeping its distance, however short, reads no hazard. With
-    ``decel`` (m/s², instead of ``ttc``) it is the braking one, ``clamp(required / decel - 1, 0, 1)`` with ``required =
-    closing speed² / (2 gap)`` the constant deceleration that stops the closing at contact (0 unless closing in): a
-    plan already braking at ``a <= decel`` to stop behind the lead reads ``required = a`` all the way, no hazard. With
     ``min_heading_cos`` only neighbours heading the plan's way count (cosine of the heading difference at least that):
     oncoming and crossing agents, driven on straight at constant velocity, cut across curved plans they never meet.
 
@@ -199,11 +195,6 @@ def lead_gaps(neighbours: torch.Tensor, neighbour_valid: torch.Tensor, extent: t
             -2, lead[..., None, None].expand(*lead.shape, 1, 2)).squeeze(-2)
         lead_speed = torch.where(lead_gap < LEAD_GAP_CLIP, (lead_velocity * forward).sum(-1), states[..., 2])
     closing = states[..., 2] - lead_speed
-    if decel is not None:
-        closing_in = closing.clamp_min(0)
-        required = closing_in ** 2 / (2 * lead_gap.clamp_min(1e-6))
-        hazard = torch.where(closing > 0, (required / decel - 1).clamp(0, 1), torch.zeros_like(closing))
-        return torch.stack([lead_gap, closing, hazard], -1)
     if ttc is None:
         desired = standstill + headway * states[..., 2].clamp_min(0)
     else:  # the gap covered in ttc s at the closing speed; 0 (no hazard) unless closing in
