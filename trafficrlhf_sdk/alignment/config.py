@@ -51,6 +51,13 @@ class AlignConfig(BaseModel):
                                        "in a context collides or leaves the road get advantage 0 and this weight "
                                        "times the KL to the starting model on their samples, so the surrogate "
                                        "moves only agents with a failing sample. 0 disables it.")
+    pace_tolerance: float | None = Field(None, gt=0, lt=1, description="Constrain the pace (PPO-Lagrangian, "
+                                         "trafficrlhf_sdk.alignment.pace): keep the closed-loop speed / logged "
+                                         "speed on fixed held-out scenes within this fraction of the starting "
+                                         "model's; each sample's speed enters the advantage with a multiplier "
+                                         "that grows while the pace is outside the band. None: no constraint.")
+    pace_multiplier_lr: float = Field(5.0, gt=0, description="Step of the pace multipliers per unit of relative "
+                                      "pace outside the band, per epoch (with pace_tolerance).")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this.")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "

@@ -45,6 +45,7 @@ from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
+from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
@@ -157,6 +158,10 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
         self.monitor = HeldOutMonitor(monitor_reward, self.config.early_stopping_patience)
         self.monitor_contexts: ScenarioTensor | None = None
+        self.held_out: list[ScenarioTensor] | None = None
+        self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
+            self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
+            self.config.failure_scenes, self.guidance)
         self.monitor_logged: ScenarioTensor | None = None
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
@@ -222,9 +227,15 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             if self.config.passing_anchor_coef > 0:
                 passing = self._passing_agents(scenario, trace.agents, self.config.samples_per_context)
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
+            if self.pace is not None:
+                speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
+                adv = self.pace.mix(adv, speeds, 1, sampled)
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
+            if self.pace is not None:
+                speeds = sample_speeds(scenario, self.reward_steps).reshape(b, -1, contexts.num_agents)
+                adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1, torch.ones_like(adv))
         self.last_heldout = self._monitor_scores()
         return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
@@ -240,21 +251,26 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
         return self.monitor.scores(scenario, out.trace.agents.repeat_interleave(MONITOR_SAMPLES, 0))
 
+    def _held_out_scenes(self) -> list[ScenarioTensor]:
+        """The first ``2 * failure_scenes`` held-out training scenes (``holdout_every``); the training scenes
+        themselves when none are held out or scenes were passed in. Loaded once."""
+        if self.held_out is None:
+            cfg = self.config
+            held: list[ScenarioTensor] = []
+            if self.scenes_given is None and cfg.holdout_every is not None:
+                from trafficrlhf_sdk.plugins import get_scenario_source
+
+                source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
+                ids = held_out_scene_ids(source.scene_ids("train"), cfg.holdout_every)[: 2 * cfg.failure_scenes]
+                held = [source.load_scene("train", i) for i in ids]
+            self.held_out = held or self._load_scenes()
+        return self.held_out
+
     def _draw_monitor_contexts(self) -> tuple[ScenarioTensor, ScenarioTensor]:
         """Logged windows and failure-focused windows of the starting model, from the held-out training scenes
-        (``holdout_every``; the training scenes themselves when none are held out or scenes were passed in)."""
+        (:meth:`_held_out_scenes`)."""
         cfg = self.config
-        scenes = self._load_scenes
-        if self.scenes_given is None and cfg.holdout_every is not None:
-            from trafficrlhf_sdk.plugins import get_scenario_source
-
-            source = get_scenario_source(cfg.source, **({"root": cfg.root} if cfg.root else {}))
-            ids = held_out_scene_ids(source.scene_ids("train"), cfg.holdout_every)[: 2 * cfg.failure_scenes]
-            held = [source.load_scene("train", i) for i in ids]
-            if held:
-                def scenes() -> list[ScenarioTensor]:
-                    return held
-        sampler = ContextSampler(self.model, cfg, scenes, self.guidance, self.future_steps)
+        sampler = ContextSampler(self.model, cfg, self._held_out_scenes, self.guidance, self.future_steps)
         gen = derived_generator(cfg.seed, "monitor-contexts")
         pairs = [sampler.log_contexts(MONITOR_CONTEXTS, gen)]
         if cfg.failure_fraction > 0:
@@ -302,8 +318,14 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         cfg = self.config
         if self.monitor_contexts is None:  # from the starting weights, also when resuming
             self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
+        starting_pace = None
+        if self.pace is not None and self.pace.base_ratio is None:  # the starting weights' pace, also when resuming
+            starting_pace = self.pace.drive(self.model)
+            self.pace.base_ratio = starting_pace["speed_ratio"]
         if cfg.resume:
             self.resume_newest()
+            if self.pace is not None:
+                self.pace.restore(self.history)
         self.logger = self._configure_logger()
         flags = {id(p): p.requires_grad for p in self.model.module.parameters()}
         chosen = {id(p) for p in self.trainable}
@@ -319,6 +341,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         try:
             for epoch in range(self.start_epoch, cfg.epochs):
                 start = time.perf_counter()
+                pace = {} if self.pace is None else self.pace.step(self.model, starting_pace if epoch == 0 else None)
                 rollout = self._rollout(epoch)
                 stats = {"epoch": float(epoch + 1),
                          "reward_mean": float(rollout.rewards.mean()),
@@ -329,6 +352,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                     sampled = rollout.trace.agents.sum().clamp_min(1)
                     stats["passing_share"] = float(rollout.passing.sum() / sampled)
                 stats.update(self.last_heldout)
+                stats.update(pace)
                 scored = [p.detach().clone() for p in self.trainable] if cfg.early_stopping_patience else []
                 stats.update(self._optimize(epoch, rollout))
                 stats["time_s"] = time.perf_counter() - start
@@ -385,7 +409,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
 
     def _log(self, stats: dict[str, float]) -> None:
         rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share", "heldout_realism",
-                        "heldout_reward")
+                        "heldout_reward", "heldout_failure", "pace_change")
         for key, value in stats.items():
             if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
                 continue

@@ -1,0 +1,111 @@
+"""The fine-tuner's pace constraint (``pace_tolerance``, trafficrlhf_sdk.alignment.pace)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
+from trafficrlhf_sdk.metrics.speed import SpeedMetric
+from trafficrlhf_sdk.scenario import ScenarioTensor
+from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+gru = pytest.importorskip("trafficrlhf_example_gru")
+
+FAST = dict(contexts_per_epoch=4, samples_per_context=4, minibatch_contexts=2, ppo_epochs=1, progress_bar=False)
+
+
+def _model():  # type: ignore[no-untyped-def]
+    torch.manual_seed(0)
+    return gru.ExampleGRUAdapter()
+
+
+class SlowerIsBetter:
+    """A reward that pays for braking: each agent's reward is minus its mean speed over the sampled future."""
+
+    def agent_scores(self, scenario: ScenarioTensor) -> torch.Tensor:
+        return -sample_speeds(scenario, scenario.num_steps - 1 - scenario.current_index) / 10.0
+
+    def step_rewards(self, scenario: ScenarioTensor) -> torch.Tensor:
+        speed = scenario.states[..., 2].abs() * scenario.valid
+        return -(speed.sum(1) / scenario.valid.sum(1).clamp_min(1)) / 10.0
+
+
+def test_sample_speeds_is_the_mean_absolute_speed_over_the_valid_future_steps(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    scene = train_scene_list[0].replace_unchecked(current_index=10)
+    speeds = sample_speeds(scene, 20)
+    for a in range(scene.num_agents):
+        valid = scene.valid[0, a, 11:31]
+        values = scene.states[0, a, 11:31, 2].abs()[valid]
+        expected = values.mean() if valid.any() else torch.tensor(0.0)
+        assert torch.isclose(speeds[0, a], expected, atol=1e-5)
+
+
+def test_the_multipliers_move_only_outside_the_band_and_each_on_its_own_side() -> None:
+    pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None)
+    pace.base_ratio = 1.0
+    stats = pace.step(None, {"speed_ratio": 0.99, "failure_rate": 0.1})  # 1 % slower: inside the band
+    assert (stats["pace_multiplier_slow"], stats["pace_multiplier_fast"]) == (0.0, 0.0)
+    stats = pace.step(None, {"speed_ratio": 0.95, "failure_rate": 0.1})  # 5 % slower: 2 points outside
+    assert stats["pace_change"] == pytest.approx(-0.05)
+    assert stats["pace_multiplier_slow"] == pytest.approx(0.2) and stats["pace_multiplier_fast"] == 0.0
+    pace.step(None, {"speed_ratio": 0.99, "failure_rate": 0.1})  # back inside: the multiplier decays
+    assert pace.slow == pytest.approx(0.0)
+    pace.step(None, {"speed_ratio": 1.06, "failure_rate": 0.1})
+    assert pace.slow == 0.0 and pace.fast == pytest.approx(0.3)
+    pace.restore([{"pace_multiplier_slow": 0.5, "pace_multiplier_fast": 0.0}])
+    assert (pace.slow, pace.fast) == (0.5, 0.0)
+
+
+def test_the_speed_term_ranks_samples_by_speed_and_leaves_advantages_alone_at_zero_multipliers() -> None:
+    pace = PaceConstraint(0.03, 1.0, lambda: [], 4, None)
+    adv = torch.tensor([[[0.0, 1.0]], [[0.0, -1.0]], [[0.0, 0.0]]]).transpose(0, 1)  # (B=1, S=3, A=2)
+    speeds = torch.tensor([[[4.0, 5.0]], [[6.0, 5.0]], [[8.0, 5.0]]]).transpose(0, 1)
+    mask = torch.ones_like(adv, dtype=torch.bool)
+    assert torch.equal(pace.mix(adv, speeds, 1, mask), adv)
+    pace.slow = 1.0
+    mixed = pace.mix(adv, speeds, 1, mask)
+    # agent 0 had no reward advantage (a passing agent): the faster sample now has the higher advantage
+    assert mixed[0, 2, 0] > mixed[0, 1, 0] > mixed[0, 0, 0]
+    # agent 1's samples all have the same speed: only the reward term, scaled by 1 / (1 + slow)
+    assert torch.allclose(mixed[0, :, 1], adv[0, :, 1] / 2)
+    pace.slow, pace.fast = 0.0, 1.0  # too fast: the slower sample is preferred
+    mixed = pace.mix(adv, speeds, 1, mask)
+    assert mixed[0, 0, 0] > mixed[0, 2, 0]
+
+
+def test_the_pace_drive_is_the_evaluations_speed_ratio_and_repeats_exactly(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    model = _model()
+    pace = PaceConstraint(0.03, 5.0, lambda: train_scene_list, 3, None)
+    state = torch.get_rng_state()
+    first = pace.drive(model)
+    assert torch.equal(torch.get_rng_state(), state)  # the training's random numbers are not consumed
+    assert pace.drive(model) == first  # same weights, same scenes, same seed: the same figures
+    torch.manual_seed(0)
+    model.options = model.options.model_copy(update={"seed": 0})
+    rollout = simulate(model, pace.batch(), SimulationConfig(duration_s=10.0))
+    assert first["speed_ratio"] == pytest.approx(SpeedMetric().compute(rollout).values["speed_ratio"])
+    assert pace.batch().num_scenes == 3 and pace.batch().current_index == 30
+
+
+def test_the_constraint_holds_the_pace_against_a_reward_that_pays_for_braking(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    """Trained against a reward that only pays for slowing down, the unconstrained policy loses pace on the
+    held-out drive; with the constraint the multiplier rises and the pace stays closer to the start."""
+    common = dict(alpha=1.0, imitation_coef=0.0, credit="agent", learning_rate=3e-3, epochs=6, **FAST)
+
+    def run(**extra):  # type: ignore[no-untyped-def]
+        trainer = AlignTrainer(_model(), SlowerIsBetter(), AlignConfig(**common, **extra), scenes=train_scene_list)
+        trainer.pace = trainer.pace or PaceConstraint(1.0 - 1e-9, 0.0, lambda: train_scene_list, 4, None)
+        return trainer.train()
+
+    free = run()
+    held = run(pace_tolerance=0.02, pace_multiplier_lr=20.0)
+    assert free[0]["pace_change"] == held[0]["pace_change"] == 0.0  # epoch 1 drives the starting weights
+    assert free[-1]["pace_change"] < -0.04, "the braking reward must slow the free policy"
+    assert max(row["pace_multiplier_slow"] for row in held) > 0
+    assert held[-1]["pace_change"] > free[-1]["pace_change"] + 0.02
+    assert all("heldout_failure" in row for row in held)

@@ -1,0 +1,140 @@
+"""The pace constraint of the fine-tuner: fewer failures without driving slower (a PPO-Lagrangian).
+
+A reward that punishes collisions can be satisfied by braking, and a head trained to brake where a sample fails
+brakes elsewhere too: the failure rate falls while the traffic slows down, which the evaluation reads as
+``speed_ratio`` (speed / logged speed) against the base's. ``pace_tolerance`` turns "keep the base's pace" into a
+constraint of the optimization instead of a number read after it, in the way constrained PPO does
+(PPO-Lagrangian: Ray, Achiam and Amodei 2019, "Benchmarking Safe Exploration in Deep RL"; RCPO: Tessler, Mankowitz
+and Mannor 2019):
+
+1. **Measure.** Before each epoch's rollout the current policy drives fixed held-out scenes (the ``holdout_every``
+   scenes the fine-tuner never trains on; its training scenes when none are held out) in closed loop for 10 s with
+   a fixed seed, exactly as the evaluation does; ``pace_change`` is its ``speed_ratio`` over the starting weights'
+   on the same scenes and seed, minus 1. The pairing makes the comparison nearly noise-free. The same run's
+   failure rate is recorded as ``heldout_failure``: the fine-tuner's progress on scenes it never trained on.
+2. **Dual step.** Two multipliers, one per side of the band ``|pace_change| <= pace_tolerance``:
+   ``slow <- max(0, slow + lr * (-pace_change - tol))`` and ``fast <- max(0, fast + lr * (pace_change - tol))``;
+   both stay 0 while the pace is inside the band.
+3. **Advantage.** Each sampled agent's samples are also ranked by their mean speed over the sampled future
+   (normalized over the samples, as the reward's advantage is), and
+   ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
+   from the reward) get the speed term alone, so the pace is restored first where no sample fails.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+from trafficrlhf_sdk.alignment.config import ADVANTAGE_CLIP, FAILURE_DRIVE_S, HISTORY_STEPS
+from trafficrlhf_sdk.errors import DataNotFoundError
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
+
+__all__ = ["PaceConstraint", "sample_speeds"]
+
+PACE_SEED = 0
+"""Seed of every pace drive (the same random numbers each epoch, so that the pace moves with the weights only)."""
+
+
+def sample_speeds(scenario: ScenarioTensor, steps: int) -> torch.Tensor:
+    """``(B, A)``: each agent's mean absolute speed over the ``steps`` steps after ``current_index`` (its valid
+    steps; 0 where it has none)."""
+    now = scenario.current_index
+    window = slice(now + 1, now + 1 + steps)
+    valid = scenario.valid[:, :, window].to(scenario.states.dtype)
+    speed = scenario.states[:, :, window, 2].abs() * valid
+    return speed.sum(-1) / valid.sum(-1).clamp_min(1.0)
+
+
+def _normalized(values: torch.Tensor, dim: int) -> torch.Tensor:
+    centred = values - values.mean(dim, keepdim=True)
+    return (centred / (values.std(dim, unbiased=False, keepdim=True) + 1e-6)).clamp(-ADVANTAGE_CLIP, ADVANTAGE_CLIP)
+
+
+class PaceConstraint:
+    """The multipliers, the pace drive and the advantage mix of the pace constraint (module docstring).
+
+    Args:
+        tolerance: the band ``|pace_change| <= tolerance`` (0.03: within 3 % of the starting pace).
+        lr: step size of the multipliers per unit of violation.
+        scenes: a callable returning the scenes to drive (single-scene tensors).
+        count: how many of them (those long enough for 3 s of history and a 10 s drive).
+        guidance: the guidance the model drives with (None: its own).
+    """
+
+    def __init__(self, tolerance: float, lr: float, scenes: Callable[[], Sequence[ScenarioTensor]], count: int,
+                 guidance: GuidanceSet | None) -> None:
+        self.tolerance = tolerance
+        self.lr = lr
+        self.scenes = scenes
+        self.count = count
+        self.guidance = guidance
+        self.slow = 0.0
+        self.fast = 0.0
+        self.base_ratio: float | None = None
+        self._batch: ScenarioTensor | None = None
+
+    # ------------------------------------------------------------------ measurement
+    def batch(self) -> ScenarioTensor:
+        """The fixed held-out scenes, cut to 3 s of history and the 10 s drive."""
+        if self._batch is None:
+            scenes = list(self.scenes())
+            drive = max(1, round(FAILURE_DRIVE_S / scenes[0].dt)) if scenes else 1
+            fits = [s for s in scenes if s.num_steps >= HISTORY_STEPS + drive + 1][: self.count]
+            if not fits:
+                raise DataNotFoundError(f"pace_tolerance: no held-out scene is long enough for {HISTORY_STEPS} "
+                                        f"history steps and a {FAILURE_DRIVE_S:g} s drive; set pace_tolerance to "
+                                        "None or give longer scenes.")
+            batch = ScenarioTensor.concat([s.time_slice(0, HISTORY_STEPS + drive + 1) for s in fits])
+            self._batch = batch.replace_unchecked(current_index=HISTORY_STEPS)
+        return self._batch
+
+    def drive(self, model: Any) -> dict[str, float]:
+        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed (the
+        global generator is left as it was)."""
+        from trafficrlhf_sdk.metrics.failure import FailureMetric
+        from trafficrlhf_sdk.metrics.speed import SpeedMetric
+        from trafficrlhf_sdk.simulation.policies import policy_seed, seed_policy
+        from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
+
+        own_seed = policy_seed(model, PACE_SEED)
+        with torch.random.fork_rng(devices=[]), guidance_swapped(model, self.guidance), torch.no_grad():
+            torch.manual_seed(PACE_SEED)
+            seed_policy(model, PACE_SEED)
+            try:
+                rollout = simulate(model, self.batch(), SimulationConfig(duration_s=FAILURE_DRIVE_S))
+            finally:
+                seed_policy(model, own_seed)
+        return {"speed_ratio": SpeedMetric().compute(rollout).values["speed_ratio"],
+                "failure_rate": FailureMetric().compute(rollout).values["failure_rate"]}
+
+    def step(self, model: Any, measured: dict[str, float] | None = None) -> dict[str, float]:
+        """Drive the current ``model`` (or take its ``measured`` :meth:`drive`), update the multipliers; the first
+        call sets the starting pace unless ``base_ratio`` is set. Returns the epoch's statistics (``pace_change``,
+        ``heldout_failure``, the multipliers)."""
+        measured = measured or self.drive(model)
+        if self.base_ratio is None:
+            self.base_ratio = measured["speed_ratio"]
+        change = measured["speed_ratio"] / self.base_ratio - 1.0
+        self.slow = max(0.0, self.slow + self.lr * (-change - self.tolerance))
+        self.fast = max(0.0, self.fast + self.lr * (change - self.tolerance))
+        return {"pace_change": change, "heldout_failure": measured["failure_rate"],
+                "pace_multiplier_slow": self.slow, "pace_multiplier_fast": self.fast}
+
+    def restore(self, history: Sequence[dict[str, float]]) -> None:
+        """Take the multipliers back from a resumed run's history (the starting pace is measured again)."""
+        if history:
+            self.slow = float(history[-1].get("pace_multiplier_slow", 0.0))
+            self.fast = float(history[-1].get("pace_multiplier_fast", 0.0))
+
+    # ------------------------------------------------------------------ advantages
+    def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor) -> torch.Tensor:
+        """``(A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``: ``advantages`` and ``speeds`` have the same
+        shape, samples along ``dim``; ``mask`` (broadcastable) zeroes entries that get no advantage."""
+        if self.slow == 0.0 and self.fast == 0.0:
+            return advantages
+        speed_adv = _normalized(speeds, dim) * mask.to(speeds.dtype)
+        return (advantages + (self.slow - self.fast) * speed_adv) / (1.0 + self.slow + self.fast)
