@@ -145,6 +145,9 @@ def test_gymnasium_env_passes_check_env_and_trains_with_sb3(train_scenes: Scenar
         steps, done = steps + 1, terminated or truncated
     assert steps == 20
     agent = sb3.PPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu")
+    from stable_baselines3.common.logger import Logger
+
+    agent.set_logger(Logger(None, []))  # SB3's default logger would leave an SB3-<date> folder in the temp dir
     agent.learn(256)
     action, _ = agent.predict(obs, deterministic=True)
     assert env.action_space.contains(action)
