@@ -7,7 +7,6 @@ import torch
 
 from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
 from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
-from trafficrlhf_sdk.alignment.ppo_update import derived_generator
 from trafficrlhf_sdk.metrics.speed import SpeedMetric
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
@@ -75,34 +74,6 @@ def test_the_speed_term_ranks_samples_by_speed_and_leaves_advantages_alone_at_ze
     pace.slow, pace.fast = 0.0, 1.0  # too fast: the slower sample is preferred
     mixed = pace.mix(adv, speeds, 1, mask)
     assert mixed[0, 0, 0] > mixed[0, 2, 0]
-    only_first = torch.tensor([True, False])[None, None, :].expand_as(adv)
-    assert torch.equal(pace.mix(adv, speeds, 1, only_first)[..., 1], adv[..., 1])  # outside the mask: unchanged
-
-
-def test_with_the_passing_anchor_only_the_held_agents_get_the_speed_term(
-        train_scene_list: list[ScenarioTensor]) -> None:
-    from trafficrlhf_sdk.reward.builtin import FailureReward
-
-    common = dict(alpha=1.0, credit="agent", failure_fraction=0.5, failure_scenes=4, passing_anchor_coef=1.0,
-                  epochs=1, **FAST)
-    plain = AlignTrainer(_model(), FailureReward(margins=True), AlignConfig(**common), scenes=train_scene_list)
-    paced = AlignTrainer(_model(), FailureReward(margins=True), AlignConfig(pace_tolerance=0.03, **common),
-                         scenes=train_scene_list)
-    assert paced.pace is not None
-    paced.pace.slow = 1.0
-    a, b = plain._rollout(0), paced._rollout(0)
-    assert b.passing is not None and b.passing.any() and (b.trace.agents & ~b.passing).any()
-    failing = (b.trace.agents & ~b.passing)[:, None, :].expand_as(b.advantages)
-    held = b.passing[:, None, :].expand_as(b.advantages)
-    assert torch.equal(b.advantages[failing], a.advantages[failing])  # where a sample fails, the reward decides
-    assert torch.all(a.advantages[held] == 0) and (b.advantages[held] != 0).any()
-    # the held agents' samples are ranked by speed: within each held agent, the fastest sample has the largest
-    futures = paced._sample(b.contexts, derived_generator(0, 0, "sample")).futures  # the rollout's own draw
-    scenario = paced.sample_scenarios(b.contexts, futures, b.trace.agents)
-    speeds = sample_speeds(scenario, paced.reward_steps).reshape(b.advantages.shape)
-    for i, j in b.passing.nonzero().tolist():
-        if speeds[i, :, j].std() > 1e-3:
-            assert int(b.advantages[i, :, j].argmax()) == int(speeds[i, :, j].argmax())
 
 
 def test_the_pace_drive_is_the_evaluations_speed_ratio_and_repeats_exactly(

@@ -17,10 +17,8 @@ and Mannor 2019):
    both stay 0 while the pace is inside the band.
 3. **Advantage.** Each sampled agent's samples are also ranked by their mean speed over the sampled future
    (normalized over the samples, as the reward's advantage is), and
-   ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. With the passing anchor only the agents it
-   holds (none of their samples fails, so their reward advantage is 0) get the speed term: where a sample
-   collides or leaves the road, the failure decides, as it does for a person; the pace is restored where nothing
-   fails.
+   ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
+   from the reward) get the speed term alone, so the pace is restored first where no sample fails.
 """
 
 from __future__ import annotations
@@ -134,10 +132,9 @@ class PaceConstraint:
 
     # ------------------------------------------------------------------ advantages
     def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor) -> torch.Tensor:
-        """``(A_reward + (slow - fast) * A_speed) / (1 + slow + fast)`` where ``mask`` (bool, broadcastable) is
-        set, ``advantages`` unchanged elsewhere; ``advantages`` and ``speeds`` have the same shape, samples along
-        ``dim``."""
+        """``(A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``: ``advantages`` and ``speeds`` have the same
+        shape, samples along ``dim``; ``mask`` (broadcastable) zeroes entries that get no advantage."""
         if self.slow == 0.0 and self.fast == 0.0:
             return advantages
-        mixed = (advantages + (self.slow - self.fast) * _normalized(speeds, dim)) / (1.0 + self.slow + self.fast)
-        return torch.where(mask, mixed, advantages)
+        speed_adv = _normalized(speeds, dim) * mask.to(speeds.dtype)
+        return (advantages + (self.slow - self.fast) * speed_adv) / (1.0 + self.slow + self.fast)

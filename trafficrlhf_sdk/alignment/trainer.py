@@ -229,15 +229,13 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
             if self.pace is not None:
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
-                held = sampled if passing is None else passing[:, None, :].expand_as(per_agent)
-                adv = self.pace.mix(adv, speeds, 1, held)
+                adv = self.pace.mix(adv, speeds, 1, sampled)
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
             if self.pace is not None:
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(b, -1, contexts.num_agents)
-                adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1,
-                                    torch.ones_like(adv, dtype=torch.bool))
+                adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1, torch.ones_like(adv))
         self.last_heldout = self._monitor_scores()
         return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
