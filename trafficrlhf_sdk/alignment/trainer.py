@@ -19,7 +19,9 @@ One epoch:
    ``imitation_coef * imitation_loss - alpha * surrogate (+ kl_coef * KL to the frozen starting model)``,
    gradient clipping, and the early stop once the approximate KL passes ``1.5 * target_kl``. With
    ``passing_anchor_coef > 0`` (agent credit), agents none of whose samples fails get advantage 0 and
-   ``passing_anchor_coef * KL`` to the starting model on their own samples instead.
+   ``passing_anchor_coef * KL`` to the starting model on their own samples instead. With ``pace_tolerance``, each
+   sample's speed also enters the advantages, weighted by a multiplier that tracks the pace of a held-out
+   closed-loop drive (:mod:`~trafficrlhf_sdk.alignment.pace`).
 
 ``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
 pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
