@@ -10,15 +10,16 @@ and Mannor 2019):
 1. **Measure.** Before each epoch's rollout the current policy drives fixed held-out scenes (the ``holdout_every``
    scenes the fine-tuner never trains on; its training scenes when none are held out) in closed loop for 10 s with
    a fixed seed, exactly as the evaluation does; ``pace_change`` is its ``speed_ratio`` over the starting weights'
-   on the same scenes and seed, minus 1. The pairing makes the comparison nearly noise-free. The same run's
-   failure rate is recorded as ``heldout_failure``: the fine-tuner's progress on scenes it never trained on.
+   on the same scenes and seed, minus 1. The pairing keeps the spread between scenes out of the comparison. The
+   same run's failure rate is recorded as ``heldout_failure``: the fine-tuner's progress on scenes it never trained
+   on.
 2. **Dual step.** Two multipliers, one per side of the band ``|pace_change| <= pace_tolerance``:
    ``slow <- max(0, slow + lr * (-pace_change - tol))`` and ``fast <- max(0, fast + lr * (pace_change - tol))``;
    both stay 0 while the pace is inside the band.
 3. **Advantage.** Each sampled agent's samples are also ranked by their mean speed over the sampled future
    (normalized over the samples, as the reward's advantage is), and
    ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
-   from the reward) get the speed term alone, so the pace is restored first where no sample fails.
+   from the reward) get the speed term alone; the others get both.
 """
 
 from __future__ import annotations

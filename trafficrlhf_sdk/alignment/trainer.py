@@ -160,11 +160,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
         self.monitor = HeldOutMonitor(monitor_reward, self.config.early_stopping_patience)
         self.monitor_contexts: ScenarioTensor | None = None
+        self.monitor_logged: ScenarioTensor | None = None
         self.held_out: list[ScenarioTensor] | None = None
         self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
             self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
             self.config.failure_scenes, self.guidance)
-        self.monitor_logged: ScenarioTensor | None = None
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
