@@ -532,6 +532,33 @@ def test_speed_metric_on_log_replay_and_a_slowed_copy(synthetic_rollout) -> None
     assert values["stopped_share"] == 0.5 and values["stopped_share_logged"] == 0.0
 
 
+def test_speed_metric_splits_turning_from_straight_agents(synthetic_rollout) -> None:  # type: ignore[no-untyped-def]
+    """An agent whose logged heading turns by more than TURN_RAD over the window counts as turning: slowing only it
+    moves ``speed_ratio_turning`` and leaves ``speed_ratio_straight`` at 1; with no turning agent the turning ratio
+    is NaN (no scene has one), and a turn of just under TURN_RAD is straight."""
+    from trafficrlhf_sdk.metrics.speed import TURN_RAD
+
+    values = SpeedMetric().compute(synthetic_rollout).values
+    assert math.isnan(values["speed_ratio_turning"]) and values["speed_ratio_straight"] == pytest.approx(1.0)
+    for turn, turning in ((TURN_RAD + 0.05, True), (TURN_RAD - 0.05, False), (-(TURN_RAD + 0.05), True)):
+        logged = synthetic_rollout.logged.states.clone()
+        first, last = synthetic_rollout.start_index + 1, synthetic_rollout.end_index  # the window's steps
+        logged[0, 1, first:last + 1, 3] = torch.linspace(0.0, turn, last + 1 - first)  # heading only
+        simulated = synthetic_rollout.simulated.states.clone()
+        simulated[0, 1, :, 2] *= 0.5
+        rollout = dataclasses.replace(synthetic_rollout,
+                                      logged=synthetic_rollout.logged.replace_unchecked(states=logged),
+                                      simulated=synthetic_rollout.simulated.replace_unchecked(states=simulated))
+        values = SpeedMetric().compute(rollout).values
+        assert values["speed_ratio"] == pytest.approx(0.75)
+        if turning:
+            assert values["speed_ratio_turning"] == pytest.approx(0.5)
+            assert values["speed_ratio_straight"] == pytest.approx(1.0)
+        else:
+            assert math.isnan(values["speed_ratio_turning"])
+            assert values["speed_ratio_straight"] == pytest.approx(0.75)
+
+
 def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore[no-untyped-def]
     """The first failing step per controlled agent, from the slow per-step references (shapely, pixel lookup)."""
     from trafficrlhf_sdk.evaluation.failures import first_failures

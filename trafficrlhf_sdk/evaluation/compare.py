@@ -16,6 +16,8 @@ SHARED_ROWS = (
     ("guidance_target_speed", "target-speed error (m/s)"),
     ("guidance_goal_waypoint", "goal distance (m)"),
     ("speed_ratio", "speed / logged speed"),
+    ("speed_ratio_turning", "  agents turning in the log"),
+    ("speed_ratio_straight", "  agents driving straight"),
     ("stopped_share", "stopped at the end (share)"),
     ("stopped_share_logged", "  stopped in the log"),
     ("reward_cost", "reward cost"),

@@ -11,39 +11,69 @@ import torch
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import nanmean, scene_mean
+from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
+from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["STOPPED_BELOW_MPS", "SpeedMetric"]
+__all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric"]
 
 STOPPED_BELOW_MPS = 0.5  # an agent slower than this at the last step counts as stopped
+TURN_RAD = 0.6  # an agent whose logged heading changes by more than this over the rollout turns (about 34 degrees)
 
 
 class SpeedMetric(Metric):
     """``speed_ratio``: per scene, the controlled agents' summed simulated speed over the summed logged speed at
     the steps the log has (1 = the log's pace, < 1 slower), averaged over scenes. ``stopped_share``: per scene,
     the share of controlled agents with a logged last step whose simulated speed there is below 0.5 m/s; and
-    ``stopped_share_logged``: the same agents' share in the log (the reference for ``stopped_share``)."""
+    ``stopped_share_logged``: the same agents' share in the log (the reference for ``stopped_share``).
+    ``speed_ratio_turning`` / ``speed_ratio_straight``: ``speed_ratio`` over only the agents whose logged heading
+    changes by more than / at most :data:`TURN_RAD` between their first and last logged step of the rollout (means
+    over the scenes that have such agents): where a model's pace changed, in turns or on the straight."""
 
     name = "speed"
     # neither direction is better: the closer speed_ratio is to 1 and stopped_share to stopped_share_logged, the
     # closer the pace is to the log's
 
     def compute(self, rollout: Rollout) -> MetricResult:
-        """speed_ratio (dimensionless), stopped_share and stopped_share_logged (fractions of agents); means
-        over scenes with at least one controlled agent (with logged speed, for the ratio)."""
+        """speed_ratio, speed_ratio_turning and speed_ratio_straight (dimensionless), stopped_share and
+        stopped_share_logged (fractions of agents); means over scenes with at least one such controlled agent (with
+        logged speed, for the ratios)."""
         first, last = rollout.start_index + 1, rollout.end_index + 1
         simulated = rollout.simulated.time_slice(first, last)
         logged = rollout.logged.time_slice(first, last)
         steps = logged.valid & simulated.valid & rollout.controlled[..., None]  # (B, A, T)
         sim_speed = simulated.states[..., 2].double().abs() * steps
         log_speed = logged.states[..., 2].double().abs() * steps
-        log_total = log_speed.sum((1, 2))
-        ratio = torch.where(log_total > 0, sim_speed.sum((1, 2)) / log_total.clamp_min(1e-9),
-                            torch.full_like(log_total, float("nan")))
+        turning = _turning(logged, steps)
+        ratio, ratio_turning, ratio_straight = (_ratio(sim_speed, log_speed, agents)
+                                                for agents in (None, turning, ~turning))
         at_end = rollout.controlled & logged.valid[..., -1] & simulated.valid[..., -1]
         per_scene = {
             "speed_ratio": ratio,
+            "speed_ratio_turning": ratio_turning,
+            "speed_ratio_straight": ratio_straight,
             "stopped_share": scene_mean(simulated.states[..., -1, 2].abs() < STOPPED_BELOW_MPS, at_end),
             "stopped_share_logged": scene_mean(logged.states[..., -1, 2].abs() < STOPPED_BELOW_MPS, at_end),
         }
         return MetricResult(values={k: nanmean(v) for k, v in per_scene.items()}, per_scene=per_scene)
+
+
+def _ratio(sim_speed: torch.Tensor, log_speed: torch.Tensor, agents: torch.Tensor | None) -> torch.Tensor:
+    """``(B,)``: summed simulated over summed logged speed ``(B, A, T)`` of ``agents (B, A)`` (all: None); NaN where
+    they have no logged speed."""
+    if agents is not None:
+        sim_speed, log_speed = sim_speed * agents[..., None], log_speed * agents[..., None]
+    log_total = log_speed.sum((1, 2))
+    return torch.where(log_total > 0, sim_speed.sum((1, 2)) / log_total.clamp_min(1e-9),
+                       torch.full_like(log_total, float("nan")))
+
+
+def _turning(logged: ScenarioTensor, steps: torch.Tensor) -> torch.Tensor:
+    """``(B, A)``: agents whose logged heading at their last step of ``steps (B, A, T)`` differs from that at their
+    first by more than :data:`TURN_RAD`."""
+    t = torch.arange(steps.shape[-1], device=steps.device)
+    first = torch.where(steps, t, steps.shape[-1]).amin(-1).clamp_max(steps.shape[-1] - 1)
+    last = torch.where(steps, t, -1).amax(-1).clamp_min(0)
+    yaw = logged.states[..., 3].double()
+    turn = wrap_angle(yaw.gather(-1, last[..., None]) - yaw.gather(-1, first[..., None]))[..., 0]
+    return steps.any(-1) & (turn.abs() > TURN_RAD)
