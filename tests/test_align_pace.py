@@ -59,6 +59,42 @@ def test_the_multipliers_move_only_outside_the_band_and_each_on_its_own_side() -
     assert (pace.slow, pace.fast) == (0.5, 0.0)
 
 
+def test_the_proportional_term_adds_the_current_violation_to_the_accumulated_multiplier() -> None:
+    pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None, kp=20.0)
+    pace.base_ratio = 1.0
+    stats = pace.step(None, {"speed_ratio": 0.95, "failure_rate": 0.1})  # e_slow = 0.02, e_fast = -0.08
+    assert stats["pace_integral_slow"] == pytest.approx(0.2) and stats["pace_integral_fast"] == 0.0
+    assert stats["pace_multiplier_slow"] == pytest.approx(0.2 + 20 * 0.02) and stats["pace_multiplier_fast"] == 0.0
+    pace.step(None, {"speed_ratio": 1.0, "failure_rate": 0.1})  # inside: e_slow = -0.03
+    assert pace.slow_sum == 0.0 and pace.slow == 0.0  # 0.2 - 10 x 0.03 and 0.2 - 20 x 0.03: never below 0
+    pace.restore([{"pace_multiplier_slow": 0.9, "pace_multiplier_fast": 0.0, "pace_integral_slow": 0.4,
+                   "pace_integral_fast": 0.0}])
+    assert (pace.slow, pace.slow_sum) == (0.9, 0.4)
+
+
+def _plant_swings(kp: float, epochs: int = 70) -> list[float]:
+    """A toy policy whose pace, pulled 1 % slower per epoch by its reward, moves by 0.0165 x the net multiplier
+    (slow - fast) of two epochs before (the response measured on a model that answers within a few epochs);
+    returns the pace change per epoch."""
+    pace = PaceConstraint(0.03, 5.0, lambda: [], 4, None, kp=kp)
+    pace.base_ratio = 1.0
+    change, changes, pushes = 0.0, [], [0.0, 0.0]
+    for _ in range(epochs):
+        pace.step(None, {"speed_ratio": 1.0 + change, "failure_rate": 0.0})
+        changes.append(change)
+        pushes.append(pace.slow - pace.fast)
+        change += -0.01 + 0.0165 * pushes[-3]
+    return changes
+
+
+def test_the_proportional_term_damps_the_swings_of_a_fast_answering_pace() -> None:
+    """With the plain Lagrangian (an integral controller) the delayed toy pace swings ever wider around the band;
+    with a proportional gain it stays near it."""
+    plain, damped = _plant_swings(0.0), _plant_swings(20.0)
+    assert max(abs(c) for c in plain[-20:]) > 0.2
+    assert max(abs(c) for c in damped[-20:]) < 0.06
+
+
 def test_the_speed_term_ranks_samples_by_speed_and_leaves_advantages_alone_at_zero_multipliers() -> None:
     pace = PaceConstraint(0.03, 1.0, lambda: [], 4, None)
     adv = torch.tensor([[[0.0, 1.0]], [[0.0, -1.0]], [[0.0, 0.0]]]).transpose(0, 1)  # (B=1, S=3, A=2)

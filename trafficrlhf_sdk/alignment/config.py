@@ -58,6 +58,11 @@ class AlignConfig(BaseModel):
                                          "that grows while the pace is outside the band. None: no constraint.")
     pace_multiplier_lr: float = Field(5.0, gt=0, description="Step of the pace multipliers per unit of relative "
                                       "pace outside the band, per epoch (with pace_tolerance).")
+    pace_multiplier_kp: float = Field(0.0, ge=0, description="Proportional gain of the pace multipliers (a PI "
+                                      "Lagrangian): each epoch uses its accumulated multiplier plus this times the "
+                                      "pace's current distance outside the band (negative inside it), at least 0. "
+                                      "It damps the swings of a model whose pace answers the multiplier within a "
+                                      "few epochs. 0: the plain Lagrangian.")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this.")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "

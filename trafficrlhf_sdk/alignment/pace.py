@@ -13,9 +13,13 @@ and Mannor 2019):
    on the same scenes and seed, minus 1. The pairing keeps the spread between scenes out of the comparison. The
    same run's failure rate is recorded as ``heldout_failure``: the fine-tuner's progress on scenes it never trained
    on.
-2. **Dual step.** Two multipliers, one per side of the band ``|pace_change| <= pace_tolerance``:
-   ``slow <- max(0, slow + lr * (-pace_change - tol))`` and ``fast <- max(0, fast + lr * (pace_change - tol))``;
-   both stay 0 while the pace is inside the band.
+2. **Dual step.** Two multipliers, one per side of the band ``|pace_change| <= pace_tolerance``, each with its
+   signed violation ``e_slow = -pace_change - tol`` and ``e_fast = pace_change - tol``: the accumulated
+   ``I <- max(0, I + lr * e)``, and the epoch uses ``max(0, I + kp * e)`` (``pace_multiplier_kp``; 0: the plain
+   Lagrangian, ``I`` itself). The plain Lagrangian is an integral controller, and the policy's pace integrates the
+   push it gets, so a model that answers within a few epochs swings ever wider around the band; the proportional
+   term damps that (the PID Lagrangian of Stooke, Achiam and Abbeel 2020, "Responsive Safety in Reinforcement
+   Learning by PID Lagrangian Methods"). Both stay 0 while the pace is inside the band.
 3. **Advantage.** Each sampled agent's samples are also ranked by their mean speed over the sampled future
    (normalized over the samples, as the reward's advantage is), and
    ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
@@ -64,17 +68,21 @@ class PaceConstraint:
         scenes: a callable returning the scenes to drive (single-scene tensors).
         count: how many of them (those long enough for 3 s of history and a 10 s drive).
         guidance: the guidance the model drives with (None: its own).
+        kp: the proportional gain (0: the plain Lagrangian).
     """
 
     def __init__(self, tolerance: float, lr: float, scenes: Callable[[], Sequence[ScenarioTensor]], count: int,
-                 guidance: GuidanceSet | None) -> None:
+                 guidance: GuidanceSet | None, kp: float = 0.0) -> None:
         self.tolerance = tolerance
         self.lr = lr
+        self.kp = kp
         self.scenes = scenes
         self.count = count
         self.guidance = guidance
-        self.slow = 0.0
+        self.slow = 0.0  # the multipliers the epoch uses
         self.fast = 0.0
+        self.slow_sum = 0.0  # their accumulated (integral) parts
+        self.fast_sum = 0.0
         self.base_ratio: float | None = None
         self._batch: ScenarioTensor | None = None
 
@@ -120,16 +128,25 @@ class PaceConstraint:
         if self.base_ratio is None:
             self.base_ratio = measured["speed_ratio"]
         change = measured["speed_ratio"] / self.base_ratio - 1.0
-        self.slow = max(0.0, self.slow + self.lr * (-change - self.tolerance))
-        self.fast = max(0.0, self.fast + self.lr * (change - self.tolerance))
-        return {"pace_change": change, "heldout_failure": measured["failure_rate"],
-                "pace_multiplier_slow": self.slow, "pace_multiplier_fast": self.fast}
+        e_slow, e_fast = -change - self.tolerance, change - self.tolerance
+        self.slow_sum = max(0.0, self.slow_sum + self.lr * e_slow)
+        self.fast_sum = max(0.0, self.fast_sum + self.lr * e_fast)
+        self.slow = max(0.0, self.slow_sum + self.kp * e_slow)
+        self.fast = max(0.0, self.fast_sum + self.kp * e_fast)
+        stats = {"pace_change": change, "heldout_failure": measured["failure_rate"],
+                 "pace_multiplier_slow": self.slow, "pace_multiplier_fast": self.fast}
+        if self.kp > 0:
+            stats.update(pace_integral_slow=self.slow_sum, pace_integral_fast=self.fast_sum)
+        return stats
 
     def restore(self, history: Sequence[dict[str, float]]) -> None:
         """Take the multipliers back from a resumed run's history (the starting pace is measured again)."""
         if history:
-            self.slow = float(history[-1].get("pace_multiplier_slow", 0.0))
-            self.fast = float(history[-1].get("pace_multiplier_fast", 0.0))
+            last = history[-1]
+            self.slow = float(last.get("pace_multiplier_slow", 0.0))
+            self.fast = float(last.get("pace_multiplier_fast", 0.0))
+            self.slow_sum = float(last.get("pace_integral_slow", self.slow))
+            self.fast_sum = float(last.get("pace_integral_fast", self.fast))
 
     # ------------------------------------------------------------------ advantages
     def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor) -> torch.Tensor:

@@ -164,7 +164,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.held_out: list[ScenarioTensor] | None = None
         self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
             self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
-            self.config.failure_scenes, self.guidance)
+            self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
