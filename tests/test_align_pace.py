@@ -172,6 +172,23 @@ def test_per_agent_deviations_count_each_agents_slowdown_and_speedup_apart() -> 
     assert stats["pace_multiplier_fast"] == pytest.approx(10 * (math.log(1.2) / 3 - 0.03))
 
 
+def test_the_per_agent_band_is_counted_above_the_starting_models_own_seed_to_seed_floor() -> None:
+    """A drive that differs from the start only as much as the starting model's drive with another seed does
+    moves no multiplier; the same deviations without that floor do."""
+    nan = float("nan")
+    start = {"speed_ratio": 1.0, "agent_speeds": torch.tensor([[10.0, 10.0, 8.0, nan]])}
+    again = {"speed_ratio": 1.0, "agent_speeds": torch.tensor([[9.0, 11.0, 8.0, nan]])}
+    with_floor = PaceConstraint(0.01, 10.0, lambda: [], 4, None, per_agent=True)
+    with_floor.start(start, again)
+    assert with_floor.floor == pytest.approx((-math.log(0.9) / 3, math.log(1.1) / 3))
+    stats = with_floor.step(None, {**again, "failure_rate": 0.0})
+    assert stats["pace_multiplier_slow"] == stats["pace_multiplier_fast"] == 0.0
+    without = PaceConstraint(0.01, 10.0, lambda: [], 4, None, per_agent=True)
+    without.start(start)
+    stats = without.step(None, {**again, "failure_rate": 0.0})
+    assert stats["pace_multiplier_slow"] > 0 and stats["pace_multiplier_fast"] > 0
+
+
 def test_the_per_agent_speed_terms_rank_samples_against_the_starting_models_speed_for_that_agent() -> None:
     pace = PaceConstraint(0.03, 1.0, lambda: [], 4, None, per_agent=True)
     adv = torch.zeros(1, 4, 2)

@@ -29,7 +29,9 @@ and Mannor 2019):
 straights, netting out differently on every mix of scenes. With ``per_agent`` the drive compares each controlled
 agent's mean speed with its own in the starting model's drive, ``d = log(speed / starting speed)``, and the two
 sides of the band are the mean slowdown ``mean(max(0, -d))`` and the mean speed-up ``mean(max(0, d))`` over the
-agents; each sample is ranked against the starting model's samples of the same agent in the same context
+agents, each counted above its floor: what the starting model itself gives when it drives the same scenes with
+another seed (closed loop alone moves each agent by several per cent); each sample is ranked against the starting
+model's samples of the same agent in the same context
 (:meth:`PaceConstraint.mix_per_agent`), so only samples that fall below (or exceed) that agent's own starting
 pace lose advantage.
 """
@@ -46,7 +48,7 @@ from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
 
-__all__ = ["PaceConstraint", "sample_speeds"]
+__all__ = ["PACE_SEED", "SPEED_FLOOR", "PaceConstraint", "sample_speeds"]
 
 PACE_SEED = 0
 """Seed of every pace drive (the same random numbers each epoch, so that the pace moves with the weights only)."""
@@ -97,6 +99,7 @@ class PaceConstraint:
         self.fast_sum = 0.0
         self.base_ratio: float | None = None
         self.base_agent_speeds: torch.Tensor | None = None  # (B, A) the starting drive's, with per_agent
+        self.floor = (0.0, 0.0)  # per-agent slowdown and speed-up of the starting model against itself
         self._batch: ScenarioTensor | None = None
 
     # ------------------------------------------------------------------ measurement
@@ -114,10 +117,10 @@ class PaceConstraint:
             self._batch = batch.replace_unchecked(current_index=HISTORY_STEPS)
         return self._batch
 
-    def drive(self, model: Any) -> dict[str, Any]:
-        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed (the
-        global generator is left as it was), and ``agent_speeds``: each controlled agent's mean speed over the drive
-        ``(B, A)`` (NaN where it has no step)."""
+    def drive(self, model: Any, seed: int = PACE_SEED) -> dict[str, Any]:
+        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, a fixed ``seed``
+        (the global generator is left as it was), and ``agent_speeds``: each controlled agent's mean speed over
+        the drive ``(B, A)`` (NaN where it has no step)."""
         from trafficrlhf_sdk.metrics.failure import FailureMetric
         from trafficrlhf_sdk.metrics.speed import SpeedMetric
         from trafficrlhf_sdk.simulation.policies import policy_seed, seed_policy
@@ -125,8 +128,8 @@ class PaceConstraint:
 
         own_seed = policy_seed(model, PACE_SEED)
         with torch.random.fork_rng(devices=[]), guidance_swapped(model, self.guidance), torch.no_grad():
-            torch.manual_seed(PACE_SEED)
-            seed_policy(model, PACE_SEED)
+            torch.manual_seed(seed)
+            seed_policy(model, seed)
             try:
                 rollout = simulate(model, self.batch(), SimulationConfig(duration_s=FAILURE_DRIVE_S))
             finally:
@@ -140,11 +143,15 @@ class PaceConstraint:
                 "failure_rate": FailureMetric().compute(rollout).values["failure_rate"],
                 "agent_speeds": agent_speeds}
 
-    def start(self, measured: dict[str, Any]) -> None:
-        """Take the starting model's :meth:`drive` as the reference of every later one."""
+    def start(self, measured: dict[str, Any], again: dict[str, Any] | None = None) -> None:
+        """Take the starting model's :meth:`drive` as the reference of every later one; ``again``, the same model's
+        drive with another seed, sets the per-agent floor: the slowdown and speed-up that closed-loop chance alone
+        gives each agent, which the band is counted above."""
         self.base_ratio = float(measured["speed_ratio"])
         if "agent_speeds" in measured:
             self.base_agent_speeds = measured["agent_speeds"]
+        if again is not None:
+            self.floor = self.agent_deviations(again["agent_speeds"])
 
     def step(self, model: Any, measured: dict[str, float] | None = None) -> dict[str, float]:
         """Drive the current ``model`` (or take its ``measured`` :meth:`drive`), update the multipliers; the first
@@ -159,7 +166,8 @@ class PaceConstraint:
         if self.per_agent:
             slowdown, speedup = self.agent_deviations(measured["agent_speeds"])
             extra = {"pace_agent_slowdown": slowdown, "pace_agent_speedup": speedup}
-            e_slow, e_fast = slowdown - self.tolerance, speedup - self.tolerance
+            e_slow = slowdown - self.floor[0] - self.tolerance
+            e_fast = speedup - self.floor[1] - self.tolerance
         else:
             e_slow, e_fast = -change - self.tolerance, change - self.tolerance
         self.slow_sum = max(0.0, self.slow_sum + self.lr * e_slow)

@@ -47,7 +47,7 @@ from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
-from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
+from trafficrlhf_sdk.alignment.pace import PACE_SEED, PaceConstraint, sample_speeds
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
@@ -341,7 +341,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         starting_pace = None
         if self.pace is not None and self.pace.base_ratio is None:  # the starting weights' pace, also when resuming
             starting_pace = self.pace.drive(self.model)
-            self.pace.start(starting_pace)
+            again = self.pace.drive(self.model, PACE_SEED + 1) if self.pace.per_agent else None
+            self.pace.start(starting_pace, again)
         if cfg.resume:
             self.resume_newest()
             if self.pace is not None:
