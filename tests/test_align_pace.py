@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -121,11 +119,7 @@ def test_the_pace_drive_is_the_evaluations_speed_ratio_and_repeats_exactly(
     state = torch.get_rng_state()
     first = pace.drive(model)
     assert torch.equal(torch.get_rng_state(), state)  # the training's random numbers are not consumed
-    again = pace.drive(model)  # same weights, same scenes, same seed: the same figures
-    assert {k: again[k] for k in ("speed_ratio", "failure_rate")} == {k: first[k] for k in ("speed_ratio",
-                                                                                           "failure_rate")}
-    assert torch.equal(again["agent_speeds"].isnan(), first["agent_speeds"].isnan())
-    assert torch.equal(again["agent_speeds"].nan_to_num(), first["agent_speeds"].nan_to_num())
+    assert pace.drive(model) == first  # same weights, same scenes, same seed: the same figures
     torch.manual_seed(0)
     model.options = model.options.model_copy(update={"seed": 0})
     rollout = simulate(model, pace.batch(), SimulationConfig(duration_s=10.0))
@@ -151,62 +145,3 @@ def test_the_constraint_holds_the_pace_against_a_reward_that_pays_for_braking(
     assert max(row["pace_multiplier_slow"] for row in held) > 0
     assert held[-1]["pace_change"] > free[-1]["pace_change"] + 0.02
     assert all("heldout_failure" in row for row in held)
-    each = run(pace_tolerance=0.02, pace_multiplier_lr=20.0, pace_per_agent=True)
-    assert each[0]["pace_agent_slowdown"] == each[0]["pace_agent_speedup"] == 0.0
-    assert max(row["pace_multiplier_slow"] for row in each) > 0
-    assert each[-1]["pace_change"] > free[-1]["pace_change"] + 0.02
-
-
-def test_per_agent_deviations_count_each_agents_slowdown_and_speedup_apart() -> None:
-    """One agent 20 % slower and one 20 % faster leave the mean pace where it was but show on both sides; agents
-    missing from either drive are left out, and speeds below the floor count as the floor."""
-    pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None, per_agent=True)
-    nan = float("nan")
-    pace.start({"speed_ratio": 1.0, "agent_speeds": torch.tensor([[10.0, 10.0, nan, 0.2]])})
-    slowdown, speedup = pace.agent_deviations(torch.tensor([[8.0, 12.0, 5.0, 0.5]]))
-    assert slowdown == pytest.approx(-math.log(0.8) / 3) and speedup == pytest.approx(math.log(1.2) / 3)
-    stats = pace.step(None, {"speed_ratio": 1.0, "failure_rate": 0.0,
-                             "agent_speeds": torch.tensor([[8.0, 12.0, 5.0, 0.5]])})
-    assert stats["pace_change"] == 0.0  # the mean pace did not move ...
-    assert stats["pace_multiplier_slow"] == pytest.approx(10 * (-math.log(0.8) / 3 - 0.03))  # ... each agent did
-    assert stats["pace_multiplier_fast"] == pytest.approx(10 * (math.log(1.2) / 3 - 0.03))
-
-
-def test_the_per_agent_band_is_counted_above_the_starting_models_own_seed_to_seed_floor() -> None:
-    """A drive that differs from the start only as much as the starting model's drive with another seed does
-    moves no multiplier; the same deviations without that floor do."""
-    nan = float("nan")
-    start = {"speed_ratio": 1.0, "agent_speeds": torch.tensor([[10.0, 10.0, 8.0, nan]])}
-    again = {"speed_ratio": 1.0, "agent_speeds": torch.tensor([[9.0, 11.0, 8.0, nan]])}
-    with_floor = PaceConstraint(0.01, 10.0, lambda: [], 4, None, per_agent=True)
-    with_floor.start(start, again)
-    assert with_floor.floor == pytest.approx((-math.log(0.9) / 3, math.log(1.1) / 3))
-    stats = with_floor.step(None, {**again, "failure_rate": 0.0})
-    assert stats["pace_multiplier_slow"] == stats["pace_multiplier_fast"] == 0.0
-    without = PaceConstraint(0.01, 10.0, lambda: [], 4, None, per_agent=True)
-    without.start(start)
-    stats = without.step(None, {**again, "failure_rate": 0.0})
-    assert stats["pace_multiplier_slow"] > 0 and stats["pace_multiplier_fast"] > 0
-
-
-def test_the_per_agent_speed_terms_rank_samples_against_the_starting_models_speed_for_that_agent() -> None:
-    pace = PaceConstraint(0.03, 1.0, lambda: [], 4, None, per_agent=True)
-    adv = torch.zeros(1, 4, 2)
-    speeds = torch.tensor([[4.0, 6.0], [5.0, 6.0], [6.0, 6.0], [7.0, 6.0]])[None]  # (B=1, S=4, A=2)
-    reference = torch.tensor([[[6.0, 6.0]]])
-    mask = torch.ones_like(adv, dtype=torch.bool)
-    assert torch.equal(pace.mix_per_agent(adv, speeds, reference, 1, mask), adv)
-    pace.slow = 1.0  # too slow: samples below the reference lose, the more the further below; above it is no gain
-    mixed = pace.mix_per_agent(adv, speeds, reference, 1, mask)
-    assert mixed[0, 0, 0] < mixed[0, 1, 0] < mixed[0, 2, 0] == mixed[0, 3, 0]
-    assert torch.all(mixed[0, :, 1] == 0)  # every sample at the reference: nothing to rank
-    pace.slow, pace.fast = 0.0, 1.0  # too fast: samples above the reference lose
-    mixed = pace.mix_per_agent(adv, speeds, reference, 1, mask)
-    assert mixed[0, 3, 0] < mixed[0, 2, 0] == mixed[0, 1, 0] == mixed[0, 0, 0]
-
-
-def test_per_agent_pace_needs_the_pace_band_and_per_agent_credit() -> None:
-    with pytest.raises(ValueError, match="pace_per_agent"):
-        AlignConfig(pace_per_agent=True)
-    with pytest.raises(ValueError, match="pace_per_agent"):
-        AlignConfig(pace_per_agent=True, pace_tolerance=0.03, credit="scene")

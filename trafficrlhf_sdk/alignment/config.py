@@ -58,12 +58,6 @@ class AlignConfig(BaseModel):
                                          "that grows while the pace is outside the band. None: no constraint.")
     pace_multiplier_lr: float = Field(5.0, gt=0, description="Step of the pace multipliers per unit of relative "
                                       "pace outside the band, per epoch (with pace_tolerance).")
-    pace_per_agent: bool = Field(False, description="With pace_tolerance: hold each agent to its own starting "
-                                 "pace instead of the mean pace. The drive measures, over its agents, the mean "
-                                 "slowdown and the mean speed-up of each agent against the starting model's drive "
-                                 "(two sides of the band), and each sample's speed is ranked against the starting "
-                                 "model's samples of the same agent, so slower turns cannot be paid for with faster "
-                                 "straights. Keeps a frozen copy of the starting model.")
     pace_multiplier_kp: float = Field(0.0, ge=0, description="Proportional gain of the pace multipliers (a PI "
                                       "Lagrangian): each epoch uses its accumulated multiplier plus this times the "
                                       "pace's current distance outside the band (negative inside it), at least 0. "
@@ -138,10 +132,6 @@ class AlignConfig(BaseModel):
         if self.passing_anchor_coef > 0 and self.credit != "agent":
             raise ValueError(f"`passing_anchor_coef` is {self.passing_anchor_coef} but `credit` is 'scene': a "
                              "passing agent is told apart from a failing one only with credit='agent'.")
-        if self.pace_per_agent and (self.pace_tolerance is None or self.credit != "agent"):
-            raise ValueError(f"`pace_per_agent` holds each agent's pace inside `pace_tolerance` "
-                             f"({self.pace_tolerance}) with per-agent credit (`credit` is {self.credit!r}); set "
-                             "pace_tolerance and credit='agent', or drop pace_per_agent.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
         return self

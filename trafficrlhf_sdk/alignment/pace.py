@@ -24,16 +24,6 @@ and Mannor 2019):
    (normalized over the samples, as the reward's advantage is), and
    ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
    from the reward) get the speed term alone; the others get both.
-
-**Per agent** (``pace_per_agent``). The mean pace can be held while agents trade: slower in turns, faster on the
-straights, netting out differently on every mix of scenes. With ``per_agent`` the drive compares each controlled
-agent's mean speed with its own in the starting model's drive, ``d = log(speed / starting speed)``, and the two
-sides of the band are the mean slowdown ``mean(max(0, -d))`` and the mean speed-up ``mean(max(0, d))`` over the
-agents, each counted above its floor: what the starting model itself gives when it drives the same scenes with
-another seed (closed loop alone moves each agent by several per cent); each sample is ranked against the starting
-model's samples of the same agent in the same context
-(:meth:`PaceConstraint.mix_per_agent`), so only samples that fall below (or exceed) that agent's own starting
-pace lose advantage.
 """
 
 from __future__ import annotations
@@ -48,12 +38,10 @@ from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
 
-__all__ = ["PACE_SEED", "SPEED_FLOOR", "PaceConstraint", "sample_speeds"]
+__all__ = ["PaceConstraint", "sample_speeds"]
 
 PACE_SEED = 0
 """Seed of every pace drive (the same random numbers each epoch, so that the pace moves with the weights only)."""
-SPEED_FLOOR = 1.0
-"""m/s: slower speeds count as this in the per-agent ratios (a stopped agent's ratio would be unbounded)."""
 
 
 def sample_speeds(scenario: ScenarioTensor, steps: int) -> torch.Tensor:
@@ -81,15 +69,13 @@ class PaceConstraint:
         count: how many of them (those long enough for 3 s of history and a 10 s drive).
         guidance: the guidance the model drives with (None: its own).
         kp: the proportional gain (0: the plain Lagrangian).
-        per_agent: hold each agent's own pace (module docstring, "Per agent") instead of the mean pace.
     """
 
     def __init__(self, tolerance: float, lr: float, scenes: Callable[[], Sequence[ScenarioTensor]], count: int,
-                 guidance: GuidanceSet | None, kp: float = 0.0, per_agent: bool = False) -> None:
+                 guidance: GuidanceSet | None, kp: float = 0.0) -> None:
         self.tolerance = tolerance
         self.lr = lr
         self.kp = kp
-        self.per_agent = per_agent
         self.scenes = scenes
         self.count = count
         self.guidance = guidance
@@ -98,8 +84,6 @@ class PaceConstraint:
         self.slow_sum = 0.0  # their accumulated (integral) parts
         self.fast_sum = 0.0
         self.base_ratio: float | None = None
-        self.base_agent_speeds: torch.Tensor | None = None  # (B, A) the starting drive's, with per_agent
-        self.floor = (0.0, 0.0)  # per-agent slowdown and speed-up of the starting model against itself
         self._batch: ScenarioTensor | None = None
 
     # ------------------------------------------------------------------ measurement
@@ -117,10 +101,9 @@ class PaceConstraint:
             self._batch = batch.replace_unchecked(current_index=HISTORY_STEPS)
         return self._batch
 
-    def drive(self, model: Any, seed: int = PACE_SEED) -> dict[str, Any]:
-        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, a fixed ``seed``
-        (the global generator is left as it was), and ``agent_speeds``: each controlled agent's mean speed over
-        the drive ``(B, A)`` (NaN where it has no step)."""
+    def drive(self, model: Any) -> dict[str, float]:
+        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed (the
+        global generator is left as it was)."""
         from trafficrlhf_sdk.metrics.failure import FailureMetric
         from trafficrlhf_sdk.metrics.speed import SpeedMetric
         from trafficrlhf_sdk.simulation.policies import policy_seed, seed_policy
@@ -128,30 +111,14 @@ class PaceConstraint:
 
         own_seed = policy_seed(model, PACE_SEED)
         with torch.random.fork_rng(devices=[]), guidance_swapped(model, self.guidance), torch.no_grad():
-            torch.manual_seed(seed)
-            seed_policy(model, seed)
+            torch.manual_seed(PACE_SEED)
+            seed_policy(model, PACE_SEED)
             try:
                 rollout = simulate(model, self.batch(), SimulationConfig(duration_s=FAILURE_DRIVE_S))
             finally:
                 seed_policy(model, own_seed)
-        window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
-        steps = window.valid & rollout.controlled[..., None]
-        total = (window.states[..., 2].double().abs() * steps).sum(-1)
-        count = steps.sum(-1)
-        agent_speeds = torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, float("nan")))
         return {"speed_ratio": SpeedMetric().compute(rollout).values["speed_ratio"],
-                "failure_rate": FailureMetric().compute(rollout).values["failure_rate"],
-                "agent_speeds": agent_speeds}
-
-    def start(self, measured: dict[str, Any], again: dict[str, Any] | None = None) -> None:
-        """Take the starting model's :meth:`drive` as the reference of every later one; ``again``, the same model's
-        drive with another seed, sets the per-agent floor: the slowdown and speed-up that closed-loop chance alone
-        gives each agent, which the band is counted above."""
-        self.base_ratio = float(measured["speed_ratio"])
-        if "agent_speeds" in measured:
-            self.base_agent_speeds = measured["agent_speeds"]
-        if again is not None:
-            self.floor = self.agent_deviations(again["agent_speeds"])
+                "failure_rate": FailureMetric().compute(rollout).values["failure_rate"]}
 
     def step(self, model: Any, measured: dict[str, float] | None = None) -> dict[str, float]:
         """Drive the current ``model`` (or take its ``measured`` :meth:`drive`), update the multipliers; the first
@@ -159,37 +126,18 @@ class PaceConstraint:
         ``heldout_failure``, the multipliers)."""
         measured = measured or self.drive(model)
         if self.base_ratio is None:
-            self.start(measured)
-        assert self.base_ratio is not None
+            self.base_ratio = measured["speed_ratio"]
         change = measured["speed_ratio"] / self.base_ratio - 1.0
-        extra: dict[str, float] = {}
-        if self.per_agent:
-            slowdown, speedup = self.agent_deviations(measured["agent_speeds"])
-            extra = {"pace_agent_slowdown": slowdown, "pace_agent_speedup": speedup}
-            e_slow = slowdown - self.floor[0] - self.tolerance
-            e_fast = speedup - self.floor[1] - self.tolerance
-        else:
-            e_slow, e_fast = -change - self.tolerance, change - self.tolerance
+        e_slow, e_fast = -change - self.tolerance, change - self.tolerance
         self.slow_sum = max(0.0, self.slow_sum + self.lr * e_slow)
         self.fast_sum = max(0.0, self.fast_sum + self.lr * e_fast)
         self.slow = max(0.0, self.slow_sum + self.kp * e_slow)
         self.fast = max(0.0, self.fast_sum + self.kp * e_fast)
-        stats = {"pace_change": change, "heldout_failure": measured["failure_rate"], **extra,
+        stats = {"pace_change": change, "heldout_failure": measured["failure_rate"],
                  "pace_multiplier_slow": self.slow, "pace_multiplier_fast": self.fast}
         if self.kp > 0:
             stats.update(pace_integral_slow=self.slow_sum, pace_integral_fast=self.fast_sum)
         return stats
-
-    def agent_deviations(self, agent_speeds: torch.Tensor) -> tuple[float, float]:
-        """``(slowdown, speedup)``: over the agents both drives have, the means of ``max(0, -d)`` and
-        ``max(0, d)`` with ``d = log(speed / starting speed)``, speeds floored at ``SPEED_FLOOR`` m/s."""
-        if self.base_agent_speeds is None:
-            raise RuntimeError("per-agent pace needs the starting drive: call start() first.")
-        both = torch.isfinite(agent_speeds) & torch.isfinite(self.base_agent_speeds)
-        if not bool(both.any()):
-            return 0.0, 0.0
-        d = torch.log(agent_speeds[both].clamp_min(SPEED_FLOOR) / self.base_agent_speeds[both].clamp_min(SPEED_FLOOR))
-        return float((-d).clamp_min(0).mean()), float(d.clamp_min(0).mean())
 
     def restore(self, history: Sequence[dict[str, float]]) -> None:
         """Take the multipliers back from a resumed run's history (the starting pace is measured again)."""
@@ -201,21 +149,6 @@ class PaceConstraint:
             self.fast_sum = float(last.get("pace_integral_fast", self.fast))
 
     # ------------------------------------------------------------------ advantages
-    def mix_per_agent(self, advantages: torch.Tensor, speeds: torch.Tensor, reference: torch.Tensor, dim: int,
-                      mask: torch.Tensor) -> torch.Tensor:
-        """``(A_reward + slow * A_up + fast * A_down) / (1 + slow + fast)``: ``speeds`` the samples' mean speeds,
-        ``reference`` (broadcastable) the starting model's mean over its samples of the same agent; ``A_up`` ranks
-        samples by how little they fall below the reference, ``A_down`` by how little they exceed it (each relative
-        to the reference, normalized over the samples along ``dim``); ``mask`` zeroes entries with no advantage."""
-        if self.slow == 0.0 and self.fast == 0.0:
-            return advantages
-        ref = reference.clamp_min(SPEED_FLOOR)
-        below = -((ref - speeds).clamp_min(0) / ref)
-        above = -((speeds - ref).clamp_min(0) / ref)
-        m = mask.to(speeds.dtype)
-        up, down = _normalized(below, dim) * m, _normalized(above, dim) * m
-        return (advantages + self.slow * up + self.fast * down) / (1.0 + self.slow + self.fast)
-
     def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor) -> torch.Tensor:
         """``(A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``: ``advantages`` and ``speeds`` have the same
         shape, samples along ``dim``; ``mask`` (broadcastable) zeroes entries that get no advantage."""

@@ -47,7 +47,7 @@ from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
-from trafficrlhf_sdk.alignment.pace import PACE_SEED, PaceConstraint, sample_speeds
+from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
@@ -136,12 +136,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             raise TrafficRLHFError(f"parameter groups {list(names)} hold no parameters; nothing to train.")
         self.optimizer = torch.optim.AdamW(self.trainable, lr=self.config.learning_rate, weight_decay=0.0)
         self.guidance = GuidanceSet.parse(self.config.guidance)
-        keeps_reference = max(self.config.kl_coef, self.config.passing_anchor_coef) > 0 or self.config.pace_per_agent
+        keeps_reference = max(self.config.kl_coef, self.config.passing_anchor_coef) > 0
         if reference is not None:
             if not keeps_reference:
-                raise TrafficRLHFError("`reference` was given but kl_coef and passing_anchor_coef are both 0 and "
-                                       "pace_per_agent is off, so nothing would use it; set one of them or drop "
-                                       "`reference`.")
+                raise TrafficRLHFError("`reference` was given but kl_coef and passing_anchor_coef are both 0, so "
+                                       "nothing would use it; set one of them or drop `reference`.")
             _check_reference(model, reference)
             self.reference = copy.deepcopy(reference)
         else:
@@ -165,8 +164,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.held_out: list[ScenarioTensor] | None = None
         self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
             self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
-            self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp,
-            per_agent=self.config.pace_per_agent)
+            self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -233,10 +231,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
             if self.pace is not None:
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
-                if self.pace.per_agent:
-                    adv = self.pace.mix_per_agent(adv, speeds, self._starting_speeds(contexts, epoch), 1, sampled)
-                else:
-                    adv = self.pace.mix(adv, speeds, 1, sampled)
+                adv = self.pace.mix(adv, speeds, 1, sampled)
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
@@ -245,19 +240,6 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1, torch.ones_like(adv))
         self.last_heldout = self._monitor_scores()
         return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
-
-    def _starting_speeds(self, contexts: ScenarioTensor, epoch: int) -> torch.Tensor:
-        """``(B, 1, A)``: each agent's mean speed over the starting model's samples of ``contexts`` (the frozen
-        copy, its own random numbers per epoch); zeros while the pace multipliers are 0 (nothing reads them)."""
-        assert self.pace is not None and self.reference is not None
-        if self.pace.slow == 0.0 and self.pace.fast == 0.0:
-            return torch.zeros(contexts.num_scenes, 1, contexts.num_agents)
-        samples = self.config.samples_per_context
-        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=derived_generator(self.config.seed, epoch, "pace")))
-        out = sample_in_chunks(self.reference, self.guidance, contexts, samples, seed, self.execution)
-        scenario = self.sample_scenarios(contexts, out.futures.detach(), out.trace.agents)
-        speeds = sample_speeds(scenario, self.reward_steps).reshape(contexts.num_scenes, samples, -1)
-        return speeds.mean(1, keepdim=True)
 
     def _monitor_scores(self) -> dict[str, float]:
         """The held-out judgments of the current policy on a fixed set of contexts (drawn once, see
@@ -341,8 +323,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         starting_pace = None
         if self.pace is not None and self.pace.base_ratio is None:  # the starting weights' pace, also when resuming
             starting_pace = self.pace.drive(self.model)
-            again = self.pace.drive(self.model, PACE_SEED + 1) if self.pace.per_agent else None
-            self.pace.start(starting_pace, again)
+            self.pace.base_ratio = starting_pace["speed_ratio"]
         if cfg.resume:
             self.resume_newest()
             if self.pace is not None:
