@@ -7,7 +7,7 @@ import torch
 
 from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
 from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
-from trafficrlhf_sdk.metrics.speed import SpeedMetric
+from trafficrlhf_sdk.metrics.speed import pooled_speed_ratio
 from trafficrlhf_sdk.scenario import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 
@@ -46,14 +46,14 @@ def test_sample_speeds_is_the_mean_absolute_speed_over_the_valid_future_steps(
 def test_the_multipliers_move_only_outside_the_band_and_each_on_its_own_side() -> None:
     pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None)
     pace.base_ratio = 1.0
-    stats = pace.step(None, {"speed_ratio": 0.99, "failure_rate": 0.1})  # 1 % slower: inside the band
+    stats = pace.step(None, {"pooled_speed_ratio": 0.99, "failure_rate": 0.1})  # 1 % slower: inside the band
     assert (stats["pace_multiplier_slow"], stats["pace_multiplier_fast"]) == (0.0, 0.0)
-    stats = pace.step(None, {"speed_ratio": 0.95, "failure_rate": 0.1})  # 5 % slower: 2 points outside
+    stats = pace.step(None, {"pooled_speed_ratio": 0.95, "failure_rate": 0.1})  # 5 % slower: 2 points outside
     assert stats["pace_change"] == pytest.approx(-0.05)
     assert stats["pace_multiplier_slow"] == pytest.approx(0.2) and stats["pace_multiplier_fast"] == 0.0
-    pace.step(None, {"speed_ratio": 0.99, "failure_rate": 0.1})  # back inside: the multiplier decays
+    pace.step(None, {"pooled_speed_ratio": 0.99, "failure_rate": 0.1})  # back inside: the multiplier decays
     assert pace.slow == pytest.approx(0.0)
-    pace.step(None, {"speed_ratio": 1.06, "failure_rate": 0.1})
+    pace.step(None, {"pooled_speed_ratio": 1.06, "failure_rate": 0.1})
     assert pace.slow == 0.0 and pace.fast == pytest.approx(0.3)
     pace.restore([{"pace_multiplier_slow": 0.5, "pace_multiplier_fast": 0.0}])
     assert (pace.slow, pace.fast) == (0.5, 0.0)
@@ -62,10 +62,10 @@ def test_the_multipliers_move_only_outside_the_band_and_each_on_its_own_side() -
 def test_the_proportional_term_adds_the_current_violation_to_the_accumulated_multiplier() -> None:
     pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None, kp=20.0)
     pace.base_ratio = 1.0
-    stats = pace.step(None, {"speed_ratio": 0.95, "failure_rate": 0.1})  # e_slow = 0.02, e_fast = -0.08
+    stats = pace.step(None, {"pooled_speed_ratio": 0.95, "failure_rate": 0.1})  # e_slow = 0.02, e_fast = -0.08
     assert stats["pace_integral_slow"] == pytest.approx(0.2) and stats["pace_integral_fast"] == 0.0
     assert stats["pace_multiplier_slow"] == pytest.approx(0.2 + 20 * 0.02) and stats["pace_multiplier_fast"] == 0.0
-    pace.step(None, {"speed_ratio": 1.0, "failure_rate": 0.1})  # inside: e_slow = -0.03
+    pace.step(None, {"pooled_speed_ratio": 1.0, "failure_rate": 0.1})  # inside: e_slow = -0.03
     assert pace.slow_sum == 0.0 and pace.slow == 0.0  # 0.2 - 10 x 0.03 and 0.2 - 20 x 0.03: never below 0
     pace.restore([{"pace_multiplier_slow": 0.9, "pace_multiplier_fast": 0.0, "pace_integral_slow": 0.4,
                    "pace_integral_fast": 0.0}])
@@ -80,7 +80,7 @@ def _plant_swings(kp: float, epochs: int = 70) -> list[float]:
     pace.base_ratio = 1.0
     change, changes, pushes = 0.0, [], [0.0, 0.0]
     for _ in range(epochs):
-        pace.step(None, {"speed_ratio": 1.0 + change, "failure_rate": 0.0})
+        pace.step(None, {"pooled_speed_ratio": 1.0 + change, "failure_rate": 0.0})
         changes.append(change)
         pushes.append(pace.slow - pace.fast)
         change += -0.01 + 0.0165 * pushes[-3]
@@ -112,7 +112,7 @@ def test_the_speed_term_ranks_samples_by_speed_and_leaves_advantages_alone_at_ze
     assert mixed[0, 0, 0] > mixed[0, 2, 0]
 
 
-def test_the_pace_drive_is_the_evaluations_speed_ratio_and_repeats_exactly(
+def test_the_pace_drive_is_the_pooled_speed_ratio_of_the_evaluations_rollout_and_repeats_exactly(
         train_scene_list: list[ScenarioTensor]) -> None:
     model = _model()
     pace = PaceConstraint(0.03, 5.0, lambda: train_scene_list, 3, None)
@@ -123,7 +123,7 @@ def test_the_pace_drive_is_the_evaluations_speed_ratio_and_repeats_exactly(
     torch.manual_seed(0)
     model.options = model.options.model_copy(update={"seed": 0})
     rollout = simulate(model, pace.batch(), SimulationConfig(duration_s=10.0))
-    assert first["speed_ratio"] == pytest.approx(SpeedMetric().compute(rollout).values["speed_ratio"])
+    assert first["pooled_speed_ratio"] == pytest.approx(pooled_speed_ratio(rollout))
     assert pace.batch().num_scenes == 3 and pace.batch().current_index == 30
 
 

@@ -559,6 +559,41 @@ def test_speed_metric_splits_turning_from_straight_agents(synthetic_rollout) -> 
             assert values["speed_ratio_straight"] == pytest.approx(0.75)
 
 
+def test_pooled_speed_ratio_sums_over_scenes_and_is_not_swung_by_a_slow_scene(  # type: ignore[no-untyped-def]
+        synthetic_rollout) -> None:
+    """Two scenes: the first at the log's pace, the second's logged agents crawl at 0.2 m/s and its simulated ones at
+    0.6 m/s. The mean of per-scene ratios reads 2 (1 and 3); the pooled ratio is the sums' quotient, counted here
+    agent by agent and step by step, and stays near 1; an agent that is not controlled or a step the log lacks
+    does not count."""
+    from trafficrlhf_sdk.metrics.speed import pooled_speed_ratio
+
+    assert pooled_speed_ratio(synthetic_rollout) == pytest.approx(1.0)
+    sim, log = synthetic_rollout.simulated, synthetic_rollout.logged
+    sim_states, log_states = sim.states.repeat(2, 1, 1, 1), log.states.repeat(2, 1, 1, 1)
+    log_states[1, :, :, 2], sim_states[1, :, :, 2] = 0.2, 0.6
+    valid = log.valid.repeat(2, 1, 1)
+    valid[0, 0, -10:] = False  # the log lacks agent 0's last steps in scene 0
+    controlled = torch.tensor([[True, True], [True, False]])  # scene 1's agent 1 is not driven
+    sim_states[1, 1, :, 2] = 50.0  # (it would move the ratio if it counted)
+    rollout = dataclasses.replace(
+        synthetic_rollout, controlled=controlled,
+        simulated=sim.replace_unchecked(states=sim_states, valid=sim.valid.repeat(2, 1, 1),
+                                        extent=sim.extent.repeat(2, 1, 1), agent_type=sim.agent_type.repeat(2, 1),
+                                        controlled=controlled),
+        logged=log.replace_unchecked(states=log_states, valid=valid, extent=log.extent.repeat(2, 1, 1),
+                                     agent_type=log.agent_type.repeat(2, 1), controlled=controlled))
+    sim_sum = log_sum = 0.0
+    for b in range(2):
+        for a in range(2):
+            for t in range(rollout.start_index + 1, rollout.end_index + 1):
+                if controlled[b, a] and valid[b, a, t]:
+                    sim_sum += abs(float(sim_states[b, a, t, 2]))
+                    log_sum += abs(float(log_states[b, a, t, 2]))
+    assert pooled_speed_ratio(rollout) == pytest.approx(sim_sum / log_sum)
+    assert SpeedMetric().compute(rollout).values["speed_ratio"] == pytest.approx(2.0)
+    assert pooled_speed_ratio(rollout) < 1.05
+
+
 def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore[no-untyped-def]
     """The first failing step per controlled agent, from the slow per-step references (shapely, pixel lookup)."""
     from trafficrlhf_sdk.evaluation.failures import first_failures

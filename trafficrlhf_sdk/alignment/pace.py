@@ -7,12 +7,15 @@ constraint of the optimization instead of a number read after it, in the way con
 (PPO-Lagrangian: Ray, Achiam and Amodei 2019, "Benchmarking Safe Exploration in Deep RL"; RCPO: Tessler, Mankowitz
 and Mannor 2019):
 
-1. **Measure.** Before each epoch's rollout the current policy drives fixed held-out scenes (the ``holdout_every``
-   scenes the fine-tuner never trains on; its training scenes when none are held out) in closed loop for 10 s with
-   a fixed seed, exactly as the evaluation does; ``pace_change`` is its ``speed_ratio`` over the starting weights'
-   on the same scenes and seed, minus 1. The pairing keeps the spread between scenes out of the comparison. The
-   same run's failure rate is recorded as ``heldout_failure``: the fine-tuner's progress on scenes it never trained
-   on.
+1. **Measure.** Before each epoch's rollout the current policy drives fixed held-out scenes (all the
+   ``holdout_every`` scenes the fine-tuner never trains on and loads, up to ``2 * failure_scenes``; its training
+   scenes when none are held out) in closed loop for 10 s with a fixed seed, exactly as the evaluation does;
+   ``pace_change`` is its pooled speed ratio (every driven agent's summed speed over the log's,
+   :func:`~trafficrlhf_sdk.metrics.speed.pooled_speed_ratio`) over the starting weights' on the same scenes and
+   seed, minus 1. The pairing keeps the spread between scenes out of the comparison, and pooling keeps scenes whose
+   logged agents barely move from swinging it (the evaluation's ``speed_ratio``, a mean of per-scene ratios, moves
+   several times more between seeds of the same weights). The same run's failure rate is recorded as
+   ``heldout_failure``: the fine-tuner's progress on scenes it never trained on.
 2. **Dual step.** Two multipliers, one per side of the band ``|pace_change| <= pace_tolerance``, each with its
    signed violation ``e_slow = -pace_change - tol`` and ``e_fast = pace_change - tol``: the accumulated
    ``I <- max(0, I + lr * e)``, and the epoch uses ``max(0, I + kp * e)`` (``pace_multiplier_kp``; 0: the plain
@@ -66,7 +69,7 @@ class PaceConstraint:
         tolerance: the band ``|pace_change| <= tolerance`` (0.03: within 3 % of the starting pace).
         lr: step size of the multipliers per unit of violation.
         scenes: a callable returning the scenes to drive (single-scene tensors).
-        count: how many of them (those long enough for 3 s of history and a 10 s drive).
+        count: at most how many of them (those long enough for 3 s of history and a 10 s drive).
         guidance: the guidance the model drives with (None: its own).
         kp: the proportional gain (0: the plain Lagrangian).
     """
@@ -102,10 +105,10 @@ class PaceConstraint:
         return self._batch
 
     def drive(self, model: Any) -> dict[str, float]:
-        """``speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed (the
-        global generator is left as it was)."""
+        """``pooled_speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed
+        (the global generator is left as it was)."""
         from trafficrlhf_sdk.metrics.failure import FailureMetric
-        from trafficrlhf_sdk.metrics.speed import SpeedMetric
+        from trafficrlhf_sdk.metrics.speed import pooled_speed_ratio
         from trafficrlhf_sdk.simulation.policies import policy_seed, seed_policy
         from trafficrlhf_sdk.simulation.simulator import SimulationConfig, simulate
 
@@ -117,7 +120,7 @@ class PaceConstraint:
                 rollout = simulate(model, self.batch(), SimulationConfig(duration_s=FAILURE_DRIVE_S))
             finally:
                 seed_policy(model, own_seed)
-        return {"speed_ratio": SpeedMetric().compute(rollout).values["speed_ratio"],
+        return {"pooled_speed_ratio": pooled_speed_ratio(rollout),
                 "failure_rate": FailureMetric().compute(rollout).values["failure_rate"]}
 
     def step(self, model: Any, measured: dict[str, float] | None = None) -> dict[str, float]:
@@ -126,8 +129,8 @@ class PaceConstraint:
         ``heldout_failure``, the multipliers)."""
         measured = measured or self.drive(model)
         if self.base_ratio is None:
-            self.base_ratio = measured["speed_ratio"]
-        change = measured["speed_ratio"] / self.base_ratio - 1.0
+            self.base_ratio = measured["pooled_speed_ratio"]
+        change = measured["pooled_speed_ratio"] / self.base_ratio - 1.0
         e_slow, e_fast = -change - self.tolerance, change - self.tolerance
         self.slow_sum = max(0.0, self.slow_sum + self.lr * e_slow)
         self.fast_sum = max(0.0, self.fast_sum + self.lr * e_fast)

@@ -164,7 +164,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.held_out: list[ScenarioTensor] | None = None
         self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
             self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
-            self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp)
+            2 * self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -323,7 +323,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         starting_pace = None
         if self.pace is not None and self.pace.base_ratio is None:  # the starting weights' pace, also when resuming
             starting_pace = self.pace.drive(self.model)
-            self.pace.base_ratio = starting_pace["speed_ratio"]
+            self.pace.base_ratio = starting_pace["pooled_speed_ratio"]
         if cfg.resume:
             self.resume_newest()
             if self.pace is not None:

@@ -15,7 +15,7 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric"]
+__all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric", "pooled_speed_ratio"]
 
 STOPPED_BELOW_MPS = 0.5  # an agent slower than this at the last step counts as stopped
 TURN_RAD = 0.6  # an agent whose logged heading changes by more than this over the rollout turns (about 34 degrees)
@@ -38,12 +38,7 @@ class SpeedMetric(Metric):
         """speed_ratio, speed_ratio_turning and speed_ratio_straight (dimensionless), stopped_share and
         stopped_share_logged (fractions of agents); means over scenes with at least one such controlled agent (with
         logged speed, for the ratios)."""
-        first, last = rollout.start_index + 1, rollout.end_index + 1
-        simulated = rollout.simulated.time_slice(first, last)
-        logged = rollout.logged.time_slice(first, last)
-        steps = logged.valid & simulated.valid & rollout.controlled[..., None]  # (B, A, T)
-        sim_speed = simulated.states[..., 2].double().abs() * steps
-        log_speed = logged.states[..., 2].double().abs() * steps
+        simulated, logged, steps, sim_speed, log_speed = _speeds(rollout)
         turning = _turning(logged, steps)
         ratio, ratio_turning, ratio_straight = (_ratio(sim_speed, log_speed, agents)
                                                 for agents in (None, turning, ~turning))
@@ -56,6 +51,27 @@ class SpeedMetric(Metric):
             "stopped_share_logged": scene_mean(logged.states[..., -1, 2].abs() < STOPPED_BELOW_MPS, at_end),
         }
         return MetricResult(values={k: nanmean(v) for k, v in per_scene.items()}, per_scene=per_scene)
+
+
+def pooled_speed_ratio(rollout: Rollout) -> float:
+    """The summed simulated speed of every controlled agent of every scene over their summed logged speed, at the
+    steps the log has (NaN without any). Unlike ``speed_ratio`` (a mean of per-scene ratios) a scene whose logged
+    agents barely move does not swing it, so it is the quieter statistic for one fixed set of scenes."""
+    *_, sim_speed, log_speed = _speeds(rollout)
+    log_total = float(log_speed.sum())
+    return float(sim_speed.sum()) / log_total if log_total > 0 else float("nan")
+
+
+def _speeds(rollout: Rollout) -> tuple[ScenarioTensor, ScenarioTensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The rollout's simulated and logged steps after the start, the steps both have for controlled agents
+    ``(B, A, T)``, and the simulated and logged absolute speeds there (0 elsewhere; double)."""
+    first, last = rollout.start_index + 1, rollout.end_index + 1
+    simulated = rollout.simulated.time_slice(first, last)
+    logged = rollout.logged.time_slice(first, last)
+    steps = logged.valid & simulated.valid & rollout.controlled[..., None]
+    sim_speed = simulated.states[..., 2].double().abs() * steps
+    log_speed = logged.states[..., 2].double().abs() * steps
+    return simulated, logged, steps, sim_speed, log_speed
 
 
 def _ratio(sim_speed: torch.Tensor, log_speed: torch.Tensor, agents: torch.Tensor | None) -> torch.Tensor:
