@@ -45,31 +45,79 @@ def test_sample_speeds_is_the_mean_absolute_speed_over_the_valid_future_steps(
 
 def test_the_multipliers_move_only_outside_the_band_and_each_on_its_own_side() -> None:
     pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None)
-    pace.base_ratio = 1.0
+    pace.base = {"": 1.0}
     stats = pace.step(None, {"pooled_speed_ratio": 0.99, "failure_rate": 0.1})  # 1 % slower: inside the band
     assert (stats["pace_multiplier_slow"], stats["pace_multiplier_fast"]) == (0.0, 0.0)
     stats = pace.step(None, {"pooled_speed_ratio": 0.95, "failure_rate": 0.1})  # 5 % slower: 2 points outside
     assert stats["pace_change"] == pytest.approx(-0.05)
     assert stats["pace_multiplier_slow"] == pytest.approx(0.2) and stats["pace_multiplier_fast"] == 0.0
     pace.step(None, {"pooled_speed_ratio": 0.99, "failure_rate": 0.1})  # back inside: the multiplier decays
-    assert pace.slow == pytest.approx(0.0)
+    assert pace.bands[""].slow == pytest.approx(0.0)
     pace.step(None, {"pooled_speed_ratio": 1.06, "failure_rate": 0.1})
-    assert pace.slow == 0.0 and pace.fast == pytest.approx(0.3)
+    assert pace.bands[""].slow == 0.0 and pace.bands[""].fast == pytest.approx(0.3)
     pace.restore([{"pace_multiplier_slow": 0.5, "pace_multiplier_fast": 0.0}])
-    assert (pace.slow, pace.fast) == (0.5, 0.0)
+    assert (pace.bands[""].slow, pace.bands[""].fast) == (0.5, 0.0)
 
 
 def test_the_proportional_term_adds_the_current_violation_to_the_accumulated_multiplier() -> None:
     pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None, kp=20.0)
-    pace.base_ratio = 1.0
+    pace.base = {"": 1.0}
     stats = pace.step(None, {"pooled_speed_ratio": 0.95, "failure_rate": 0.1})  # e_slow = 0.02, e_fast = -0.08
     assert stats["pace_integral_slow"] == pytest.approx(0.2) and stats["pace_integral_fast"] == 0.0
     assert stats["pace_multiplier_slow"] == pytest.approx(0.2 + 20 * 0.02) and stats["pace_multiplier_fast"] == 0.0
     pace.step(None, {"pooled_speed_ratio": 1.0, "failure_rate": 0.1})  # inside: e_slow = -0.03
-    assert pace.slow_sum == 0.0 and pace.slow == 0.0  # 0.2 - 10 x 0.03 and 0.2 - 20 x 0.03: never below 0
+    band = pace.bands[""]
+    assert band.slow_sum == 0.0 and band.slow == 0.0  # 0.2 - 10 x 0.03 and 0.2 - 20 x 0.03: never below 0
     pace.restore([{"pace_multiplier_slow": 0.9, "pace_multiplier_fast": 0.0, "pace_integral_slow": 0.4,
                    "pace_integral_fast": 0.0}])
-    assert (pace.slow, pace.slow_sum) == (0.9, 0.4)
+    assert (pace.bands[""].slow, pace.bands[""].slow_sum) == (0.9, 0.4)
+
+
+def test_turning_and_straight_agents_have_bands_of_their_own() -> None:
+    """With ``by_turning`` a slowdown of only the turning agents raises only the turning band's slow multiplier;
+    the straight band's agents keep their plain advantages, the turning ones get the speed term."""
+    pace = PaceConstraint(0.03, 10.0, lambda: [], 4, None, by_turning=True)
+    start = {"pooled_speed_ratio": 1.0, "pooled_speed_ratio_turning": 0.9, "pooled_speed_ratio_straight": 1.05,
+             "failure_rate": 0.1}
+    stats = pace.step(None, start)
+    assert stats["pace_change_turning"] == stats["pace_change_straight"] == stats["pace_change"] == 0.0
+    stats = pace.step(None, {"pooled_speed_ratio": 1.0, "pooled_speed_ratio_turning": 0.9 * 0.95,
+                             "pooled_speed_ratio_straight": 1.05 * 1.02, "failure_rate": 0.1})
+    assert stats["pace_change_turning"] == pytest.approx(-0.05) and stats["pace_change"] == 0.0
+    assert stats["pace_multiplier_slow_turning"] == pytest.approx(0.2)
+    assert stats["pace_multiplier_slow_straight"] == stats["pace_multiplier_fast_straight"] == 0.0
+    adv = torch.tensor([[[0.0, 1.0]], [[0.0, -1.0]], [[0.0, 0.0]]]).transpose(0, 1)  # (B=1, S=3, A=2)
+    speeds = torch.tensor([[[4.0, 4.0]], [[6.0, 6.0]], [[8.0, 8.0]]]).transpose(0, 1)
+    turning = torch.tensor([[[True, False]]])  # agent 0 turns in the log
+    mixed = pace.mix(adv, speeds, 1, torch.ones_like(adv, dtype=torch.bool), turning)
+    assert mixed[0, 2, 0] > mixed[0, 1, 0] > mixed[0, 0, 0]  # the faster sample of the turning agent is preferred
+    assert torch.equal(mixed[0, :, 1], adv[0, :, 1])  # the straight agent's band is idle
+    with pytest.raises(ValueError, match="turning"):
+        pace.mix(adv, speeds, 1, torch.ones_like(adv, dtype=torch.bool))
+    pace.restore([{**stats, "pace_multiplier_fast_straight": 0.4}])
+    assert (pace.bands["straight"].fast, pace.bands["turning"].slow) == (0.4, pytest.approx(0.2))
+    pace.step(None, {"pooled_speed_ratio": 1.0, "pooled_speed_ratio_turning": float("nan"),
+                     "pooled_speed_ratio_straight": 1.05, "failure_rate": 0.1})  # no turning agent was driven
+    assert pace.bands["turning"].slow == pytest.approx(0.2)  # held, not moved by a NaN
+
+
+def test_a_context_agent_turns_when_its_logged_window_turns_by_more_than_turn_rad(
+        train_scene_list: list[ScenarioTensor]) -> None:
+    from trafficrlhf_sdk.alignment.pace import logged_turning
+    from trafficrlhf_sdk.metrics.speed import TURN_RAD
+
+    scene = max(train_scene_list, key=lambda s: s.num_agents).time_slice(0, 71).replace_unchecked(current_index=30)
+    assert scene.num_agents >= 5
+    states = scene.states.clone()
+    states[0, :, 31:, 3] = 0.0
+    states[0, 0, 31:, 3] = torch.linspace(0.0, TURN_RAD + 0.1, 40)
+    states[0, 1, 31:, 3] = torch.linspace(0.0, -(TURN_RAD + 0.1), 40)
+    states[0, 2, 31:, 3] = torch.linspace(0.0, TURN_RAD - 0.1, 40)
+    states[0, 3, :31, 3] = torch.linspace(0.0, 3.0, 31)  # turned in its history only
+    valid = torch.ones_like(scene.valid)
+    turning = logged_turning(scene.replace_unchecked(states=states, valid=valid))
+    assert turning[0, :4].tolist() == [True, True, False, False]
+    assert not turning[0, 4:].any()
 
 
 def _plant_swings(kp: float, epochs: int = 70) -> list[float]:
@@ -77,12 +125,12 @@ def _plant_swings(kp: float, epochs: int = 70) -> list[float]:
     (slow - fast) of two epochs before (the response measured on a model that answers within a few epochs);
     returns the pace change per epoch."""
     pace = PaceConstraint(0.03, 5.0, lambda: [], 4, None, kp=kp)
-    pace.base_ratio = 1.0
+    pace.base = {"": 1.0}
     change, changes, pushes = 0.0, [], [0.0, 0.0]
     for _ in range(epochs):
         pace.step(None, {"pooled_speed_ratio": 1.0 + change, "failure_rate": 0.0})
         changes.append(change)
-        pushes.append(pace.slow - pace.fast)
+        pushes.append(pace.bands[""].slow - pace.bands[""].fast)
         change += -0.01 + 0.0165 * pushes[-3]
     return changes
 
@@ -101,13 +149,13 @@ def test_the_speed_term_ranks_samples_by_speed_and_leaves_advantages_alone_at_ze
     speeds = torch.tensor([[[4.0, 5.0]], [[6.0, 5.0]], [[8.0, 5.0]]]).transpose(0, 1)
     mask = torch.ones_like(adv, dtype=torch.bool)
     assert torch.equal(pace.mix(adv, speeds, 1, mask), adv)
-    pace.slow = 1.0
+    pace.bands[""].slow = 1.0
     mixed = pace.mix(adv, speeds, 1, mask)
     # agent 0 had no reward advantage (a passing agent): the faster sample now has the higher advantage
     assert mixed[0, 2, 0] > mixed[0, 1, 0] > mixed[0, 0, 0]
     # agent 1's samples all have the same speed: only the reward term, scaled by 1 / (1 + slow)
     assert torch.allclose(mixed[0, :, 1], adv[0, :, 1] / 2)
-    pace.slow, pace.fast = 0.0, 1.0  # too fast: the slower sample is preferred
+    pace.bands[""].slow, pace.bands[""].fast = 0.0, 1.0  # too fast: the slower sample is preferred
     mixed = pace.mix(adv, speeds, 1, mask)
     assert mixed[0, 0, 0] > mixed[0, 2, 0]
 
@@ -145,3 +193,17 @@ def test_the_constraint_holds_the_pace_against_a_reward_that_pays_for_braking(
     assert max(row["pace_multiplier_slow"] for row in held) > 0
     assert held[-1]["pace_change"] > free[-1]["pace_change"] + 0.02
     assert all("heldout_failure" in row for row in held)
+
+
+def test_the_two_bands_run_in_the_trainer_and_need_agent_credit(train_scene_list: list[ScenarioTensor]) -> None:
+    with pytest.raises(ValueError, match="pace_by_turning"):
+        AlignConfig(pace_by_turning=True, credit="agent")
+    with pytest.raises(ValueError, match="credit='agent'"):
+        AlignConfig(pace_by_turning=True, pace_tolerance=0.03, credit="scene")
+    config = AlignConfig(alpha=1.0, credit="agent", epochs=2, pace_tolerance=0.001, pace_multiplier_lr=50.0,
+                         pace_by_turning=True, **FAST)
+    history = AlignTrainer(_model(), SlowerIsBetter(), config, scenes=train_scene_list).train()
+    for row in history:
+        assert {"pace_change_turning", "pace_change_straight", "pace_multiplier_slow_turning",
+                "pace_multiplier_fast_straight"} <= set(row)
+    assert history[0]["pace_change_turning"] == history[0]["pace_change_straight"] == 0.0

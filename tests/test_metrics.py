@@ -592,6 +592,8 @@ def test_pooled_speed_ratio_sums_over_scenes_and_is_not_swung_by_a_slow_scene(  
     assert pooled_speed_ratio(rollout) == pytest.approx(sim_sum / log_sum)
     assert SpeedMetric().compute(rollout).values["speed_ratio"] == pytest.approx(2.0)
     assert pooled_speed_ratio(rollout) < 1.05
+    assert pooled_speed_ratio(rollout, turning=False) == pytest.approx(pooled_speed_ratio(rollout))  # none turns
+    assert math.isnan(pooled_speed_ratio(rollout, turning=True))
 
 
 def test_first_failures_match_the_reference_flags(case) -> None:  # type: ignore[no-untyped-def]

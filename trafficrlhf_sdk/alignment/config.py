@@ -63,6 +63,11 @@ class AlignConfig(BaseModel):
                                       "pace's current distance outside the band (negative inside it), at least 0. "
                                       "It damps the swings of a model whose pace answers the multiplier within a "
                                       "few epochs. 0: the plain Lagrangian.")
+    pace_by_turning: bool = Field(False, description="With pace_tolerance and credit='agent': hold two bands, the "
+                                  "pooled pace of the agents whose logged heading turns by more than 0.6 rad over "
+                                  "the drive and that of the others, each with its own multipliers (a training "
+                                  "sample's agent takes the turning band's when its logged window turns that "
+                                  "much), so that slower turns cannot be paid for with faster straights.")
     target_kl: float | None = Field(None, gt=0, description="Stop an epoch's PPO passes once the approximate KL "
                                                             "to the sampling policy exceeds 1.5 x this.")
     clip_range: float = Field(0.2, gt=0, description="PPO ratio clip: ratios outside 1 +- clip_range get no "
@@ -129,6 +134,9 @@ class AlignConfig(BaseModel):
     def _check(self) -> AlignConfig:
         if self.resume and self.output_dir is None:
             raise ValueError("`resume=True` needs `output_dir` (the folder holding the checkpoints).")
+        if self.pace_by_turning and (self.pace_tolerance is None or self.credit != "agent"):
+            raise ValueError(f"`pace_by_turning` is set but `pace_tolerance` is {self.pace_tolerance} and `credit` "
+                             f"is {self.credit!r}: it needs both a pace_tolerance and credit='agent'.")
         if self.passing_anchor_coef > 0 and self.credit != "agent":
             raise ValueError(f"`passing_anchor_coef` is {self.passing_anchor_coef} but `credit` is 'scene': a "
                              "passing agent is told apart from a failing one only with credit='agent'.")

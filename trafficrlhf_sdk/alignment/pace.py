@@ -31,6 +31,7 @@ and Mannor 2019):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -41,7 +42,7 @@ from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
 
-__all__ = ["PaceConstraint", "sample_speeds"]
+__all__ = ["PaceConstraint", "logged_turning", "sample_speeds"]
 
 PACE_SEED = 0
 """Seed of every pace drive (the same random numbers each epoch, so that the pace moves with the weights only)."""
@@ -62,6 +63,23 @@ def _normalized(values: torch.Tensor, dim: int) -> torch.Tensor:
     return (centred / (values.std(dim, unbiased=False, keepdim=True) + 1e-6)).clamp(-ADVANTAGE_CLIP, ADVANTAGE_CLIP)
 
 
+class _Multipliers:
+    """The two multipliers of one band (slow and fast side) and their accumulated parts."""
+
+    def __init__(self) -> None:
+        self.slow = self.fast = 0.0  # what the epoch uses
+        self.slow_sum = self.fast_sum = 0.0  # the accumulated (integral) parts
+
+    def update(self, change: float, tolerance: float, lr: float, kp: float) -> None:
+        if math.isnan(change):  # nothing of this kind was driven: nothing to hold
+            return
+        e_slow, e_fast = -change - tolerance, change - tolerance
+        self.slow_sum = max(0.0, self.slow_sum + lr * e_slow)
+        self.fast_sum = max(0.0, self.fast_sum + lr * e_fast)
+        self.slow = max(0.0, self.slow_sum + kp * e_slow)
+        self.fast = max(0.0, self.fast_sum + kp * e_fast)
+
+
 class PaceConstraint:
     """The multipliers, the pace drive and the advantage mix of the pace constraint (module docstring).
 
@@ -72,22 +90,31 @@ class PaceConstraint:
         count: at most how many of them (those long enough for 3 s of history and a 10 s drive).
         guidance: the guidance the model drives with (None: its own).
         kp: the proportional gain (0: the plain Lagrangian).
+        by_turning: hold two bands, one for the agents that turn in the log and one for the others
+            (``AlignConfig.pace_by_turning``), instead of one for all agents.
     """
 
     def __init__(self, tolerance: float, lr: float, scenes: Callable[[], Sequence[ScenarioTensor]], count: int,
-                 guidance: GuidanceSet | None, kp: float = 0.0) -> None:
+                 guidance: GuidanceSet | None, kp: float = 0.0, by_turning: bool = False) -> None:
         self.tolerance = tolerance
         self.lr = lr
         self.kp = kp
         self.scenes = scenes
         self.count = count
         self.guidance = guidance
-        self.slow = 0.0  # the multipliers the epoch uses
-        self.fast = 0.0
-        self.slow_sum = 0.0  # their accumulated (integral) parts
-        self.fast_sum = 0.0
-        self.base_ratio: float | None = None
+        self.kinds: tuple[str, ...] = ("turning", "straight") if by_turning else ("",)
+        self.bands = {kind: _Multipliers() for kind in self.kinds}
+        self.base: dict[str, float] | None = None  # the starting weights' pooled ratios, by kind
         self._batch: ScenarioTensor | None = None
+
+    @property
+    def by_turning(self) -> bool:
+        """Whether turning and straight agents have bands of their own."""
+        return len(self.kinds) == 2
+
+    @staticmethod
+    def _key(name: str, kind: str) -> str:
+        return f"{name}_{kind}" if kind else name
 
     # ------------------------------------------------------------------ measurement
     def batch(self) -> ScenarioTensor:
@@ -105,8 +132,9 @@ class PaceConstraint:
         return self._batch
 
     def drive(self, model: Any) -> dict[str, float]:
-        """``pooled_speed_ratio`` and ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed
-        (the global generator is left as it was)."""
+        """``pooled_speed_ratio`` (and ``pooled_speed_ratio_turning`` / ``_straight`` with ``by_turning``) and
+        ``failure_rate`` of ``model`` on the pace scenes, 10 s closed loop, fixed seed (the global generator is left
+        as it was)."""
         from trafficrlhf_sdk.metrics.failure import FailureMetric
         from trafficrlhf_sdk.metrics.speed import pooled_speed_ratio
         from trafficrlhf_sdk.simulation.policies import policy_seed, seed_policy
@@ -120,42 +148,78 @@ class PaceConstraint:
                 rollout = simulate(model, self.batch(), SimulationConfig(duration_s=FAILURE_DRIVE_S))
             finally:
                 seed_policy(model, own_seed)
-        return {"pooled_speed_ratio": pooled_speed_ratio(rollout),
-                "failure_rate": FailureMetric().compute(rollout).values["failure_rate"]}
+        measured = {"pooled_speed_ratio": pooled_speed_ratio(rollout),
+                    "failure_rate": FailureMetric().compute(rollout).values["failure_rate"]}
+        if self.by_turning:
+            for kind in self.kinds:
+                measured[f"pooled_speed_ratio_{kind}"] = pooled_speed_ratio(rollout, turning=kind == "turning")
+        return measured
 
     def step(self, model: Any, measured: dict[str, float] | None = None) -> dict[str, float]:
         """Drive the current ``model`` (or take its ``measured`` :meth:`drive`), update the multipliers; the first
-        call sets the starting pace unless ``base_ratio`` is set. Returns the epoch's statistics (``pace_change``,
-        ``heldout_failure``, the multipliers)."""
+        call sets the starting pace unless :attr:`base` is set. Returns the epoch's statistics (``pace_change``,
+        ``heldout_failure``, the multipliers; with ``by_turning`` each of the two kinds' as well)."""
         measured = measured or self.drive(model)
-        if self.base_ratio is None:
-            self.base_ratio = measured["pooled_speed_ratio"]
-        change = measured["pooled_speed_ratio"] / self.base_ratio - 1.0
-        e_slow, e_fast = -change - self.tolerance, change - self.tolerance
-        self.slow_sum = max(0.0, self.slow_sum + self.lr * e_slow)
-        self.fast_sum = max(0.0, self.fast_sum + self.lr * e_fast)
-        self.slow = max(0.0, self.slow_sum + self.kp * e_slow)
-        self.fast = max(0.0, self.fast_sum + self.kp * e_fast)
-        stats = {"pace_change": change, "heldout_failure": measured["failure_rate"],
-                 "pace_multiplier_slow": self.slow, "pace_multiplier_fast": self.fast}
-        if self.kp > 0:
-            stats.update(pace_integral_slow=self.slow_sum, pace_integral_fast=self.fast_sum)
+        if self.base is None:
+            self.set_base(measured)
+        assert self.base is not None
+        stats = {"pace_change": measured["pooled_speed_ratio"] / self.base[""] - 1.0,
+                 "heldout_failure": measured["failure_rate"]}
+        for kind, band in self.bands.items():
+            key = self._key("pooled_speed_ratio", kind)
+            change = measured[key] / self.base[kind] - 1.0
+            band.update(change, self.tolerance, self.lr, self.kp)
+            if kind:
+                stats[f"pace_change_{kind}"] = change
+            stats[self._key("pace_multiplier_slow", kind)] = band.slow
+            stats[self._key("pace_multiplier_fast", kind)] = band.fast
+            if self.kp > 0:
+                stats[self._key("pace_integral_slow", kind)] = band.slow_sum
+                stats[self._key("pace_integral_fast", kind)] = band.fast_sum
         return stats
+
+    def set_base(self, measured: dict[str, float]) -> None:
+        """Take the starting weights' :meth:`drive` as the reference of every band."""
+        self.base = {"": measured["pooled_speed_ratio"]}
+        for kind in self.kinds:
+            if kind:
+                self.base[kind] = measured[f"pooled_speed_ratio_{kind}"]
 
     def restore(self, history: Sequence[dict[str, float]]) -> None:
         """Take the multipliers back from a resumed run's history (the starting pace is measured again)."""
         if history:
             last = history[-1]
-            self.slow = float(last.get("pace_multiplier_slow", 0.0))
-            self.fast = float(last.get("pace_multiplier_fast", 0.0))
-            self.slow_sum = float(last.get("pace_integral_slow", self.slow))
-            self.fast_sum = float(last.get("pace_integral_fast", self.fast))
+            for kind, band in self.bands.items():
+                band.slow = float(last.get(self._key("pace_multiplier_slow", kind), 0.0))
+                band.fast = float(last.get(self._key("pace_multiplier_fast", kind), 0.0))
+                band.slow_sum = float(last.get(self._key("pace_integral_slow", kind), band.slow))
+                band.fast_sum = float(last.get(self._key("pace_integral_fast", kind), band.fast))
 
     # ------------------------------------------------------------------ advantages
-    def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor) -> torch.Tensor:
+    def mix(self, advantages: torch.Tensor, speeds: torch.Tensor, dim: int, mask: torch.Tensor,
+            turning: torch.Tensor | None = None) -> torch.Tensor:
         """``(A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``: ``advantages`` and ``speeds`` have the same
-        shape, samples along ``dim``; ``mask`` (broadcastable) zeroes entries that get no advantage."""
-        if self.slow == 0.0 and self.fast == 0.0:
+        shape, samples along ``dim``; ``mask`` (broadcastable) zeroes entries that get no advantage. With
+        ``by_turning``, ``turning`` (bool, broadcastable) says which agents take the turning band's multipliers."""
+        if all(band.slow == 0.0 and band.fast == 0.0 for band in self.bands.values()):
             return advantages
+        if self.by_turning:
+            if turning is None:
+                raise ValueError("mix: `turning` is needed when the pace is held apart for turning agents.")
+            turn, straight = self.bands["turning"], self.bands["straight"]
+            slow = torch.where(turning, turn.slow, straight.slow).to(advantages.dtype)
+            fast = torch.where(turning, turn.fast, straight.fast).to(advantages.dtype)
+        else:
+            slow = torch.tensor(self.bands[""].slow, dtype=advantages.dtype)
+            fast = torch.tensor(self.bands[""].fast, dtype=advantages.dtype)
         speed_adv = _normalized(speeds, dim) * mask.to(speeds.dtype)
-        return (advantages + (self.slow - self.fast) * speed_adv) / (1.0 + self.slow + self.fast)
+        return (advantages + (slow - fast) * speed_adv) / (1.0 + slow + fast)
+
+
+def logged_turning(logged: ScenarioTensor) -> torch.Tensor:
+    """``(B, A)``: agents whose logged heading turns by more than ``TURN_RAD`` over the steps after
+    ``current_index`` of ``logged`` (the log of a training context's window), as the speed metric splits them."""
+    from trafficrlhf_sdk.metrics.speed import turning_agents
+
+    future = logged.time_slice(logged.current_index + 1, logged.num_steps)
+    return turning_agents(future, future.valid)

@@ -47,7 +47,7 @@ from trafficrlhf_sdk.alignment.distributed import sample_in_chunks
 from trafficrlhf_sdk.alignment.contexts import ContextSampler, held_out_scene_ids, training_scene_ids
 from trafficrlhf_sdk.alignment.health import health_warnings
 from trafficrlhf_sdk.alignment.monitor import HeldOutMonitor, plot_overoptimization
-from trafficrlhf_sdk.alignment.pace import PaceConstraint, sample_speeds
+from trafficrlhf_sdk.alignment.pace import PaceConstraint, logged_turning, sample_speeds
 from trafficrlhf_sdk.alignment.ppo_update import PPOUpdate, SampledEpoch, derived_generator, mean_over_sampled
 from trafficrlhf_sdk.reward.builtin import FailureReward
 from trafficrlhf_sdk.reward.scoring import RewardLike, agent_scores, scenario_scores
@@ -164,7 +164,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.held_out: list[ScenarioTensor] | None = None
         self.pace = None if self.config.pace_tolerance is None else PaceConstraint(
             self.config.pace_tolerance, self.config.pace_multiplier_lr, self._held_out_scenes,
-            2 * self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp)
+            2 * self.config.failure_scenes, self.guidance, kp=self.config.pace_multiplier_kp,
+            by_turning=self.config.pace_by_turning)
         self.history: list[dict[str, float]] = []
         self.start_epoch = 0
         self.logger: Any = None
@@ -231,7 +232,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
             if self.pace is not None:
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
-                adv = self.pace.mix(adv, speeds, 1, sampled)
+                turning = logged_turning(logged)[:, None, :] if self.pace.by_turning else None
+                adv = self.pace.mix(adv, speeds, 1, sampled, turning)
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
@@ -321,9 +323,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if self.monitor_contexts is None:  # from the starting weights, also when resuming
             self.monitor_contexts, self.monitor_logged = self._draw_monitor_contexts()
         starting_pace = None
-        if self.pace is not None and self.pace.base_ratio is None:  # the starting weights' pace, also when resuming
+        if self.pace is not None and self.pace.base is None:  # the starting weights' pace, also when resuming
             starting_pace = self.pace.drive(self.model)
-            self.pace.base_ratio = starting_pace["pooled_speed_ratio"]
+            self.pace.set_base(starting_pace)
         if cfg.resume:
             self.resume_newest()
             if self.pace is not None:

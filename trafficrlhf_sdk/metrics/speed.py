@@ -15,7 +15,7 @@ from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
-__all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric", "pooled_speed_ratio"]
+__all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric", "pooled_speed_ratio", "turning_agents"]
 
 STOPPED_BELOW_MPS = 0.5  # an agent slower than this at the last step counts as stopped
 TURN_RAD = 0.6  # an agent whose logged heading changes by more than this over the rollout turns (about 34 degrees)
@@ -39,7 +39,7 @@ class SpeedMetric(Metric):
         stopped_share_logged (fractions of agents); means over scenes with at least one such controlled agent (with
         logged speed, for the ratios)."""
         simulated, logged, steps, sim_speed, log_speed = _speeds(rollout)
-        turning = _turning(logged, steps)
+        turning = turning_agents(logged, steps)
         ratio, ratio_turning, ratio_straight = (_ratio(sim_speed, log_speed, agents)
                                                 for agents in (None, turning, ~turning))
         at_end = rollout.controlled & logged.valid[..., -1] & simulated.valid[..., -1]
@@ -53,11 +53,15 @@ class SpeedMetric(Metric):
         return MetricResult(values={k: nanmean(v) for k, v in per_scene.items()}, per_scene=per_scene)
 
 
-def pooled_speed_ratio(rollout: Rollout) -> float:
+def pooled_speed_ratio(rollout: Rollout, turning: bool | None = None) -> float:
     """The summed simulated speed of every controlled agent of every scene over their summed logged speed, at the
     steps the log has (NaN without any). Unlike ``speed_ratio`` (a mean of per-scene ratios) a scene whose logged
-    agents barely move does not swing it, so it is the quieter statistic for one fixed set of scenes."""
-    *_, sim_speed, log_speed = _speeds(rollout)
+    agents barely move does not swing it, so it is the quieter statistic for one fixed set of scenes. ``turning``:
+    only the agents that turn in the log (True) or the others (False), as ``speed_ratio_turning`` splits them."""
+    _, logged, steps, sim_speed, log_speed = _speeds(rollout)
+    if turning is not None:
+        agents = turning_agents(logged, steps) == turning
+        sim_speed, log_speed = sim_speed * agents[..., None], log_speed * agents[..., None]
     log_total = float(log_speed.sum())
     return float(sim_speed.sum()) / log_total if log_total > 0 else float("nan")
 
@@ -84,9 +88,9 @@ def _ratio(sim_speed: torch.Tensor, log_speed: torch.Tensor, agents: torch.Tenso
                        torch.full_like(log_total, float("nan")))
 
 
-def _turning(logged: ScenarioTensor, steps: torch.Tensor) -> torch.Tensor:
-    """``(B, A)``: agents whose logged heading at their last step of ``steps (B, A, T)`` differs from that at their
-    first by more than :data:`TURN_RAD`."""
+def turning_agents(logged: ScenarioTensor, steps: torch.Tensor) -> torch.Tensor:
+    """``(B, A)``: agents whose logged heading at their last step of ``steps (B, A, T)`` (steps of ``logged``)
+    differs from that at their first by more than :data:`TURN_RAD`."""
     t = torch.arange(steps.shape[-1], device=steps.device)
     first = torch.where(steps, t, steps.shape[-1]).amin(-1).clamp_max(steps.shape[-1] - 1)
     last = torch.where(steps, t, -1).amax(-1).clamp_min(0)
