@@ -27,6 +27,11 @@ and Mannor 2019):
    (normalized over the samples, as the reward's advantage is), and
    ``A = (A_reward + (slow - fast) * A_speed) / (1 + slow + fast)``. Agents the passing anchor holds (advantage 0
    from the reward) get the speed term alone; the others get both.
+4. **Two bands** (``pace_by_turning``). A policy that brakes in turns and speeds up on the straight can keep the
+   pooled pace of one set of scenes while the pace of another, with more turns, falls. With two bands the drive's
+   agents whose logged heading turns by more than ``TURN_RAD`` (the speed metric's split) and the others each have
+   their own ``pace_change`` and multipliers, and a training sample's agent takes the turning band's multipliers
+   when the log of its context's window turns that much.
 """
 
 from __future__ import annotations
