@@ -413,7 +413,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
 
     def _log(self, stats: dict[str, float]) -> None:
         rollout_keys = ("reward_mean", "reward_std", "reward_min", "reward_max", "passing_share", "heldout_realism",
-                        "heldout_reward", "heldout_failure", "pace_change")
+                        "heldout_reward", "heldout_failure", "pace_change", "pace_change_turning",
+                        "pace_change_straight")
         for key, value in stats.items():
             if key == "epoch" or (isinstance(value, float) and math.isnan(value)):
                 continue
