@@ -559,6 +559,38 @@ def test_speed_metric_splits_turning_from_straight_agents(synthetic_rollout) -> 
             assert values["speed_ratio_straight"] == pytest.approx(0.75)
 
 
+def test_failure_rate_is_split_between_agents_that_turn_in_the_log_and_the_others() -> None:
+    """Three agents in parallel lanes; the simulated agent 1 drives on top of agent 0, so both collide. With agent
+    2 turning in the log, the turning agents' failure rate is 0 and the others' 1; with agent 0 turning, 1 and
+    0.5. The split uses the speed metric's own TURN_RAD."""
+    from trafficrlhf_sdk.metrics.turns import TURN_RAD
+
+    time_s = torch.arange(131, dtype=torch.float32) * 0.1
+
+    def lane(y: float) -> torch.Tensor:
+        return torch.stack([5.0 * time_s, torch.full_like(time_s, y), torch.full_like(time_s, 5.0),
+                            torch.zeros_like(time_s)], -1)
+
+    drivable = MapRaster(raster=torch.ones(1, 1, 100, 100, dtype=torch.uint8), layers=("drivable",),
+                         world_to_pixel=torch.tensor([[[1.0, 0.0, 10.0], [0.0, 1.0, 10.0], [0.0, 0.0, 1.0]]]))
+    scenario = ScenarioTensor(
+        states=torch.stack([lane(0.0), lane(10.0), lane(20.0)])[None], valid=torch.ones(1, 3, 131, dtype=torch.bool),
+        extent=torch.full((1, 3, 2), 3.0), agent_type=torch.ones(1, 3, dtype=torch.long),
+        controlled=torch.ones(1, 3, dtype=torch.bool), current_index=30, map=drivable)
+    replay = log_rollout(scenario)
+    simulated = replay.simulated.states.clone()
+    simulated[0, 1, 31:, 1] = 0.5  # agent 1 drives into agent 0
+    for turner, expected in ((2, (0.0, 1.0)), (0, (1.0, 0.5))):
+        logged = replay.logged.states.clone()
+        logged[0, turner, 31:, 3] = torch.linspace(0.0, TURN_RAD + 0.1, 100)
+        rollout = dataclasses.replace(replay, simulated=replay.simulated.replace_unchecked(states=simulated),
+                                      logged=replay.logged.replace_unchecked(states=logged))
+        values = FailureMetric().compute(rollout).values
+        assert values["failure_rate"] == pytest.approx(2 / 3)
+        assert (values["failure_rate_turning"], values["failure_rate_straight"]) == pytest.approx(expected)
+    assert math.isnan(FailureMetric().compute(replay).values["failure_rate_turning"])  # nobody turns
+
+
 def test_pooled_speed_ratio_sums_over_scenes_and_is_not_swung_by_a_slow_scene(  # type: ignore[no-untyped-def]
         synthetic_rollout) -> None:
     """Two scenes: the first at the log's pace, the second's logged agents crawl at 0.2 m/s and its simulated ones at

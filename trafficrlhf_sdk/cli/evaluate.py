@@ -23,6 +23,8 @@ ROWS = (
     ("collision_rate_own", "    with an agent it drives"),
     ("collision_rate_replayed", "    with a replayed agent"),
     ("offroad_rate", "  off-road (centre)"),
+    ("failure_rate_turning", "  agents turning in the log"),
+    ("failure_rate_straight", "  agents driving straight"),
     ("failure_rate_corners", "failure rate (box corners)"),
     ("realism_ctg", "realism deviation, ctg"),
     ("realism_ctg_lon_acc", "  lon. acceleration"),

@@ -40,6 +40,8 @@ ROWS = (
     ("collision_rate_own", "  with an agent it drives"),
     ("collision_rate_replayed", "  with a replayed agent"),
     ("offroad_rate", "off-road rate"),
+    ("failure_rate_turning", "failure rate, agents turning in the log"),
+    ("failure_rate_straight", "  agents driving straight"),
     ("failure_rate_corners", "failure rate (box corners)"),
     ("realism_ctg", "realism dev. (ctg)"),
     ("realism_body", "realism dev. (body)"),

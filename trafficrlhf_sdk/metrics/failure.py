@@ -9,6 +9,7 @@ import torch
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.geometry import box_corners, colliding_pairs, pair_step_flags, pairwise_collisions
+from trafficrlhf_sdk.metrics.turns import turning_agents
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
@@ -91,7 +92,10 @@ class FailureMetric(Metric):
     averaged over scenes. Also the collision-only and off-road-only shares, and the collisions split by partner:
     ``collision_rate_own`` (ever touching another agent the policy drives) and ``collision_rate_replayed`` (ever
     touching a log-replayed agent, which cannot react; with ``offroad_mode="center"``, the default); an agent can
-    be in both, so they may sum to more than ``collision_rate``.
+    be in both, so they may sum to more than ``collision_rate``. With that default, ``failure_rate_turning`` and
+    ``failure_rate_straight`` are ``failure_rate`` over only the agents that turn in the log and over the others
+    (:func:`~trafficrlhf_sdk.metrics.turns.turning_agents`, the speed metric's split; means over the scenes that
+    have such agents).
 
     Args:
         offroad_mode: ``"center"`` (upstream: centre pixel on the drivable layer) or ``"corners"`` (all four
@@ -104,8 +108,8 @@ class FailureMetric(Metric):
         self.offroad_mode = offroad_mode
 
     def compute(self, rollout: Rollout) -> MetricResult:
-        """failure_rate, collision_rate, offroad_rate, collision_rate_own, collision_rate_replayed (fractions of
-        agents, mean over scenes)."""
+        """failure_rate, collision_rate, offroad_rate, collision_rate_own, collision_rate_replayed,
+        failure_rate_turning, failure_rate_straight (fractions of agents, mean over scenes)."""
         window = rollout.simulated.time_slice(rollout.start_index + 1, rollout.end_index + 1)
         scene, i, j, step = colliding_pairs(window.xy, window.yaw, window.extent, window.valid)
         # as collisions_per_step, from the pairs listed once (the partner kinds below read them too)
@@ -120,8 +124,12 @@ class FailureMetric(Metric):
         }
         if self.offroad_mode == "center":
             own, replayed = collision_partner_kinds(scene, i, j, mask)
+            logged = rollout.logged.time_slice(rollout.start_index + 1, rollout.end_index + 1)
+            turning = turning_agents(logged, logged.valid & window.valid & mask[..., None])
             per_scene.update(collision_rate_own=scene_mean(own, mask),
-                             collision_rate_replayed=scene_mean(replayed, mask))
+                             collision_rate_replayed=scene_mean(replayed, mask),
+                             failure_rate_turning=scene_mean(collided | offroad, mask & turning),
+                             failure_rate_straight=scene_mean(collided | offroad, mask & ~turning))
         suffix = "" if self.offroad_mode == "center" else "_corners"
         per_scene = {f"{k}{suffix}" if not k.startswith("collision_rate") else k: v for k, v in per_scene.items()}
         return MetricResult(

@@ -11,14 +11,13 @@ import torch
 
 from trafficrlhf_sdk.metrics.base import Metric, MetricResult
 from trafficrlhf_sdk.metrics.failure import nanmean, scene_mean
+from trafficrlhf_sdk.metrics.turns import TURN_RAD, turning_agents
 from trafficrlhf_sdk.scenario.tensor import ScenarioTensor
-from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
 __all__ = ["STOPPED_BELOW_MPS", "TURN_RAD", "SpeedMetric", "pooled_speed_ratio", "turning_agents"]
 
 STOPPED_BELOW_MPS = 0.5  # an agent slower than this at the last step counts as stopped
-TURN_RAD = 0.6  # an agent whose logged heading changes by more than this over the rollout turns (about 34 degrees)
 
 
 class SpeedMetric(Metric):
@@ -86,14 +85,3 @@ def _ratio(sim_speed: torch.Tensor, log_speed: torch.Tensor, agents: torch.Tenso
     log_total = log_speed.sum((1, 2))
     return torch.where(log_total > 0, sim_speed.sum((1, 2)) / log_total.clamp_min(1e-9),
                        torch.full_like(log_total, float("nan")))
-
-
-def turning_agents(logged: ScenarioTensor, steps: torch.Tensor) -> torch.Tensor:
-    """``(B, A)``: agents whose logged heading at their last step of ``steps (B, A, T)`` (steps of ``logged``)
-    differs from that at their first by more than :data:`TURN_RAD`."""
-    t = torch.arange(steps.shape[-1], device=steps.device)
-    first = torch.where(steps, t, steps.shape[-1]).amin(-1).clamp_max(steps.shape[-1] - 1)
-    last = torch.where(steps, t, -1).amax(-1).clamp_min(0)
-    yaw = logged.states[..., 3].double()
-    turn = wrap_angle(yaw.gather(-1, last[..., None]) - yaw.gather(-1, first[..., None]))[..., 0]
-    return steps.any(-1) & (turn.abs() > TURN_RAD)
