@@ -224,7 +224,7 @@ class PaceConstraint:
 def logged_turning(logged: ScenarioTensor) -> torch.Tensor:
     """``(B, A)``: agents whose logged heading turns by more than ``TURN_RAD`` over the steps after
     ``current_index`` of ``logged`` (the log of a training context's window), as the speed metric splits them."""
-    from trafficrlhf_sdk.metrics.speed import turning_agents
+    from trafficrlhf_sdk.metrics.turns import turning_agents
 
     future = logged.time_slice(logged.current_index + 1, logged.num_steps)
     return turning_agents(future, future.valid)
