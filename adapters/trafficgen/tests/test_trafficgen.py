@@ -329,3 +329,45 @@ def test_train_rejects_a_bad_horizon_and_a_missing_donor(tmp_path, capsys) -> No
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--init-from", str(tmp_path / "nowhere")])
     assert "--init-from" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------- exploration
+def test_the_yaw_rate_offset_density_matches_scipy() -> None:
+    from scipy.stats import multivariate_normal
+
+    from trafficrlhf_trafficgen.adapter import _yaw_offset_log_density
+
+    gen = torch.Generator().manual_seed(0)
+    log_std = torch.rand(3, 20, generator=gen) * 2 - 5  # per-step stds of 0.007..0.05 rad/s, as the model's
+    residual = torch.randn(3, 20, generator=gen) * 0.1
+    ours = _yaw_offset_log_density(residual, log_std, 0.15)
+    for i in range(3):
+        cov = torch.diag(torch.exp(2 * log_std[i].double())) + 0.15**2
+        expected = multivariate_normal(mean=None, cov=cov.numpy()).logpdf(residual[i].double().numpy())
+        assert float(ours[i]) == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_exploration_widens_the_turns_and_keeps_the_ppo_ratio_exact(synthetic) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_trafficgen import TrafficGenAdapter
+
+    _checkpoint_or_skip()
+    own, explored = TrafficGenAdapter(seed=0), TrafficGenAdapter(seed=0, exploration_yaw_rate=0.1)
+    draws = {}
+    for name, model in (("own", own), ("explored", explored)):
+        out = model.sample(synthetic, 64, None, torch.Generator().manual_seed(1))
+        # the density PPO trains is the one the samples were drawn from: ratio exactly 1 at the start
+        torch.testing.assert_close(model.log_prob(synthetic, out.trace), out.log_prob, atol=1e-3, rtol=1e-5)
+        draws[name] = out
+    turn = {k: (v.futures[..., -1, 3] - synthetic.states[:, None, :, synthetic.current_index, 3]) for k, v in
+            draws.items()}  # (1, S, A) heading change over the horizon
+    assert float(turn["explored"].std(1).mean()) > 3 * float(turn["own"].std(1).mean())
+    # the offset is one per sample and agent, held over the horizon: the yaw rates move together
+    moved = draws["explored"].trace.tensors["actions"][..., 1] - draws["own"].trace.tensors["actions"][..., 1]
+    assert float(moved.std(-1).amax()) < 1e-5 and float(moved[..., 0].std()) > 0.05
+    # closed-loop runs never explore: the guided plans are the same with and without the option
+    guided = [TrafficGenAdapter(seed=0, guidance="no_collision", exploration_yaw_rate=e) for e in (0.0, 0.1)]
+    plans = []
+    for model in guided:
+        model.reset(synthetic)
+        plans.append(model.plan(synthetic, 20).states)
+    torch.testing.assert_close(plans[0], plans[1])
