@@ -45,10 +45,6 @@ class AlignConfig(BaseModel):
                                                 "TrafficGen 0.3).")
     imitation_coef: float = Field(1.0, ge=0, description="Weight of the model's own imitation loss, the paper's r "
                                   "(0 disables it).")
-    imitation_recovery: bool = Field(False, description="On failure-focused contexts, the imitation loss learns "
-                                     "from the simulated history a future that returns to the logged path (the "
-                                     "log's progress, the lateral offset closed over the horizon; "
-                                     "trafficrlhf_sdk.alignment.recovery) instead of the log's window.")
     kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
                                                   "(0: no reference model is kept).")
     passing_anchor_coef: float = Field(0.0, ge=0, description="With credit='agent': agents none of whose samples "

@@ -9,9 +9,7 @@ the same window of the *log* (the imitation loss always learns from logged behav
   cut at ``t = f - d`` (``d`` uniform in 5..15 steps) from the simulated scene. Failures build up over a 10 s
   rollout while a sample covers a few seconds, so contexts drawn from the log rarely contain a sample that fails;
   these contexts put the states that lead to the model's own failures in front of the reward model (a
-  prioritized replay of its mistakes, as DAgger-style data aggregation does for imitation). Their imitation
-  windows are the log's, or with ``imitation_recovery`` the simulated history followed by a return to the logged
-  path (:mod:`~trafficrlhf_sdk.alignment.recovery`).
+  prioritized replay of its mistakes, as DAgger-style data aggregation does for imitation).
 """
 
 from __future__ import annotations
@@ -22,7 +20,6 @@ from dataclasses import dataclass, field
 import torch
 
 from trafficrlhf_sdk.alignment.config import FAILURE_DRIVE_S, FAILURE_LEAD_STEPS, HISTORY_STEPS, AlignConfig
-from trafficrlhf_sdk.alignment.recovery import recovery_targets
 from trafficrlhf_sdk.errors import DataNotFoundError
 from trafficrlhf_sdk.simulation.guidance import GuidanceSet, guidance_swapped
 from trafficrlhf_sdk.metrics.failure import collisions_per_step, offroad_per_step
@@ -178,10 +175,7 @@ class ContextSampler:
             logs.append(self.window(batch[b].replace_unchecked(controlled=scene.controlled), t - hist))
         if not sims:
             return self.log_contexts(count, gen)
-        contexts, logged = ScenarioTensor.concat(sims), ScenarioTensor.concat(logs)
-        if self.config.imitation_recovery:
-            logged = recovery_targets(contexts, logged)
-        return contexts, logged
+        return ScenarioTensor.concat(sims), ScenarioTensor.concat(logs)
 
 
 @dataclass
