@@ -13,12 +13,6 @@
 * ``log_prob``: ``log pi_m + log N(a | mu_m, sigma_m)``, ``(B, S, A)``: the joint density of the sampled
   (mode, action sequence) pair. This is the density PPO fine-tunes (the mode is part of the action); the
   marginal over modes is available as :meth:`marginal_log_prob`.
-* ``exploration_yaw_rate`` (training only): the forecaster's modes barely differ in heading and its per-step
-  yaw-rate noise is independent, so its samples of one agent turn by almost the same angle and a fine-tuner that
-  re-weights them cannot learn to turn more or less. With this option ``sample`` adds one yaw-rate offset
-  ``b ~ N(0, s^2)`` per sample and agent, held over the horizon, and ``log_prob`` is the exact density of the
-  result: the yaw rates are Gaussian with covariance ``diag(sigma_m^2) + s^2 11^T`` (a rank-one update, evaluated
-  with the Sherman-Morrison identity). ``plan`` never adds it.
 * ``plan``: with guidance, the base class draws ``plan_samples`` samples and keeps the one with the lowest
   guidance loss (sample filtering; all five SDK guidances work this way). Without guidance and with
   ``greedy_plan`` (the default) the plan is the mean of the most likely mode, as upstream executes the
@@ -27,9 +21,6 @@
 
 from __future__ import annotations
 
-import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -59,36 +50,6 @@ def default_checkpoint() -> Path:
     return Path(trafficgen_reference.__file__).resolve().parent.parent / "checkpoints" / "trafficgen_small"
 
 
-def _yaw_offset_log_density(residual: torch.Tensor, log_std: torch.Tensor, offset_std: float) -> torch.Tensor:
-    """Log-density ``(...)`` of yaw-rate residuals ``(..., H)`` under ``N(0, diag(exp(2 log_std)) + s^2 11^T)``
-    (independent per-step noise plus one offset of std ``s`` shared by the ``H`` steps), in float64."""
-    r, var = residual.double(), torch.exp(2 * log_std.double())
-    precision_sum = (1 / var).sum(-1)
-    weighted = (r / var).sum(-1)
-    s2 = offset_std**2
-    quadratic = (r * r / var).sum(-1) - s2 * weighted**2 / (1 + s2 * precision_sum)
-    log_det = torch.log(var).sum(-1) + torch.log1p(s2 * precision_sum)
-    return (-0.5 * (quadratic + log_det + r.shape[-1] * math.log(2 * math.pi))).to(residual.dtype)
-
-
-def _explored_log_density(out: ForecastOutput, actions: torch.Tensor, offset_std: float,
-                          mode: torch.Tensor | None = None) -> torch.Tensor:
-    """Log-density of ``actions (N, S, H, 2)`` with the yaw-rate offset of std ``offset_std``: joint with
-    ``mode (N, S)`` when given, else the marginal over modes; ``(N, S)``."""
-    if mode is None:  # every mode: (N, S, M)
-        mu, log_std = out.mean[:, None], out.log_std[:, None]
-        acts, log_pi = actions[:, :, None], out.log_pi[:, None]
-    else:
-        idx = mode[..., None, None].expand(-1, -1, *out.mean.shape[-2:])
-        mu, log_std = out.mean.gather(1, idx), out.log_std.gather(1, idx)
-        acts, log_pi = actions, out.log_pi.gather(1, mode)
-    z = (acts[..., 0] - mu[..., 0]) * torch.exp(-log_std[..., 0])
-    acc = (-0.5 * z * z - log_std[..., 0] - 0.5 * math.log(2 * math.pi)).sum(-1)
-    yaw = _yaw_offset_log_density(acts[..., 1] - mu[..., 1], log_std[..., 1], offset_std)
-    joint = log_pi + acc + yaw
-    return joint if mode is not None else torch.logsumexp(joint, -1)
-
-
 class TrafficGenOptions(AdapterOptions):
     """Options of :class:`TrafficGenAdapter`."""
 
@@ -97,12 +58,6 @@ class TrafficGenOptions(AdapterOptions):
                           "one sample."
     )
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
-    exploration_yaw_rate: float = Field(
-        0.0, ge=0, description="Std (rad/s) of a yaw-rate offset that `sample` adds to every sampled agent, one per "
-                               "sample held over the whole horizon, and that `log_prob` includes (the density PPO "
-                               "fine-tunes); `plan`, and so every closed-loop run, never adds it. 0: the "
-                               "forecaster's own density."
-    )
 
 
 class TrafficGenAdapter(TrafficModelAdapter):
@@ -174,18 +129,6 @@ class TrafficGenAdapter(TrafficModelAdapter):
         hold = torch.stack([now[..., 0], now[..., 1], torch.zeros_like(now[..., 0]), now[..., 3]], -1)
         return hold[:, :, None, None].expand(-1, -1, s, h, 4)
 
-    def _exploration(self) -> float:
-        """The yaw-rate offset's std that ``sample`` and ``log_prob`` use now (0 inside ``plan``)."""
-        return 0.0 if getattr(self, "_planning", False) else self.options.exploration_yaw_rate
-
-    @contextmanager
-    def _no_exploration(self) -> Iterator[None]:
-        previous, self._planning = getattr(self, "_planning", False), True
-        try:
-            yield
-        finally:
-            self._planning = previous
-
     # ------------------------------------------------------------ contract
     def sample(self, context: ScenarioTensor, num_samples: int, guidance: GuidanceSet | None = None,
                generator: torch.Generator | None = None) -> SampleOutput:
@@ -200,16 +143,10 @@ class TrafficGenAdapter(TrafficModelAdapter):
         agents = context.controlled & context.valid[:, :, now]
         uniform = torch.rand(b, s, a, generator=generator).to(context.device)
         noise = torch.randn(b, s, a, h, 2, generator=generator).to(context.device)
-        explore = self._exploration()
-        offset = torch.randn(b, s, a, generator=generator).to(context.device) * explore if explore else None
         with torch.no_grad():
             out, state_now = self._forecast(context, agents)
             mode, actions = Forecaster.draw(out, uniform.transpose(1, 2)[agents], noise.transpose(1, 2)[agents])
-            if offset is not None:
-                actions[..., 1] += offset.transpose(1, 2)[agents][..., None]
-                log_prob = _explored_log_density(out, actions, explore, mode)
-            else:
-                log_prob = Forecaster.log_density(out, mode, actions)
+            log_prob = Forecaster.log_density(out, mode, actions)
             futures = self._futures(state_now, actions)
         dev = context.device
         trace = PolicyTrace(
@@ -239,12 +176,7 @@ class TrafficGenAdapter(TrafficModelAdapter):
         actions = trace.tensors["actions"].transpose(1, 2)[agents]  # (N, S, H, 2)
         b, s, a = trace.tensors["mode"].shape
         out, _ = self._forecast(context, agents)
-        explore = self._exploration()
-        if explore:
-            rows = _explored_log_density(out, actions, explore, None if marginal else mode)
-        else:
-            rows = (Forecaster.mixture_log_density(out, actions) if marginal
-                    else Forecaster.log_density(out, mode, actions))
+        rows = Forecaster.mixture_log_density(out, actions) if marginal else Forecaster.log_density(out, mode, actions)
         return self._scatter(rows, agents, torch.zeros(b, a, s, device=context.device))
 
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
@@ -281,8 +213,7 @@ class TrafficGenAdapter(TrafficModelAdapter):
         """With guidance (or ``greedy_plan=False``): the base class (best of ``plan_samples`` samples under the
         guidance loss, or one sample). Otherwise the mean actions of each agent's most likely mode, rolled out."""
         if self.guidance is not None or not self.options.greedy_plan:
-            with self._no_exploration():  # closed-loop runs drive the forecaster's own density
-                return super().plan(context, horizon)
+            return super().plan(context, horizon)
         context = context.to(self.options.device)
         self._check_dt(context)
         agents = context.controlled & context.valid[:, :, context.current_index]
