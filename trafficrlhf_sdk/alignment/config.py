@@ -35,8 +35,7 @@ class AlignConfig(BaseModel):
 
     One *epoch* = a rollout phase (``contexts_per_epoch`` contexts, ``samples_per_context`` futures each, scored
     by the reward model) followed by ``ppo_epochs`` passes of minibatch updates over those samples. The loss of a
-    minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL`` (+ the passing anchor and the
-    best-sample imitation).
+    minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL`` (+ the passing anchor).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -46,10 +45,6 @@ class AlignConfig(BaseModel):
                                                 "TrafficGen 0.3).")
     imitation_coef: float = Field(1.0, ge=0, description="Weight of the model's own imitation loss, the paper's r "
                                   "(0 disables it).")
-    best_sample_coef: float = Field(0.0, ge=0, description="Weight of the model's own imitation loss on each "
-                                    "context's best sample: every sampled agent whose samples' advantages differ "
-                                    "imitates its highest-advantage sample from the context's history "
-                                    "(reward-ranked fine-tuning). 0 disables it.")
     kl_coef: float = Field(0.0, ge=0, description="Weight of the k3 KL estimate to the frozen starting model "
                                                   "(0: no reference model is kept).")
     passing_anchor_coef: float = Field(0.0, ge=0, description="With credit='agent': agents none of whose samples "

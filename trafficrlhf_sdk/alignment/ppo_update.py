@@ -36,7 +36,6 @@ class SampledEpoch:
     advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
     passing: torch.Tensor | None = None  # (B, A) sampled agents none of whose samples fails (passing_anchor_coef)
-    best: ScenarioTensor | None = None  # each context with its agents' best samples as the future (best_sample_coef)
 
 
 def derived_seed(*parts: Any) -> int:
@@ -121,8 +120,7 @@ class PPOUpdate:
         if self.reference is not None and (cfg.kl_coef > 0 or passing is not None):
             ref = self._log_probs(self.reference, rollout.contexts, rollout.trace, first)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
-                                                         "clip_fraction", "kl_ref", "grad_norm", "passing_kl",
-                                                         "best_sample_loss")}
+                                                         "clip_fraction", "kl_ref", "grad_norm", "passing_kl")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -148,11 +146,6 @@ class PPOUpdate:
                     imitation = self.model.imitation_loss(rollout.logged[idx])
                     loss = loss + cfg.imitation_coef * imitation
                     stats["imitation_loss"].append(float(imitation.detach()))
-                if cfg.best_sample_coef > 0 and rollout.best is not None:
-                    torch.manual_seed(derived_seed(cfg.seed, epoch, "best-sample", p, j))
-                    best = self.model.imitation_loss(rollout.best[idx])
-                    loss = loss + cfg.best_sample_coef * best
-                    stats["best_sample_loss"].append(float(best.detach()))
                 if ref is not None:
                     closed = self.model.transition_kl(ctx, trace, self.reference)
                     if closed is not None:  # exact per-step KL (diffusion models): finite, 0 at the start

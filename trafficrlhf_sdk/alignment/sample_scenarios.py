@@ -48,17 +48,3 @@ class SampleScenarios:
         """``B * S`` scenarios (context-major): each context's history, then sample ``s``'s future for the
         sampled ``agents (B, A)`` and the logged future for every other agent; cut to the reward window."""
         return self._scenarios(contexts, *self._future_states(contexts, futures, agents))
-
-    def best_sample_windows(self, contexts: ScenarioTensor, futures: torch.Tensor, agents: torch.Tensor,
-                            advantages: torch.Tensor) -> ScenarioTensor:
-        """Each context with, as the future of every sampled agent whose samples' ``advantages`` (``(B, S, A)``,
-        or ``(B, S)`` shared by the agents) differ, its highest-advantage sample; every other agent's future is
-        marked invalid, so the imitation loss learns only the chosen samples (reward-ranked fine-tuning)."""
-        states, valid = self._future_states(contexts, futures, agents)  # (B, S, A, H, 4), (B, S, A, H)
-        adv = advantages if advantages.dim() == 3 else advantages[:, :, None].expand(-1, -1, agents.shape[1])
-        best = adv.argmax(1)  # (B, A)
-        chosen = agents & (adv.amax(1) - adv.amin(1) > 1e-6)
-        pick = best[:, None, :, None]
-        best_valid = valid.gather(1, pick.expand(-1, 1, -1, valid.shape[-1]))[:, 0] & chosen[..., None]
-        best_states = states.gather(1, pick[..., None].expand(-1, 1, -1, *states.shape[3:]))[:, 0]
-        return contexts.with_future(best_states * best_valid[..., None], best_valid)

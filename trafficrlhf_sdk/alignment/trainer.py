@@ -240,11 +240,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
             if self.pace is not None:
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(b, -1, contexts.num_agents)
                 adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1, torch.ones_like(adv))
-        best = None
-        if self.config.best_sample_coef > 0:
-            best = self.best_sample_windows(contexts, out.futures, trace.agents, adv)
         self.last_heldout = self._monitor_scores()
-        return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing, best)
+        return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
 
     def _monitor_scores(self) -> dict[str, float]:
         """The held-out judgments of the current policy on a fixed set of contexts (drawn once, see
