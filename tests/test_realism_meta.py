@@ -249,6 +249,20 @@ def test_log_ceiling_and_order(val_scenes) -> None:  # type: ignore[no-untyped-d
     assert 0 < cv_value["realism_meta"] < 1
 
 
+@pytest.mark.data
+def test_the_ceiling_from_the_logs_own_features_equals_scoring_k_logged_copies(val_scenes) -> None:  # type: ignore[no-untyped-def]
+    scenes = val_scenes[:4]
+    log = log_rollout(scenes)
+    cv = [simulate(ConstantVelocityPolicy(), scenes)] * 2 + [log]
+    metric = RealismMetaMetric(RealismMetaConfig(rollouts=3))
+    result, ceiling = metric.compute_with_ceiling(stack(cv))
+    alone, copies = metric.compute(stack(cv)), metric.compute(stack([log] * 3))
+    assert result.values == alone.values and ceiling.values == copies.values
+    for key, value in copies.per_scene.items():
+        assert torch.equal(ceiling.per_scene[key].nan_to_num(-1.0), value.nan_to_num(-1.0)), key
+    assert ceiling.values["realism_meta"] > result.values["realism_meta"]
+
+
 def test_config_rejects_unknown_feature() -> None:
     with pytest.raises(ValueError, match="unknown feature"):
         RealismMetaConfig(features={"traffic_light_violation": META_FEATURES["offroad_indication"]})

@@ -228,13 +228,11 @@ def evaluate_policy(
         if meta.config.rollouts != k:
             raise ValueError(f"config.meta.rollouts={meta.config.rollouts} differs from config.rollouts={k}; set "
                              "them equal (or leave `meta` None).")
-        result = meta.compute(rollout)
+        result, ceiling = meta.compute_with_ceiling(rollout)  # the ceiling: the log against K copies of itself
         values.update(result.values)
         per_scene.update({key: [None if x != x else float(x) for x in v.tolist()]
                           for key, v in result.per_scene.items()})
-        repeated = reference.logged[torch.arange(b).repeat(k)]
-        logged_values.update(meta.compute(Rollout(repeated, repeated, reference.controlled.repeat(k, 1),
-                                                  reference.start_index, reference.end_index)).values)
+        logged_values.update(ceiling.values)
     info = {"torch_threads": torch.get_num_threads(), "machine": platform.machine(), "seed": config.seed,
             "rollouts": k}
     if execution is not None and execution.uses_ray:

@@ -29,7 +29,7 @@ from trafficrlhf_sdk.simulation.dynamics import wrap_angle
 from trafficrlhf_sdk.simulation.simulator import Rollout
 
 __all__ = ["META_FEATURES", "MetaFeature", "RealismMetaConfig", "RealismMetaMetric", "meta_features",
-           "rounded_box_distance", "signed_road_edge_distance"]
+           "road_edge_features", "rounded_box_distance", "signed_road_edge_distance"]
 
 MAX_TTC_S = 5.0
 CORNER_ROUNDING = 0.7
@@ -282,19 +282,30 @@ def meta_features(xy: torch.Tensor, yaw: torch.Tensor, valid: torch.Tensor, exte
     values["time_to_collision"] = ttc
     masks["time_to_collision"] = valid & (agent_type == AgentType.VEHICLE)[..., None]
     if scene_map is not None and "drivable" in getattr(scene_map, "layers", ()):
-        scene_of, agent_of, step_of = (valid & eval_agents[..., None]).nonzero(as_tuple=True)
-        edge = torch.full((n, a, t), -FAR, dtype=torch.float64)
-        if scene_of.numel():
-            corners = box_corners(xy[scene_of, agent_of, step_of], yaw[scene_of, agent_of, step_of],
-                                  extent[scene_of, agent_of].double())  # (M, 4, 2)
-            per_corner = signed_road_edge_distance(scene_map, corners.reshape(-1, 2), scene_of.repeat_interleave(4),
-                                                    edge_cache)
-            edge[scene_of, agent_of, step_of] = per_corner.reshape(-1, 4).amax(-1)
-        values["distance_to_road_edge"] = edge
-        masks["distance_to_road_edge"] = valid
-        values["offroad_indication"] = (edge > 0).double()
-        masks["offroad_indication"] = valid
+        edge_values, edge_masks = road_edge_features(xy, yaw, valid, extent, eval_agents, scene_map, edge_cache)
+        values.update(edge_values)
+        masks.update(edge_masks)
     return ({k: v[:, :, first:] for k, v in values.items()}, {k: m[:, :, first:] for k, m in masks.items()})
+
+
+def road_edge_features(xy: torch.Tensor, yaw: torch.Tensor, valid: torch.Tensor, extent: torch.Tensor,
+                       eval_agents: torch.Tensor, scene_map: object, edge_cache: dict | None = None
+                       ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """``distance_to_road_edge`` (the largest signed distance of the box's four corners; ``-FAR`` where not
+    scored) and ``offroad_indication`` of the evaluated agents, ``(N, A, T)`` each with its validity, for the
+    shapes of :func:`meta_features` (every step, history included). One call reads each map row's distance
+    transform once, so callers that chunk the pairwise features pass every scene here at once."""
+    n, a, t = valid.shape
+    scene_of, agent_of, step_of = (valid & eval_agents[..., None]).nonzero(as_tuple=True)
+    edge = torch.full((n, a, t), -FAR, dtype=torch.float64)
+    if scene_of.numel():
+        corners = box_corners(xy[scene_of, agent_of, step_of].double(), yaw[scene_of, agent_of, step_of].double(),
+                              extent[scene_of, agent_of].double())  # (M, 4, 2)
+        per_corner = signed_road_edge_distance(scene_map, corners.reshape(-1, 2), scene_of.repeat_interleave(4),
+                                                edge_cache)
+        edge[scene_of, agent_of, step_of] = per_corner.reshape(-1, 4).amax(-1)
+    return {"distance_to_road_edge": edge, "offroad_indication": (edge > 0).double()}, \
+        {"distance_to_road_edge": valid, "offroad_indication": valid}
 
 
 def _bin(values: torch.Tensor, feature: MetaFeature) -> torch.Tensor:
@@ -350,6 +361,16 @@ class RealismMetaMetric(Metric):
 
     def compute(self, rollout: Rollout) -> MetricResult:
         """Score ``rollout`` (K·B scenes, rollout-major); see the class docstring."""
+        return self._compute(rollout, ceiling=False)[0]
+
+    def compute_with_ceiling(self, rollout: Rollout) -> tuple[MetricResult, MetricResult]:
+        """:meth:`compute` of ``rollout`` and of the log scored against K copies of itself (the ceiling at this
+        K), featurizing the logged scenes once: equal to ``compute`` of a rollout of K logged copies."""
+        sim, ceiling = self._compute(rollout, ceiling=True)
+        assert ceiling is not None
+        return sim, ceiling
+
+    def _compute(self, rollout: Rollout, ceiling: bool) -> tuple[MetricResult, MetricResult | None]:
         k = self.config.rollouts
         total = rollout.simulated.num_scenes
         if total % k:
@@ -368,12 +389,26 @@ class RealismMetaMetric(Metric):
         steps = torch.arange(first_step, rollout.end_index + 1, stride)
         first = int((steps <= start).sum())
         eval_agents = rollout.controlled[:b]
-        scores: dict[str, torch.Tensor] = {}
-        features = self.config.features
         cache: dict = {}
         sim_values, sim_masks = self._features(sim, steps, first, eval_agents.repeat(k, 1), cache)
         log_values, log_masks = self._features(log[:b], steps, first, eval_agents, cache)
-        for name, feature in features.items():
+        extras = {"rollouts": k, "native_stride": stride}
+        result = MetricResult(*self._score(sim_values, sim_masks, log_values, log_masks, eval_agents, k), extras)
+        if not ceiling:
+            return result, None
+        # the log's own features stand for each of its K copies (features are per scene)
+        tiled_values = {key: v.repeat(k, *([1] * (v.dim() - 1))) for key, v in log_values.items()}
+        tiled_masks = {key: m.repeat(k, *([1] * (m.dim() - 1))) for key, m in log_masks.items()}
+        own = MetricResult(*self._score(tiled_values, tiled_masks, log_values, log_masks, eval_agents, k), extras)
+        return result, own
+
+    def _score(self, sim_values: dict[str, torch.Tensor], sim_masks: dict[str, torch.Tensor],
+               log_values: dict[str, torch.Tensor], log_masks: dict[str, torch.Tensor], eval_agents: torch.Tensor,
+               k: int) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
+        """Values and per-scene scores of K·B simulated scenes' features against the B logged scenes'."""
+        b = eval_agents.shape[0]
+        scores: dict[str, torch.Tensor] = {}
+        for name, feature in self.config.features.items():
             if name not in log_values:
                 continue
             sv = sim_values[name].reshape(k, b, *sim_values[name].shape[1:])
@@ -398,7 +433,7 @@ class RealismMetaMetric(Metric):
                 scored = eval_agents.repeat(k, 1) & sim_masks[flag].any(-1)
                 ever = ((sim_values[flag] > 0) & sim_masks[flag]).any(-1) & scored
                 values[f"realism_meta_{key}"] = float(ever.sum() / scored.sum().clamp_min(1))
-        return MetricResult(values=values, per_scene=per_scene, extras={"rollouts": k, "native_stride": stride})
+        return values, per_scene
 
     def _features(self, scenario: ScenarioTensor, steps: torch.Tensor, first: int, eval_agents: torch.Tensor,
                   cache: dict) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
@@ -410,14 +445,19 @@ class RealismMetaMetric(Metric):
         step_s = float(steps[1] - steps[0]) * scenario.dt if len(steps) > 1 else scenario.dt
         values: dict[str, list[torch.Tensor]] = {}
         masks: dict[str, list[torch.Tensor]] = {}
-        for lo in range(0, n, chunk):
+        for lo in range(0, n, chunk):  # the pairwise features, in chunks of scenes
             part = slice(lo, min(n, lo + chunk))
-            scene_map = None if scenario.map is None else scenario.map.index(part)
             v, m = meta_features(states[part, :, :, :2], states[part, :, :, 3], valid[part], scenario.extent[part],
-                                 scenario.agent_type[part], eval_agents[part], step_s, first, scene_map, cache)
+                                 scenario.agent_type[part], eval_agents[part], step_s, first)
             for key in v:
                 values.setdefault(key, []).append(v[key])
                 masks.setdefault(key, []).append(m[key])
+        if scenario.map is not None and "drivable" in scenario.map.layers:  # the road edge: all scenes at once
+            v, m = road_edge_features(states[..., :2].double(), states[..., 3].double(), valid, scenario.extent,
+                                      eval_agents, scenario.map, cache)
+            for key in v:
+                values[key] = [v[key][:, :, first:]]
+                masks[key] = [m[key][:, :, first:]]
         return {k: torch.cat(v) for k, v in values.items()}, {k: torch.cat(m) for k, m in masks.items()}
 
     def _combine(self, scores: Mapping[str, torch.Tensor], b: int) -> torch.Tensor:
