@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import torch
 
 from trafficrlhf_sdk.metrics.realism_meta import (
@@ -297,3 +299,45 @@ def test_cli_rollouts_write_the_meta_metric_and_compare_pairs_it(tmp_path, data_
                                                                                          "rollouts": 4}}))
     with pytest.raises(DataFormatError, match="equal --rollouts"):
         meta_metric_table([str(tmp_path / "log"), str(tmp_path / "cv1")])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([1.0, 2.0, 3.0]), st.sampled_from(["blobs", "all", "none"]))
+def test_signed_road_edge_distance_equals_scipys_distance_transforms(seed: int, scale: float, kind: str) -> None:
+    """Against the distance transforms of the whole layer and of its complement (scipy), read at each point's
+    pixel: exactly equal within the 40 m the meta-metric uses, the same sign everywhere, and points off the raster
+    at least 1/3 m off the road."""
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    from trafficrlhf_sdk.metrics.realism_meta import signed_road_edge_distance
+    from trafficrlhf_sdk.scenario.map import MapRaster
+
+    rng = np.random.default_rng(seed)
+    sizes = [(int(rng.integers(20, 90)), int(rng.integers(20, 90))) for _ in range(2)]
+    rows = []
+    for h, w in sizes:
+        if kind == "blobs":
+            layer = gaussian_filter(rng.standard_normal((h, w)), 3) > 0
+        else:
+            layer = np.full((h, w), kind == "all")
+        raster = np.zeros((1, 90, 90), dtype=np.uint8)
+        raster[0, :h, :w] = layer
+        rows.append(raster)
+    w2p = torch.tensor([[scale, 0.0, 0.0], [0.0, scale, 0.0], [0.0, 0.0, 1.0]]).repeat(2, 1, 1)
+    scene_map = MapRaster(raster=torch.from_numpy(np.stack(rows)), world_to_pixel=w2p,
+                          sizes=torch.tensor(sizes), layers=("drivable",))
+    points = torch.from_numpy(rng.uniform(-5, 95 / scale, (300, 2)))
+    scene = torch.from_numpy(rng.integers(0, 2, 300))
+    got = signed_road_edge_distance(scene_map, points, scene)
+    for n in range(300):
+        h, w = sizes[int(scene[n])]
+        layer = rows[int(scene[n])][0, :h, :w] > 0
+        signed = (torch.from_numpy(distance_transform_edt(~layer) - distance_transform_edt(layer)).float()
+                  / scale).double()
+        i, j = math.floor(float(points[n, 0]) * scale), math.floor(float(points[n, 1]) * scale)
+        inside = 0 <= i < h and 0 <= j < w
+        value = float(signed[min(max(i, 0), h - 1), min(max(j, 0), w - 1)])
+        if layer.all() or not layer.any():  # no pixel of the other kind: beyond every histogram's range
+            value = 41.0 if not layer.any() else -41.0
+        expected = value if inside else max(value, 1 / 3)
+        assert float(got[n]) == expected, (n, float(got[n]), expected)

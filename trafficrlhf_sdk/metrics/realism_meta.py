@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import Any
 
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -154,7 +156,25 @@ def rounded_box_distance(xy_a: torch.Tensor, yaw_a: torch.Tensor, ext_a: torch.T
     return torch.where(gap > 0, apart, gap) - shrink_a - shrink_b
 
 
-EDGE_MARGIN_M = 41.0  # beyond the histogram range [-20, 40] m: a crop this much larger than the points is exact
+EDGE_FAR_M = 41.0  # beyond the histogram range [-20, 40] m: where a layer has no pixel of the other kind
+
+
+def _edge_trees(layer: np.ndarray) -> tuple[Any, Any]:
+    """KD-trees of the boundary pixels of a boolean layer: drivable pixels with a 4-neighbour off it, and
+    off-road pixels with a 4-neighbour on it (None where there are none). The pixel of one kind nearest to a
+    pixel of the other is always such a boundary pixel: a step from it toward the query along the larger axis
+    would be closer, so that neighbour is of the query's kind."""
+    from scipy.spatial import cKDTree
+
+    padded = np.pad(layer, 1, mode="edge")
+    centre = padded[1:-1, 1:-1]
+    differs = np.zeros_like(layer)
+    for di, dj in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        differs |= padded[di : di + layer.shape[0], dj : dj + layer.shape[1]] != centre
+    boundary = np.argwhere(differs)
+    kind = layer[boundary[:, 0], boundary[:, 1]]
+    on, off = boundary[kind], boundary[~kind]
+    return (cKDTree(on) if len(on) else None), (cKDTree(off) if len(off) else None)
 
 
 def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene: torch.Tensor,
@@ -162,14 +182,13 @@ def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene:
     """Signed distance (m) of points to the edge of the drivable layer: positive off it, negative on it.
 
     ``rollout_map``: a :class:`~trafficrlhf_sdk.scenario.MapRaster` with a ``drivable`` layer; ``corners``
-    ``(N, 2)`` scene-frame points in scenes ``scene (N,)``. The distance is read at each point's pixel from the
-    Euclidean distance transforms of the layer and of its complement (pixel-centre precision, 1/scale m),
-    computed on a crop around the points: exact up to ``EDGE_MARGIN_M`` (41 m), beyond which it is at least
-    that (the meta-metric clips at 40 m). Points outside the raster count as off the road. ``cache``: a dict kept
-    across calls on the same map (cropped distance maps by raster row).
+    ``(N, 2)`` scene-frame points in scenes ``scene (N,)``. The distance is the Euclidean one from each point's
+    pixel centre to the nearest pixel centre of the other kind in the raster (the value the distance transforms of
+    the layer and of its complement hold there; pixel-centre precision, 1/scale m), found among the layer's
+    boundary pixels with a KD-tree; a raster with no pixel of the other kind gives ``EDGE_FAR_M`` (41 m, beyond the
+    meta-metric's 40 m clip). Points outside the raster count as off the road. ``cache``: a dict kept across calls
+    on the same map (the trees by raster row).
     """
-    from scipy.ndimage import distance_transform_edt
-
     drivable_index = rollout_map.layers.index("drivable")  # type: ignore[attr-defined]
     rows = rollout_map.scene_rows()  # type: ignore[attr-defined]
     m = rollout_map.world_to_pixel.to(torch.float64)[scene]  # type: ignore[attr-defined]
@@ -181,34 +200,23 @@ def signed_road_edge_distance(rollout_map: object, corners: torch.Tensor, scene:
     j = torch.minimum(ij[:, 1].clamp_min(0), size[:, 1] - 1)
     out = torch.zeros(len(scene), dtype=torch.float64)
     cache = {} if cache is None else cache
-    for row in point_rows.unique().tolist():
-        picked = (point_rows == row).nonzero().squeeze(-1)
+    order = torch.argsort(point_rows, stable=True)
+    found, counts = torch.unique_consecutive(point_rows[order], return_counts=True)
+    for row, picked in zip(found.tolist(), torch.split(order, counts.tolist()), strict=True):
         scale = float(rollout_map.world_to_pixel[int(scene[picked[0]]), 0, 0].abs())  # type: ignore[attr-defined]
-        pad = math.ceil(EDGE_MARGIN_M * scale)
-        lo = (int(i[picked].min()), int(j[picked].min()))
-        hi = (int(i[picked].max()) + 1, int(j[picked].max()) + 1)
-        raster = rollout_map.row_raster(row)  # type: ignore[attr-defined]
-        h, w = raster.shape[-2:]
         key = (id(rollout_map.pixels), row)  # type: ignore[attr-defined]
-        entry = cache.get(key)
-        if entry is None or not (entry[0][0] <= lo[0] and entry[0][1] <= lo[1] and hi[0] <= entry[1][0]
-                                 and hi[1] <= entry[1][1]):
-            if entry is not None:  # grow the cached window to cover these points too
-                lo = (min(lo[0], entry[0][0]), min(lo[1], entry[0][1]))
-                hi = (max(hi[0], entry[1][0]), max(hi[1], entry[1][1]))
-            top, left = max(lo[0] - pad, 0), max(lo[1] - pad, 0)
-            bottom, right = min(hi[0] + pad, h), min(hi[1] + pad, w)
-            layer = raster[drivable_index, top:bottom, left:right].numpy() > 0
-            if layer.all():
-                signed = torch.full(layer.shape, -EDGE_MARGIN_M)
-            elif not layer.any():
-                signed = torch.full(layer.shape, EDGE_MARGIN_M)
-            else:
-                signed = torch.from_numpy(distance_transform_edt(~layer) - distance_transform_edt(layer)).float()
-                signed = signed / scale
-            entry = cache[key] = (lo, hi, (top, left), signed)
-        top, left = entry[2]
-        out[picked] = entry[3][i[picked] - top, j[picked] - left].double()
+        if key not in cache:
+            layer = rollout_map.row_raster(row)[drivable_index].numpy() > 0  # type: ignore[attr-defined]
+            cache[key] = (layer, *_edge_trees(layer))
+        layer, on_tree, off_tree = cache[key]
+        pixels = np.stack([i[picked].numpy(), j[picked].numpy()], -1)
+        on_road = layer[pixels[:, 0], pixels[:, 1]]
+        values = np.empty(len(pixels), dtype=np.float32)
+        for kind, tree, sign in ((on_road, off_tree, -1.0), (~on_road, on_tree, 1.0)):
+            if kind.any():  # pixels, in float32 like a distance transform's map, then metres
+                values[kind] = (np.float32(sign) * tree.query(pixels[kind])[0].astype(np.float32)
+                                / np.float32(scale)) if tree is not None else sign * EDGE_FAR_M
+        out[picked] = torch.from_numpy(values).double()
     return torch.where(inside, out, out.clamp_min(1.0 / 3.0))
 
 
