@@ -1,13 +1,16 @@
 """End-to-end evaluation: constant velocity on the first 100 long-enough nuscenes_pred val scenes, 10 s closed
 loop at 2 Hz, every registered default metric for the policy and for the logged data (``evaluate_policy``).
 
-Loading is timed separately; the evaluation is repeated and the median wall time reported.
+Loading is timed separately; the evaluation is repeated and the median wall time reported. With ``--rollouts K``
+every scene is simulated K times and the realism meta-metric is added (for the policy and, as its ceiling, for
+the log against K copies of itself): constant velocity costs next to nothing, so the time is the metrics'.
 
-Run: .venv/bin/python benchmarks/bench_evaluate.py  [--threads N]
+Run: .venv/bin/python benchmarks/bench_evaluate.py  [--threads N] [--rollouts K]
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 
 from _common import header, load_val, peak_rss_mb, timed
@@ -17,10 +20,14 @@ from trafficrlhf_sdk.simulation import ConstantVelocityPolicy
 
 
 def main() -> None:
-    header("evaluate_policy(constant_velocity) on 100 val scenes")
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (see _common.configure_threads)")
+    parser.add_argument("--rollouts", type=int, default=1, help="rollouts per scene (K >= 2 adds the meta-metric)")
+    args = parser.parse_args()
+    header(f"evaluate_policy(constant_velocity) on 100 val scenes, {args.rollouts} rollout(s) each")
     batch, load_s = load_val(100)
     print(f"   load   {load_s:.2f} s for {batch.num_scenes} scenes (separate from the evaluation)")
-    config = EvaluationConfig()
+    config = EvaluationConfig(rollouts=args.rollouts)
     median, best, report = timed(lambda: evaluate_policy(ConstantVelocityPolicy(), batch, config), repeats=3)
     print(f"   evaluate_policy wall time {median:.2f} s median of 3 (min {best:.2f}); closed loop "
           f"{report.simulation_time_s:.3f} s; batch_size {config.batch_size}; metrics {', '.join(config.metrics)}")
