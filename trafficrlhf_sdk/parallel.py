@@ -117,14 +117,21 @@ class _Worker:
 
 
 _IDLE: dict[str, list[tuple[int, Any]]] = {}
-"""Workers between calls, per Ray job (a new ``ray.init`` starts a new job): ``(threads, actor)``."""
+"""Workers between calls, per Ray session (:func:`_session`): ``(threads, actor)``."""
+
+
+def _session(ray: Any) -> str:
+    """This driver's Ray session: its node and job. A job id alone repeats when a new local Ray is started after
+    a shutdown (its first job is again job 1), and the idle workers of the old one are gone."""
+    context = ray.get_runtime_context()
+    return f"{context.get_node_id()}/{context.get_job_id()}"
 
 
 def _take_workers(ray: Any, count: int, threads: int) -> list[Any]:
     """``count`` workers with ``threads`` torch threads: idle ones of this Ray job first, then new ones. Before
     new ones start, the other idle workers are let go, so they do not hold CPUs the new ones need; otherwise they
     stay idle for a later call."""
-    job = ray.get_runtime_context().get_job_id()
+    job = _session(ray)
     for other in [key for key in _IDLE if key != job]:  # handles of an earlier Ray session (shut down since)
         del _IDLE[other]
     idle = _IDLE.pop(job, [])
@@ -172,7 +179,7 @@ def iter_tasks(fn: Callable[[Any, Any], T], shared: Any, tasks: Sequence[Any],
         yield from _in_task_order(ray, actors, list(tasks))
         for worker in actors:  # back to the session without the payload (only after every result was read)
             worker.load.remote(None, None)
-        _IDLE.setdefault(ray.get_runtime_context().get_job_id(), []).extend((threads, a) for a in actors)
+        _IDLE.setdefault(_session(ray), []).extend((threads, a) for a in actors)
 
 
 def _in_task_order(ray: Any, actors: Sequence[Any], tasks: Sequence[Any]) -> Iterator[Any]:
