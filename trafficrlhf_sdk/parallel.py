@@ -128,18 +128,18 @@ def _session(ray: Any) -> str:
 
 
 def _take_workers(ray: Any, count: int, threads: int) -> list[Any]:
-    """``count`` workers with ``threads`` torch threads: idle ones of this Ray job first, then new ones. Before
+    """``count`` workers with ``threads`` torch threads: idle ones of this Ray session first, then new ones. Before
     new ones start, the other idle workers are let go, so they do not hold CPUs the new ones need; otherwise they
     stay idle for a later call."""
-    job = _session(ray)
-    for other in [key for key in _IDLE if key != job]:  # handles of an earlier Ray session (shut down since)
+    session = _session(ray)
+    for other in [key for key in _IDLE if key != session]:  # handles of an earlier Ray session (shut down since)
         del _IDLE[other]
-    idle = _IDLE.pop(job, [])
+    idle = _IDLE.pop(session, [])
     mine = [i for i, (t, _) in enumerate(idle) if t == threads][:count]
     taken = [idle[i][1] for i in mine]
     rest = [entry for i, entry in enumerate(idle) if i not in mine]
     if len(taken) == count:
-        _IDLE[job] = rest
+        _IDLE[session] = rest
         return taken
     for _, actor in rest:
         ray.kill(actor)

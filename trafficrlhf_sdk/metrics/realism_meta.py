@@ -301,8 +301,8 @@ def road_edge_features(xy: torch.Tensor, yaw: torch.Tensor, valid: torch.Tensor,
                        ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """``distance_to_road_edge`` (the largest signed distance of the box's four corners; ``-FAR`` where not
     scored) and ``offroad_indication`` of the evaluated agents, ``(N, A, T)`` each with its validity, for the
-    shapes of :func:`meta_features` (every step, history included). One call reads each map row's distance
-    transform once, so callers that chunk the pairwise features pass every scene here at once."""
+    shapes of :func:`meta_features` (every step, history included). One call builds each map row's boundary
+    trees once, so callers that chunk the pairwise features pass every scene here at once."""
     n, a, t = valid.shape
     scene_of, agent_of, step_of = (valid & eval_agents[..., None]).nonzero(as_tuple=True)
     edge = torch.full((n, a, t), -FAR, dtype=torch.float64)
