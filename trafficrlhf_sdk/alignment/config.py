@@ -51,6 +51,11 @@ class AlignConfig(BaseModel):
                                        "in a context collides or leaves the road get advantage 0 and this weight "
                                        "times the KL to the starting model on their samples, so the surrogate "
                                        "moves only agents with a failing sample. 0 disables it.")
+    choice_coef: float = Field(0.0, ge=0, description="With credit='agent', for adapters that offer "
+                               "choice_futures (a mixture's modes): every agent's C discrete choices are scored by "
+                               "the reward model at each context, and this weight times the exact expected "
+                               "advantage over the choices, sum_c pi_c A_c, is added to the objective (the "
+                               "advantages normalized over the choices). 0 disables it.")
     pace_tolerance: float | None = Field(None, gt=0, lt=1, description="Constrain the pace (PPO-Lagrangian, "
                                          "trafficrlhf_sdk.alignment.pace): keep the closed-loop speed / logged "
                                          "speed on fixed held-out scenes within this fraction of the starting "
@@ -140,6 +145,9 @@ class AlignConfig(BaseModel):
         if self.passing_anchor_coef > 0 and self.credit != "agent":
             raise ValueError(f"`passing_anchor_coef` is {self.passing_anchor_coef} but `credit` is 'scene': a "
                              "passing agent is told apart from a failing one only with credit='agent'.")
+        if self.choice_coef > 0 and self.credit != "agent":
+            raise ValueError(f"`choice_coef` is {self.choice_coef} but `credit` is 'scene': each agent's choices "
+                             "are scored apart only with credit='agent'.")
         if self.groups is not None and len(self.groups) == 0:
             raise ValueError("`groups` is empty: name at least one parameter group, or pass None for all.")
         return self

@@ -36,6 +36,7 @@ class SampledEpoch:
     advantages: torch.Tensor  # (B, S), or (B, S, A) with credit="agent"
     sample_log_prob: torch.Tensor  # as returned by adapter.sample
     passing: torch.Tensor | None = None  # (B, A) sampled agents none of whose samples fails (passing_anchor_coef)
+    choice_advantages: torch.Tensor | None = None  # (B, C, A) advantages of every discrete choice (choice_coef)
 
 
 def derived_seed(*parts: Any) -> int:
@@ -120,7 +121,8 @@ class PPOUpdate:
         if self.reference is not None and (cfg.kl_coef > 0 or passing is not None):
             ref = self._log_probs(self.reference, rollout.contexts, rollout.trace, first)
         stats: dict[str, list[float]] = {k: [] for k in ("loss", "imitation_loss", "surrogate", "approx_kl",
-                                                         "clip_fraction", "kl_ref", "grad_norm", "passing_kl")}
+                                                         "clip_fraction", "kl_ref", "grad_norm", "passing_kl",
+                                                         "choice_objective")}
         first_dev = float("nan")
         stopped = 0.0
         updates = skipped = 0
@@ -141,6 +143,14 @@ class PPOUpdate:
                 clipped = torch.clamp(ratio, 1 - cfg.clip_range, 1 + cfg.clip_range)
                 surrogate = _masked_mean(torch.minimum(ratio * adv, clipped * adv), mask)
                 loss = -cfg.alpha * surrogate
+                if rollout.choice_advantages is not None:
+                    # the exact expected advantage over each agent's choices: its gradient moves the choice
+                    # probabilities of every agent by every choice's advantage, with no sampled-choice variance
+                    choice_prob = self.model.choice_log_prob(ctx).exp()
+                    expected = (choice_prob * rollout.choice_advantages[idx]).sum(1)  # (b, A)
+                    choice_objective = _masked_mean(expected, trace.agents)
+                    loss = loss - cfg.choice_coef * choice_objective
+                    stats["choice_objective"].append(float(choice_objective.detach()))
                 if cfg.imitation_coef > 0:
                     torch.manual_seed(derived_seed(cfg.seed, epoch, "imitation", p, j))
                     imitation = self.model.imitation_loss(rollout.logged[idx])

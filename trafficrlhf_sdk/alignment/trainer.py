@@ -215,25 +215,21 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         b = contexts.num_scenes
         passing = None
         scenario = self.sample_scenarios(contexts, out.futures, trace.agents)  # B * S scenarios, context-major
+        choice_adv = None
         if self.config.credit == "agent":
-            reference = None
-            if getattr(self.reward_model, "uses_log", False):
-                # the log of the same window, not the context: a failure-focused context continues with the
-                # model's own driving, which a comparison with the log must not see
-                start = max(0, contexts.current_index - REWARD_HISTORY_STEPS)
-                stop = contexts.current_index + 1 + self.reward_steps
-                reference = logged.repeat_scenes(self.config.samples_per_context).time_slice(start, stop)
-            per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, contexts.num_agents)
+            per_agent, adv = self._agent_advantages(scenario, logged, trace.agents)
             rewards = mean_over_sampled(per_agent, trace.agents)
-            sampled = trace.agents[:, None, :].expand_as(per_agent)
-            adv = self._normalize(per_agent, dim=1) * sampled.to(per_agent.dtype)
             if self.config.passing_anchor_coef > 0:
                 passing = self._passing_agents(scenario, trace.agents, self.config.samples_per_context)
                 adv = adv * (~passing)[:, None, :].to(adv.dtype)
-            if self.pace is not None:
-                speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
-                turning = logged_turning(logged)[:, None, :] if self.pace.by_turning else None
-                adv = self.pace.mix(adv, speeds, 1, sampled, turning)
+            if self.config.choice_coef > 0:
+                choices = self.model.choice_futures(contexts)
+                if choices is None:
+                    raise TrafficRLHFError(f"choice_coef is {self.config.choice_coef} but "
+                                           f"{type(self.model).__name__} offers no discrete choices "
+                                           "(choice_futures returns None); set choice_coef = 0.")
+                choice_scenario = self.sample_scenarios(contexts, choices, trace.agents)
+                choice_adv = self._agent_advantages(choice_scenario, logged, trace.agents)[1]
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
@@ -241,7 +237,29 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 speeds = sample_speeds(scenario, self.reward_steps).reshape(b, -1, contexts.num_agents)
                 adv = self.pace.mix(adv, mean_over_sampled(speeds, trace.agents), 1, torch.ones_like(adv))
         self.last_heldout = self._monitor_scores()
-        return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing)
+        return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing, choice_adv)
+
+    def _agent_advantages(self, scenario: ScenarioTensor, logged: ScenarioTensor,
+                          agents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-agent rewards ``(B, R, A)`` of the ``B * R`` scenarios (context-major) for the sampled ``agents
+        (B, A)`` and their advantages over the ``R`` rows of each context (0 for agents not sampled), with the
+        pace constraint's speed term mixed in."""
+        b, a = agents.shape
+        reference = None
+        if getattr(self.reward_model, "uses_log", False):
+            # the log of the same window, not the context: a failure-focused context continues with the
+            # model's own driving, which a comparison with the log must not see
+            start = max(0, logged.current_index - REWARD_HISTORY_STEPS)
+            stop = logged.current_index + 1 + self.reward_steps
+            reference = logged.repeat_scenes(scenario.num_scenes // b).time_slice(start, stop)
+        per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, a)
+        sampled = agents[:, None, :].expand_as(per_agent)
+        adv = self._normalize(per_agent, dim=1) * sampled.to(per_agent.dtype)
+        if self.pace is not None:
+            speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
+            turning = logged_turning(logged)[:, None, :] if self.pace.by_turning else None
+            adv = self.pace.mix(adv, speeds, 1, sampled, turning)
+        return per_agent, adv
 
     def _monitor_scores(self) -> dict[str, float]:
         """The held-out judgments of the current policy on a fixed set of contexts (drawn once, see

@@ -171,6 +171,19 @@ class TrafficModelAdapter(abc.ABC):
         a sample estimate from :meth:`log_prob` instead."""
         return None
 
+    def choice_futures(self, context: ScenarioTensor) -> torch.Tensor | None:
+        """For a policy that first picks one of ``C`` discrete choices per agent (a mixture's modes, a set of
+        goals) and then draws the rest: ``(B, C, A, horizon, 4)``, every choice's most likely future (e.g. a mode's
+        mean plan) for the agents :meth:`sample` draws, without gradient. The fine-tuner's ``choice_coef`` scores
+        them all and trains :meth:`choice_log_prob` on the exact expected reward over the choices. None (the
+        default): the model has no such choice."""
+        return None
+
+    def choice_log_prob(self, context: ScenarioTensor) -> torch.Tensor:
+        """``(B, C, A)`` log-probability of each choice of :meth:`choice_futures` under the current parameters
+        (0 for agents not sampled). Differentiable. Needed only where :meth:`choice_futures` is offered."""
+        raise NotImplementedError(f"{type(self).__name__} offers no discrete choices (choice_futures is None).")
+
     # ------------------------------------------------------------ policy
     def reset(self, scenario: ScenarioTensor) -> None:
         """Fit the guidance heuristics on the logged scene at the rollout start and re-seed the sampler (one

@@ -179,6 +179,26 @@ class TrafficGenAdapter(TrafficModelAdapter):
         rows = Forecaster.mixture_log_density(out, actions) if marginal else Forecaster.log_density(out, mode, actions)
         return self._scatter(rows, agents, torch.zeros(b, a, s, device=context.device))
 
+    def choice_futures(self, context: ScenarioTensor) -> torch.Tensor:
+        """``(B, M, A, 20, 4)``: each mode's mean actions rolled out, for the agents :meth:`sample` draws (the
+        others hold their pose). The modes are the forecaster's discrete choice."""
+        self._check_dt(context)
+        agents = context.controlled & context.valid[:, :, context.current_index]
+        with torch.no_grad():
+            out, state_now = self._forecast(context, agents)
+            futures = self._futures(state_now, out.mean)
+        return self._scatter(futures, agents, self._hold(context, out.mean.shape[1], self.horizon))
+
+    def choice_log_prob(self, context: ScenarioTensor) -> torch.Tensor:
+        """``(B, M, A)`` mode log-probabilities ``log pi_m`` of the agents :meth:`sample` draws (0 elsewhere).
+        Differentiable."""
+        self._check_dt(context)
+        agents = context.controlled & context.valid[:, :, context.current_index]
+        out, _ = self._forecast(context, agents)
+        m = out.log_pi.shape[1]
+        return self._scatter(out.log_pi, agents, torch.zeros(context.num_scenes, context.num_agents, m,
+                                                             device=context.device))
+
     def imitation_loss(self, batch: ScenarioTensor) -> torch.Tensor:
         """The forecaster's winner-takes-all loss on logged windows of ``batch``: every vehicle valid at ``t`` and
         over the 2 s after it, at up to ``imitation_windows`` evenly spaced keyframe steps ``t`` (from the
