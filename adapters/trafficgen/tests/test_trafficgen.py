@@ -170,6 +170,29 @@ def test_log_density_prefers_the_mode_mean(adapter, synthetic) -> None:  # type:
     assert (marginal[mask] >= joint[mask] - 1e-4).all()
 
 
+def test_choices_are_the_modes_mean_plans_with_their_probabilities(adapter, synthetic) -> None:  # type: ignore[no-untyped-def]
+    """``choice_futures`` rolls every mode's mean actions out for the sampled agents; ``choice_log_prob`` is the
+    mode distribution (summing to 1 over the modes, 0 for agents not sampled) and carries gradients."""
+    from trafficgen_reference.model import unicycle_rollout
+
+    now = synthetic.current_index
+    agents = synthetic.controlled & synthetic.valid[:, :, now]
+    futures = adapter.choice_futures(synthetic)
+    m = adapter.cfg.modes
+    assert futures.shape == (1, m, 3, adapter.horizon, 4) and not futures.requires_grad
+    with torch.no_grad():
+        out, state_now = adapter._forecast(synthetic, agents)
+    expected = unicycle_rollout(state_now[:, None].expand(-1, m, 4), out.mean, 0.1)  # (N, M, H, 4)
+    torch.testing.assert_close(futures.transpose(1, 2)[agents], expected)
+    log_prob = adapter.choice_log_prob(synthetic)
+    assert log_prob.shape == (1, m, 3) and log_prob.requires_grad
+    torch.testing.assert_close(log_prob.exp().sum(1)[agents], torch.ones(int(agents.sum())))
+    torch.testing.assert_close(log_prob.transpose(1, 2)[agents], out.log_pi)
+    log_prob.exp()[:, 0].sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.parameter_groups()["decoder"])
+    adapter.module.zero_grad(set_to_none=True)
+
+
 def test_unicycle_matches_sdk_dynamics() -> None:
     """The model's own unicycle equals the SDK's (no bounds) while the speed stays positive."""
     from trafficgen_reference.model import unicycle_rollout
@@ -230,6 +253,44 @@ def test_guidance_filters_samples(synthetic) -> None:  # type: ignore[no-untyped
     chosen = loss.argmin(1)[0]  # per agent
     for agent in range(3):
         torch.testing.assert_close(plan[0, agent], out.futures[0, int(chosen[agent]), agent])
+
+
+@needs_data
+def test_choice_coef_moves_the_modes_towards_the_better_scored_ones(adapter) -> None:  # type: ignore[no-untyped-def]
+    """With ``choice_coef`` the rollout scores every mode's plan of every sampled agent (advantages ``(B, M, A)``,
+    mean 0 over the modes, 0 for agents not sampled), and updates on that term alone raise the expected reward
+    over the modes on the same contexts (the failure reward with its margins, so that modes differ)."""
+    import copy
+
+    from trafficrlhf_nuscenes_pred import NuScenesPredSource
+    from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+    from trafficrlhf_sdk.reward.builtin import FailureReward
+
+    scenes = NuScenesPredSource(root=ROOT).load_batch("train", 6)
+    model = copy.deepcopy(adapter)
+    config = AlignConfig(alpha=0.0, imitation_coef=0.0, choice_coef=1.0, credit="agent", failure_fraction=0.0,
+                         epochs=1, contexts_per_epoch=6, samples_per_context=2, minibatch_contexts=6,
+                         ppo_epochs=8, learning_rate=1e-3, progress_bar=False)
+    trainer = AlignTrainer(model, FailureReward(margins=True), config, scenes=scenes)
+    rollout = trainer._rollout(0)
+    adv, agents = rollout.choice_advantages, rollout.trace.agents
+    b, a = agents.shape
+    assert adv is not None and adv.shape == (b, adapter.cfg.modes, a)
+    assert torch.all(adv.transpose(1, 2)[~agents] == 0)
+    torch.testing.assert_close(adv.mean(1), torch.zeros(b, a))
+    assert (adv != 0).any(), "the draw needs an agent whose modes differ"
+    choices = trainer.sample_scenarios(rollout.contexts, model.choice_futures(rollout.contexts), agents)
+    reward = FailureReward(margins=True).agent_scores(choices).reshape(adv.shape)
+
+    def expected_reward() -> float:
+        with torch.no_grad():
+            prob = model.choice_log_prob(rollout.contexts).exp()
+        return float(((prob * reward).sum(1))[agents].mean())
+
+    before = expected_reward()
+    stats = trainer._optimize(0, rollout)
+    assert stats["updates"] == 8
+    assert expected_reward() > before
 
 
 # --------------------------------------------------------------------------------------------- registry / CLI
