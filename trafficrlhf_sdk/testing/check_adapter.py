@@ -52,6 +52,29 @@ def _check_sample(adapter: TrafficModelAdapter, context: ScenarioTensor, out: An
                   "give every trace tensor the leading dims (B, S, A) so PPO can select scenes and samples")
 
 
+def _check_choices(adapter: TrafficModelAdapter, context: ScenarioTensor, choices: Any, agents: torch.Tensor) -> None:
+    b, a = context.num_scenes, context.num_agents
+    if not isinstance(choices, torch.Tensor) or choices.dim() != 5 or tuple(choices.shape[::2]) != (b, a, 4) \
+            or choices.shape[3] != adapter.horizon:
+        got = tuple(choices.shape) if isinstance(choices, torch.Tensor) else type(choices).__name__
+        _fail(adapter, f"choice_futures() returned {got}, expected (B, C, A, horizon, 4) = ({b}, C, {a}, "
+                       f"{adapter.horizon}, 4)", "return every choice's future for every agent slot, or None")
+    if not torch.isfinite(choices).all() or choices.requires_grad:
+        _fail(adapter, "choice_futures() has NaN/inf or carries gradients", "compute it under torch.no_grad()")
+    log_prob = adapter.choice_log_prob(context)
+    expected = (b, choices.shape[1], a)
+    if tuple(log_prob.shape) != expected or not torch.isfinite(log_prob).all():
+        _fail(adapter, f"choice_log_prob() has shape {tuple(log_prob.shape)} (or NaN/inf), expected {expected}",
+              "return finite (B, C, A) log-probabilities of the choices")
+    if not log_prob.requires_grad:
+        _fail(adapter, "choice_log_prob() has no gradient", "compute it from the module's parameters")
+    if (log_prob.detach().transpose(1, 2)[~agents] != 0).any():
+        _fail(adapter, "choice_log_prob() is non-zero for agents that were not sampled", "multiply by the agent mask")
+    if (log_prob.detach().exp().sum(1)[agents] > 1 + 1e-4).any():
+        _fail(adapter, "choice_log_prob() gives a sampled agent choice probabilities summing to more than 1",
+              "return normalized log-probabilities (log-softmax of the choice logits)")
+
+
 def check_adapter(
     adapter: TrafficModelAdapter,
     context: ScenarioTensor,
@@ -65,7 +88,8 @@ def check_adapter(
     from the trace equals the sampling-time value and is differentiable w.r.t. the offered parameters;
     ``imitation_loss`` is a finite differentiable scalar; a training step moves only offered parameters
     (frozen parts stay bitwise equal); ``plan`` returns finite ``(B, A, >=H, 4)`` plans; a
-    ``save_pretrained``/``from_pretrained`` round trip reproduces samples.
+    ``save_pretrained``/``from_pretrained`` round trip reproduces samples; where the adapter offers discrete choices,
+    ``choice_futures`` and ``choice_log_prob`` have the documented shapes and ``choice_log_prob`` is differentiable.
 
     Returns:
         A dict of facts found (parameter counts per group, log-prob shape), for reports.
@@ -157,6 +181,12 @@ def check_adapter(
                   "do not share tensors between offered and frozen parts")
     facts["groups_with_gradient"] = moved
     adapter.module.load_state_dict(weights_before)
+
+    # --- discrete choices (optional: mixture policies)
+    choices = adapter.choice_futures(context)
+    facts["choices"] = None if choices is None else int(choices.shape[1])
+    if choices is not None:
+        _check_choices(adapter, context, choices, out.trace.agents)
 
     # --- closed-loop planning
     adapter.reset(context)

@@ -81,6 +81,20 @@ def test_check_adapter_synthetic(adapter, synthetic) -> None:  # type: ignore[no
 
     facts = check_adapter(adapter, synthetic, check_save_load=False)
     assert facts["frozen_parameters"] > 0
+    assert facts["choices"] == adapter.cfg.modes
+
+
+@pytest.mark.parametrize("broken", ["detached", "unnormalized"])
+def test_check_adapter_catches_broken_choices(synthetic, broken) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_trafficgen import TrafficGenAdapter
+    from trafficrlhf_sdk.testing.check_adapter import AdapterCheckError, check_adapter
+
+    _checkpoint_or_skip()
+    adapter = TrafficGenAdapter(seed=0)
+    inner = adapter.choice_log_prob
+    adapter.choice_log_prob = (lambda c: inner(c).detach()) if broken == "detached" else (lambda c: inner(c) + 1.0)
+    with pytest.raises(AdapterCheckError, match="no gradient" if broken == "detached" else "more than 1"):
+        check_adapter(adapter, synthetic, check_save_load=False)
 
 
 def test_initializer_bitwise_frozen_through_training_step(adapter, synthetic) -> None:  # type: ignore[no-untyped-def]
