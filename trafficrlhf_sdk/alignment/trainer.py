@@ -231,7 +231,9 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                                            f"{type(self.model).__name__} offers no discrete choices "
                                            "(choice_futures returns None); set choice_coef = 0.")
                 choice_scenario = self.sample_scenarios(contexts, choices, trace.agents)
-                choice_adv = self._agent_advantages(choice_scenario, logged, trace.agents)[1]
+                # the reward's advantages alone: a mode's mean plan differs from the others in speed for every
+                # agent, so the pace term would rank every agent's modes by speed and drown the failures
+                choice_adv = self._agent_advantages(choice_scenario, logged, trace.agents, pace=False)[1]
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)
@@ -241,11 +243,11 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         self.last_heldout = self._monitor_scores()
         return SampledEpoch(contexts, logged, trace, rewards, adv, out.log_prob.detach(), passing, choice_adv)
 
-    def _agent_advantages(self, scenario: ScenarioTensor, logged: ScenarioTensor,
-                          agents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _agent_advantages(self, scenario: ScenarioTensor, logged: ScenarioTensor, agents: torch.Tensor,
+                          pace: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-agent rewards ``(B, R, A)`` of the ``B * R`` scenarios (context-major) for the sampled ``agents
         (B, A)`` and their advantages over the ``R`` rows of each context (0 for agents not sampled), with the
-        pace constraint's speed term mixed in."""
+        pace constraint's speed term mixed in when ``pace``."""
         b, a = agents.shape
         reference = None
         if getattr(self.reward_model, "uses_log", False):
@@ -257,7 +259,7 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         per_agent = agent_scores(self.reward_model, scenario, reference).reshape(b, -1, a)
         sampled = agents[:, None, :].expand_as(per_agent)
         adv = self._normalize(per_agent, dim=1) * sampled.to(per_agent.dtype)
-        if self.pace is not None:
+        if self.pace is not None and pace:
             speeds = sample_speeds(scenario, self.reward_steps).reshape(per_agent.shape)
             turning = logged_turning(logged)[:, None, :] if self.pace.by_turning else None
             adv = self.pace.mix(adv, speeds, 1, sampled, turning)
