@@ -404,3 +404,52 @@ def test_train_rejects_a_bad_horizon_and_a_missing_donor(tmp_path, capsys) -> No
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--init-from", str(tmp_path / "nowhere")])
     assert "--init-from" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------- road head
+def test_road_head_starts_with_zero_effect_and_saves_with_the_model(synthetic, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_trafficgen import TrafficGenAdapter
+
+    _checkpoint_or_skip()
+    base, head = TrafficGenAdapter(seed=0), TrafficGenAdapter(seed=0, road_head=True)
+    assert set(head.parameter_groups()) == {"encoder", "decoder", "road"} and "road" not in base.parameter_groups()
+    for key, value in base.module.state_dict().items():
+        assert torch.equal(value, head.module.state_dict()[key]), key
+    drawn = base.sample(synthetic, 6, None, torch.Generator().manual_seed(0))
+    again = head.sample(synthetic, 6, None, torch.Generator().manual_seed(0))
+    assert torch.equal(drawn.futures, again.futures)
+    log_prob = head.log_prob(synthetic, again.trace)
+    torch.testing.assert_close(log_prob, base.log_prob(synthetic, drawn.trace))
+    log_prob.sum().backward()
+    assert all(p.grad is not None for p in head.parameter_groups()["road"])
+    with torch.no_grad():  # a trained head: the checkpoint keeps it
+        for p in head.parameter_groups()["road"]:
+            p.add_(0.1)
+    head.save_pretrained(str(tmp_path / "road"))
+    loaded = TrafficGenAdapter.from_pretrained(str(tmp_path / "road"), seed=0)
+    assert loaded.cfg.road_head
+    torch.testing.assert_close(loaded.log_prob(synthetic, again.trace), head.log_prob(synthetic, again.trace))
+    for key, value in head.module.state_dict().items():
+        assert torch.equal(value, loaded.module.state_dict()[key]), key
+
+
+def test_road_features_read_the_drivable_area_along_each_plan() -> None:
+    from trafficgen_reference.model import Forecaster, TrafficGenConfig
+
+    cfg = TrafficGenConfig(horizon=20, road_head=True)
+    forecaster = Forecaster(cfg)
+    size = cfg.map_size
+    crop = torch.zeros(1, cfg.map_channels, size, size)
+    crop[0, 0, :, 17:23] = 1  # a 6 m corridor straight ahead: agent-frame y in [-3, 3)
+    history = torch.zeros(1, cfg.history_steps, 5)
+    history[:, -1, 2] = 5.0  # 5 m/s now
+    f = {"map": crop, "history": history}
+    mean = torch.zeros(1, 2, cfg.horizon, 2)
+    mean[0, 1, :, 1] = 1.0  # mode 1 turns left at 1 rad/s: it leaves the corridor
+    features = forecaster.road_features(f, mean)  # (1, 2, 4K): (on, left of, right of) the plan per point, inside
+    k = cfg.horizon // 5
+    probes, inside = features[0, :, : 3 * k].reshape(2, k, 3), features[0, :, 3 * k:]
+    on, left, right = probes.unbind(-1)
+    assert torch.equal(probes[0], torch.ones(k, 3)) and torch.equal(inside, torch.ones(2, k))
+    # the turning plan: at 2 s it is about 4.5 m to the left, its right probe 1.5 m nearer the corridor
+    assert on[1, -1] == 0 and left[1, -1] == 0 and on[1, 0] == 1 and right[1, 0] == 1

@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,8 @@ class TrafficGenOptions(AdapterOptions):
                           "one sample."
     )
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
+    road_head: bool = Field(False, description="Add a zero-effect head that re-weights the modes from the drivable "
+                            "area along each mode's plan (parameter group `road`).")
 
 
 class TrafficGenAdapter(TrafficModelAdapter):
@@ -78,6 +81,14 @@ class TrafficGenAdapter(TrafficModelAdapter):
         )
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
+        if self.options.road_head and not self.cfg.road_head:
+            cfg = dataclasses.replace(self.cfg, road_head=True)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(0)
+                model = TrafficGenModel(cfg).to(self.options.device)
+            missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
+            assert not unexpected and all(k.startswith("forecaster.road.") for k in missing), (missing, unexpected)
+            self.cfg, self.model = cfg, model
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
 
@@ -94,8 +105,11 @@ class TrafficGenAdapter(TrafficModelAdapter):
         """The forecaster only: ``encoder`` (map CNN, history/neighbour MLPs, fusion) and ``decoder`` (mode
         queries and the per-mode Gaussian head). The initializer is not offered."""
         forecaster = self.model.forecaster
-        return {"encoder": [p for m in forecaster.encoder_modules() for p in m.parameters()],
-                "decoder": forecaster.decoder_parameters()}
+        groups = {"encoder": [p for m in forecaster.encoder_modules() for p in m.parameters()],
+                  "decoder": forecaster.decoder_parameters()}
+        if self.cfg.road_head:
+            groups["road"] = list(forecaster.road.parameters())
+        return groups
 
     # ------------------------------------------------------------ helpers
     def _check_dt(self, context: ScenarioTensor) -> None:

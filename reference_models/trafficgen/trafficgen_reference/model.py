@@ -63,6 +63,7 @@ class TrafficGenConfig:
     hidden: int = 256
     log_std_range: tuple[float, float] = (-3.0, 0.7)  # per-step action log-std, in action_std units
     position_loss_weight: float = 0.5
+    road_head: bool = False  # a head that re-weights the modes from the drivable area along each mode's plan
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -335,6 +336,10 @@ class Forecaster(nn.Module):
         self.register_buffer("history_scale", torch.tensor([10.0, 2.0, 10.0, 1.0, 1.0]), persistent=False)
         self.register_buffer("neighbour_scale", torch.tensor([20.0, 20.0, 1.0, 1.0, 10.0, 5.0, 2.0]),
                              persistent=False)
+        if cfg.road_head:
+            self.road = mlp([4 * (cfg.horizon // 5), 32, 1])
+            nn.init.zeros_(self.road[-1].weight)
+            nn.init.zeros_(self.road[-1].bias)
         self.register_buffer("action_mean", torch.tensor(cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(cfg.action_std, dtype=torch.float32))
 
@@ -363,7 +368,28 @@ class Forecaster(nn.Module):
         mean = self.action_mean + self.action_std * raw[..., : 2 * h].unflatten(-1, (h, 2))
         lo, hi = cfg.log_std_range
         log_std = self.action_std.log() + lo + (hi - lo) * torch.sigmoid(raw[..., 2 * h : 4 * h].unflatten(-1, (h, 2)))
-        return ForecastOutput(mean, log_std, F.log_softmax(raw[..., -1], -1))
+        logits = raw[..., -1]
+        if cfg.road_head:
+            logits = logits + self.road(self.road_features(f, mean.detach()))[..., 0]
+        return ForecastOutput(mean, log_std, F.log_softmax(logits, -1))
+
+    def road_features(self, f: dict[str, torch.Tensor], mean: torch.Tensor) -> torch.Tensor:
+        """``(N, M, 4K)``: the drivable layer of the map crop at every 5th step of each mode's mean plan (K
+        points), on the plan and 1.5 m to either side, and whether each point lies inside the crop."""
+        cfg = self.cfg
+        n, m = mean.shape[:2]
+        v0 = f["history"][:, -1, 2]
+        start = torch.stack([torch.zeros_like(v0), torch.zeros_like(v0), v0, torch.zeros_like(v0)], -1)
+        plan = unicycle_rollout(start[:, None].expand(n, m, 4), mean, cfg.dt)[:, :, 4::5]  # (N, M, K, 4)
+        side = torch.stack([-torch.sin(plan[..., 3]), torch.cos(plan[..., 3])], -1) * 1.5
+        probes = torch.stack([plan[..., :2], plan[..., :2] + side, plan[..., :2] - side], -2)  # (N, M, K, 3, 2)
+        size = cfg.map_size
+        u = torch.floor(probes[..., 0] + 0.25 * size).long()
+        v = torch.floor(probes[..., 1] + size / 2).long()
+        inside = (u >= 0) & (u < size) & (v >= 0) & (v < size)
+        flat = (u.clamp(0, size - 1) * size + v.clamp(0, size - 1)).reshape(n, -1)
+        drivable = f["map"][:, 0].float().reshape(n, -1).gather(1, flat).reshape(inside.shape) * inside
+        return torch.cat([drivable.flatten(2), inside[..., 0].float()], -1)
 
     @staticmethod
     def log_density(out: ForecastOutput, mode: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
