@@ -13,6 +13,12 @@
 * ``log_prob``: ``log pi_m + log N(a | mu_m, sigma_m)``, ``(B, S, A)``: the joint density of the sampled
   (mode, action sequence) pair. This is the density PPO fine-tunes (the mode is part of the action); the
   marginal over modes is available as :meth:`marginal_log_prob`.
+* ``road_head`` (option): a head that re-weights the modes from the road along their plans. For every mode, the
+  mean actions are rolled out from the agent's current speed; at every 5th step the drivable layer of the
+  forecaster's own map crop is read on the plan and 1.5 m to either side, with whether the point lies inside the
+  crop; an MLP maps these to a change of that mode's logit. Its last layer starts at zero, so a model with a new
+  head samples and scores exactly as without one; the head is its own parameter group (``road``) and is saved
+  with the checkpoint.
 * ``plan``: with guidance, the base class draws ``plan_samples`` samples and keeps the one with the lowest
   guidance loss (sample filtering; all five SDK guidances work this way). Without guidance and with
   ``greedy_plan`` (the default) the plan is the mean of the most likely mode, as upstream executes the
