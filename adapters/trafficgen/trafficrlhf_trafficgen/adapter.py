@@ -65,6 +65,8 @@ class TrafficGenOptions(AdapterOptions):
                           "one sample."
     )
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
+    steer_head: bool = Field(False, description="Add a zero-effect head that shifts each mode's mean actions from "
+                             "the drivable area along its plan (parameter group `steer`).")
     road_head: bool = Field(False, description="Add a zero-effect head that re-weights the modes from the drivable "
                             "area along each mode's plan (parameter group `road`).")
 
@@ -95,6 +97,14 @@ class TrafficGenAdapter(TrafficModelAdapter):
             missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
             assert not unexpected and all(k.startswith("forecaster.road.") for k in missing), (missing, unexpected)
             self.cfg, self.model = cfg, model
+        if self.options.steer_head and not self.cfg.steer_head:
+            cfg = dataclasses.replace(self.cfg, steer_head=True)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(0)
+                model = TrafficGenModel(cfg).to(self.options.device)
+            missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
+            assert not unexpected and all(k.startswith("forecaster.steer.") for k in missing), (missing, unexpected)
+            self.cfg, self.model = cfg, model
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
 
@@ -115,6 +125,8 @@ class TrafficGenAdapter(TrafficModelAdapter):
                   "decoder": forecaster.decoder_parameters()}
         if self.cfg.road_head:
             groups["road"] = list(forecaster.road.parameters())
+        if self.cfg.steer_head:
+            groups["steer"] = list(forecaster.steer.parameters())
         return groups
 
     # ------------------------------------------------------------ helpers

@@ -64,6 +64,7 @@ class TrafficGenConfig:
     log_std_range: tuple[float, float] = (-3.0, 0.7)  # per-step action log-std, in action_std units
     position_loss_weight: float = 0.5
     road_head: bool = False  # a head that re-weights the modes from the drivable area along each mode's plan
+    steer_head: bool = False  # a head that shifts each mode's mean actions from the drivable area along its plan
     # normalization (filled from data by the training script)
     action_mean: list[float] = field(default_factory=lambda: [0.0, 0.0])
     action_std: list[float] = field(default_factory=lambda: [1.0, 0.1])
@@ -340,6 +341,10 @@ class Forecaster(nn.Module):
             self.road = mlp([4 * (cfg.horizon // 5), 32, 1])
             nn.init.zeros_(self.road[-1].weight)
             nn.init.zeros_(self.road[-1].bias)
+        if cfg.steer_head:
+            self.steer = mlp([4 * (cfg.horizon // 5) + 1, 64, 2 * cfg.horizon])
+            nn.init.zeros_(self.steer[-1].weight)
+            nn.init.zeros_(self.steer[-1].bias)
         self.register_buffer("action_mean", torch.tensor(cfg.action_mean, dtype=torch.float32))
         self.register_buffer("action_std", torch.tensor(cfg.action_std, dtype=torch.float32))
 
@@ -369,6 +374,11 @@ class Forecaster(nn.Module):
         lo, hi = cfg.log_std_range
         log_std = self.action_std.log() + lo + (hi - lo) * torch.sigmoid(raw[..., 2 * h : 4 * h].unflatten(-1, (h, 2)))
         logits = raw[..., -1]
+        if cfg.steer_head:
+            n, m_ = mean.shape[:2]
+            speed = (f["history"][:, -1, 2] / 10.0)[:, None, None].expand(n, m_, 1)
+            shift = self.steer(torch.cat([self.road_features(f, mean.detach()), speed], -1))
+            mean = mean + self.action_std * shift.unflatten(-1, (h, 2))
         if cfg.road_head:
             logits = logits + self.road(self.road_features(f, mean.detach()))[..., 0]
         return ForecastOutput(mean, log_std, F.log_softmax(logits, -1))
