@@ -406,13 +406,16 @@ def test_train_rejects_a_bad_horizon_and_a_missing_donor(tmp_path, capsys) -> No
     assert "--init-from" in capsys.readouterr().err
 
 
-# --------------------------------------------------------------------------------------------- road head
-def test_road_head_starts_with_zero_effect_and_saves_with_the_model(synthetic, tmp_path) -> None:  # type: ignore[no-untyped-def]
+# --------------------------------------------------------------------------------------------- heads
+@pytest.mark.parametrize("option, group", [("road_head", "road"), ("steer_head", "steer")])
+def test_a_head_starts_with_zero_effect_and_saves_with_the_model(synthetic, tmp_path, option, group) -> None:  # type: ignore[no-untyped-def]
+    """A new head leaves samples and log-probabilities exactly as the base's, gets gradients, and once trained
+    changes them and travels with the checkpoint."""
     from trafficrlhf_trafficgen import TrafficGenAdapter
 
     _checkpoint_or_skip()
-    base, head = TrafficGenAdapter(seed=0), TrafficGenAdapter(seed=0, road_head=True)
-    assert set(head.parameter_groups()) == {"encoder", "decoder", "road"} and "road" not in base.parameter_groups()
+    base, head = TrafficGenAdapter(seed=0), TrafficGenAdapter(seed=0, **{option: True})
+    assert set(head.parameter_groups()) == {"encoder", "decoder", group} and group not in base.parameter_groups()
     for key, value in base.module.state_dict().items():
         assert torch.equal(value, head.module.state_dict()[key]), key
     drawn = base.sample(synthetic, 6, None, torch.Generator().manual_seed(0))
@@ -421,13 +424,15 @@ def test_road_head_starts_with_zero_effect_and_saves_with_the_model(synthetic, t
     log_prob = head.log_prob(synthetic, again.trace)
     torch.testing.assert_close(log_prob, base.log_prob(synthetic, drawn.trace))
     log_prob.sum().backward()
-    assert all(p.grad is not None for p in head.parameter_groups()["road"])
-    with torch.no_grad():  # a trained head: the checkpoint keeps it
-        for p in head.parameter_groups()["road"]:
+    assert all(p.grad is not None for p in head.parameter_groups()[group])
+    with torch.no_grad():  # a trained head: it changes the policy, and the checkpoint keeps it
+        for p in head.parameter_groups()[group]:
             p.add_(0.1)
-    head.save_pretrained(str(tmp_path / "road"))
-    loaded = TrafficGenAdapter.from_pretrained(str(tmp_path / "road"), seed=0)
-    assert loaded.cfg.road_head
+    if group == "steer":  # (on the synthetic road every mode stays on it, so a road head shifts them alike)
+        assert not torch.allclose(head.log_prob(synthetic, again.trace), log_prob)
+    head.save_pretrained(str(tmp_path / group))
+    loaded = TrafficGenAdapter.from_pretrained(str(tmp_path / group), seed=0)
+    assert getattr(loaded.cfg, option)
     torch.testing.assert_close(loaded.log_prob(synthetic, again.trace), head.log_prob(synthetic, again.trace))
     for key, value in head.module.state_dict().items():
         assert torch.equal(value, loaded.module.state_dict()[key]), key

@@ -19,6 +19,9 @@
   crop; an MLP maps these to a change of that mode's logit. Its last layer starts at zero, so a model with a new
   head samples and scores exactly as without one; the head is its own parameter group (``road``) and is saved
   with the checkpoint.
+* ``steer_head`` (option): a head that shifts each mode's mean actions from the same road features (read along the
+  base's mean plan) and the agent's current speed; zero at the start like the road head, parameter group
+  ``steer``. With both heads the road head reads the steered plans.
 * ``plan``: with guidance, the base class draws ``plan_samples`` samples and keeps the one with the lowest
   guidance loss (sample filtering; all five SDK guidances work this way). Without guidance and with
   ``greedy_plan`` (the default) the plan is the mean of the most likely mode, as upstream executes the

@@ -319,6 +319,10 @@ class Forecaster(nn.Module):
     Inputs (agent frame): map ``(N, C, S, S)``; history ``(N, Th, 5)`` (x, y, speed, cos, sin of relative yaw)
     with ``history_valid (N, Th)``; extent ``(N, 2)``; neighbours ``(N, K, 7)`` (x, y, cos, sin, speed, length,
     width) with ``neighbour_valid (N, K)``.
+
+    Two optional heads (not upstream's; for fine-tuning) read :meth:`road_features` along each mode's mean plan:
+    ``steer`` (``cfg.steer_head``) adds a shift to the mode's mean actions, ``road`` (``cfg.road_head``) to its
+    logit. Both end in a zero layer, so a new head changes nothing until it is trained.
     """
 
     def __init__(self, cfg: TrafficGenConfig) -> None:
