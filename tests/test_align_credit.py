@@ -273,7 +273,6 @@ def test_a_reference_that_cannot_score_the_policy_or_is_unused_is_refused(
 def test_choice_coef_needs_agent_credit_and_a_model_with_choices(train_scene_list: list[ScenarioTensor]) -> None:
     with pytest.raises(ValueError, match="choice_coef"):
         AlignConfig(choice_coef=1.0, credit="scene")
-    trainer = AlignTrainer(_model(), FailureReward(), AlignConfig(choice_coef=1.0, credit="agent", **FAST),
-                           scenes=train_scene_list)
     with pytest.raises(TrafficRLHFError, match="offers no discrete choices"):
-        trainer._rollout(0)
+        AlignTrainer(_model(), FailureReward(), AlignConfig(choice_coef=1.0, credit="agent", **FAST),
+                     scenes=train_scene_list)

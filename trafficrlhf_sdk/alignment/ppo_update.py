@@ -1,7 +1,8 @@
 """The PPO update of an :class:`~trafficrlhf_sdk.alignment.AlignTrainer`: minibatches over contexts, the clipped
-surrogate on the sampled agents' log-probabilities (per denoising step for diffusion models), the model's own
-imitation loss, the optional KL penalty to the frozen reference, gradient clipping and the early stop on a target
-KL. Also the record of one epoch's rollout that the update consumes, and the small tensor helpers both share.
+surrogate on the sampled agents' log-probabilities (per denoising step for diffusion models), the expected
+advantage over a mixture policy's choices (``choice_coef``), the model's own imitation loss, the optional KL
+penalty to the frozen reference, gradient clipping and the early stop on a target KL. Also the record of one
+epoch's rollout that the update consumes, and the small tensor helpers both share.
 
 Shapes: contexts ``B``, samples ``S``, agents ``A``, per-step log-probability entries ``K`` (diffusion models);
 ``log_prob`` is ``(B, S, A)`` or ``(B, S, A, K)``; advantages ``(B, S)`` (scene credit) or ``(B, S, A)``.
@@ -147,6 +148,12 @@ class PPOUpdate:
                     # the exact expected advantage over each agent's choices: its gradient moves the choice
                     # probabilities of every agent by every choice's advantage, with no sampled-choice variance
                     choice_prob = self.model.choice_log_prob(ctx).exp()
+                    if not choice_prob.requires_grad:
+                        raise TrafficRLHFError(
+                            f"choice_coef is {cfg.choice_coef} but no trained parameter group "
+                            f"{list(self.group_names)} moves {type(self.model).__name__}'s choice probabilities; "
+                            "add a group that does (for TrafficGen: 'road', 'decoder' or 'encoder') or set "
+                            "choice_coef = 0.")
                     expected = (choice_prob * rollout.choice_advantages[idx]).sum(1)  # (b, A)
                     choice_objective = _masked_mean(expected, trace.agents)
                     loss = loss - cfg.choice_coef * choice_objective

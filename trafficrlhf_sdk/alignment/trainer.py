@@ -157,6 +157,10 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
         if getattr(reward_model, "uses_log", False) and self.config.credit != "agent":
             raise TrafficRLHFError(f"{type(reward_model).__name__} compares each agent with its logged future and "
                                    "scores agents only; use credit='agent'.")
+        if self.config.choice_coef > 0 and type(model).choice_futures is TrafficModelAdapter.choice_futures:
+            raise TrafficRLHFError(f"choice_coef is {self.config.choice_coef} but {type(model).__name__} offers no "
+                                   "discrete choices (it does not implement choice_futures and choice_log_prob); "
+                                   "set choice_coef = 0.")
         if self.config.credit == "agent" and not callable(getattr(reward_model, "agent_scores", None)):
             raise TrafficRLHFError(f"credit='agent' needs a reward model with `agent_scores(scenario) -> (B, A)`; "
                                    f"{type(reward_model).__name__} has none. Use credit='scene'.")
@@ -234,6 +238,8 @@ class AlignTrainer(TrainerCheckpoints, SampleScenarios, PPOUpdate):
                 # the reward's advantages alone: a mode's mean plan differs from the others in speed for every
                 # agent, so the pace term would rank every agent's modes by speed and drown the failures
                 choice_adv = self._agent_advantages(choice_scenario, logged, trace.agents, pace=False)[1]
+                if passing is not None:
+                    choice_adv = choice_adv * (~passing)[:, None, :].to(choice_adv.dtype)
         else:
             rewards = scenario_scores(self.reward_model, scenario).reshape(b, -1)
             adv = self._normalize(rewards, dim=1)

@@ -182,7 +182,8 @@ class TrafficModelAdapter(abc.ABC):
     def choice_log_prob(self, context: ScenarioTensor) -> torch.Tensor:
         """``(B, C, A)`` log-probability of each choice of :meth:`choice_futures` under the current parameters
         (0 for agents not sampled). Differentiable. Needed only where :meth:`choice_futures` is offered."""
-        raise NotImplementedError(f"{type(self).__name__} offers no discrete choices (choice_futures is None).")
+        raise NotImplementedError(f"{type(self).__name__} implements choice_futures but not choice_log_prob; "
+                                  "implement both, or return None from choice_futures.")
 
     # ------------------------------------------------------------ policy
     def reset(self, scenario: ScenarioTensor) -> None:

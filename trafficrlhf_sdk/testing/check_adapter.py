@@ -63,8 +63,10 @@ def _check_choices(adapter: TrafficModelAdapter, context: ScenarioTensor, choice
         _fail(adapter, "choice_futures() has NaN/inf or carries gradients", "compute it under torch.no_grad()")
     log_prob = adapter.choice_log_prob(context)
     expected = (b, choices.shape[1], a)
-    if tuple(log_prob.shape) != expected or not torch.isfinite(log_prob).all():
-        _fail(adapter, f"choice_log_prob() has shape {tuple(log_prob.shape)} (or NaN/inf), expected {expected}",
+    if not isinstance(log_prob, torch.Tensor) or tuple(log_prob.shape) != expected \
+            or not torch.isfinite(log_prob).all():
+        got = tuple(log_prob.shape) if isinstance(log_prob, torch.Tensor) else type(log_prob).__name__
+        _fail(adapter, f"choice_log_prob() returned {got} (or NaN/inf), expected {expected}",
               "return finite (B, C, A) log-probabilities of the choices")
     if not log_prob.requires_grad:
         _fail(adapter, "choice_log_prob() has no gradient", "compute it from the module's parameters")
@@ -184,9 +186,9 @@ def check_adapter(
 
     # --- discrete choices (optional: mixture policies)
     choices = adapter.choice_futures(context)
-    facts["choices"] = None if choices is None else int(choices.shape[1])
     if choices is not None:
         _check_choices(adapter, context, choices, out.trace.agents)
+    facts["choices"] = None if choices is None else int(choices.shape[1])
 
     # --- closed-loop planning
     adapter.reset(context)

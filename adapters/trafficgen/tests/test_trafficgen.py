@@ -207,6 +207,20 @@ def test_choices_are_the_modes_mean_plans_with_their_probabilities(adapter, synt
     adapter.module.zero_grad(set_to_none=True)
 
 
+def test_choice_coef_needs_a_trained_group_that_moves_the_modes(synthetic) -> None:  # type: ignore[no-untyped-def]
+    from trafficrlhf_trafficgen import TrafficGenAdapter
+    from trafficrlhf_sdk.alignment import AlignConfig, AlignTrainer
+    from trafficrlhf_sdk.errors import TrafficRLHFError
+    from trafficrlhf_sdk.reward.builtin import FailureReward
+
+    _checkpoint_or_skip()
+    config = AlignConfig(choice_coef=1.0, credit="agent", groups=("steer",), epochs=1, contexts_per_epoch=2,
+                         samples_per_context=2, progress_bar=False)
+    trainer = AlignTrainer(TrafficGenAdapter(seed=0, steer_head=True), FailureReward(), config, scenes=synthetic)
+    with pytest.raises(TrafficRLHFError, match=r"no trained parameter group \['steer'\] moves"):
+        trainer.train()
+
+
 def test_unicycle_matches_sdk_dynamics() -> None:
     """The model's own unicycle equals the SDK's (no bounds) while the speed stays positive."""
     from trafficgen_reference.model import unicycle_rollout
@@ -424,7 +438,8 @@ def test_a_head_starts_with_zero_effect_and_saves_with_the_model(synthetic, tmp_
     log_prob = head.log_prob(synthetic, again.trace)
     torch.testing.assert_close(log_prob, base.log_prob(synthetic, drawn.trace))
     log_prob.sum().backward()
-    assert all(p.grad is not None for p in head.parameter_groups()[group])
+    last = head.parameter_groups()[group][-2:]  # the zero-initialized last layer: the only one with gradients yet
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in last)
     with torch.no_grad():  # a trained head: it changes the policy, and the checkpoint keeps it
         for p in head.parameter_groups()[group]:
             p.add_(0.1)
@@ -456,5 +471,5 @@ def test_road_features_read_the_drivable_area_along_each_plan() -> None:
     probes, inside = features[0, :, : 3 * k].reshape(2, k, 3), features[0, :, 3 * k:]
     on, left, right = probes.unbind(-1)
     assert torch.equal(probes[0], torch.ones(k, 3)) and torch.equal(inside, torch.ones(2, k))
-    # the turning plan: at 2 s it is about 4.5 m to the left, its right probe 1.5 m nearer the corridor
+    # the turning plan starts in the corridor and has left it, on and beside the plan, by 2 s
     assert on[1, -1] == 0 and left[1, -1] == 0 and on[1, 0] == 1 and right[1, 0] == 1

@@ -69,9 +69,11 @@ class TrafficGenOptions(AdapterOptions):
     )
     imitation_windows: int = Field(4, ge=1, description="Time steps per scene used by imitation_loss.")
     steer_head: bool = Field(False, description="Add a zero-effect head that shifts each mode's mean actions from "
-                             "the drivable area along its plan (parameter group `steer`).")
+                             "the drivable area along its plan (parameter group `steer`). A checkpoint saved with "
+                             "the head keeps it either way.")
     road_head: bool = Field(False, description="Add a zero-effect head that re-weights the modes from the drivable "
-                            "area along each mode's plan (parameter group `road`).")
+                            "area along each mode's plan (parameter group `road`). A checkpoint saved with the head "
+                            "keeps it either way.")
 
 
 class TrafficGenAdapter(TrafficModelAdapter):
@@ -92,24 +94,23 @@ class TrafficGenAdapter(TrafficModelAdapter):
         )
         self.horizon = self.cfg.horizon
         self.history_steps = self.cfg.history_steps
-        if self.options.road_head and not self.cfg.road_head:
-            cfg = dataclasses.replace(self.cfg, road_head=True)
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(0)
-                model = TrafficGenModel(cfg).to(self.options.device)
-            missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
-            assert not unexpected and all(k.startswith("forecaster.road.") for k in missing), (missing, unexpected)
-            self.cfg, self.model = cfg, model
-        if self.options.steer_head and not self.cfg.steer_head:
-            cfg = dataclasses.replace(self.cfg, steer_head=True)
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(0)
-                model = TrafficGenModel(cfg).to(self.options.device)
-            missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
-            assert not unexpected and all(k.startswith("forecaster.steer.") for k in missing), (missing, unexpected)
-            self.cfg, self.model = cfg, model
+        for option, prefix in (("road_head", "forecaster.road."), ("steer_head", "forecaster.steer.")):
+            if getattr(self.options, option) and not getattr(self.cfg, option):  # a checkpoint's own head is kept
+                self._add_head(option, prefix)
         self.model.initializer.requires_grad_(False)  # frozen: never offered, never given gradients
         self.model.eval()
+
+    def _add_head(self, option: str, prefix: str) -> None:
+        """Rebuild the model with the zero-effect head ``option`` and the loaded weights (the head starts at 0)."""
+        cfg = dataclasses.replace(self.cfg, **{option: True})
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            model = TrafficGenModel(cfg).to(self.options.device)
+        missing, unexpected = model.load_state_dict(self.model.state_dict(), strict=False)
+        if unexpected or not all(k.startswith(prefix) for k in missing):
+            raise ValueError(f"`{option}`: the checkpoint's weights do not fit the model with the head (missing "
+                             f"{missing[:3]}, unexpected {unexpected[:3]}); use a TrafficGen checkpoint.")
+        self.cfg, self.model = cfg, model
 
     def get_config(self) -> dict[str, Any]:
         """The model's :class:`TrafficGenConfig` as a dict (normalization statistics included)."""
@@ -215,7 +216,7 @@ class TrafficGenAdapter(TrafficModelAdapter):
         return self._scatter(rows, agents, torch.zeros(b, a, s, device=context.device))
 
     def choice_futures(self, context: ScenarioTensor) -> torch.Tensor:
-        """``(B, M, A, 20, 4)``: each mode's mean actions rolled out, for the agents :meth:`sample` draws (the
+        """``(B, M, A, horizon, 4)``: each mode's mean actions rolled out, for the agents :meth:`sample` draws (the
         others hold their pose). The modes are the forecaster's discrete choice."""
         self._check_dt(context)
         agents = context.controlled & context.valid[:, :, context.current_index]
