@@ -36,7 +36,7 @@ class AlignConfig(BaseModel):
     One *epoch* = a rollout phase (``contexts_per_epoch`` contexts, ``samples_per_context`` futures each, scored
     by the reward model) followed by ``ppo_epochs`` passes of minibatch updates over those samples. The loss of a
     minibatch is ``imitation_coef * imitation_loss - alpha * surrogate + kl_coef * KL`` (+ the passing anchor,
-    ``- choice_coef * sum_c pi_c A_c``).
+    ``- alpha * choice_coef * sum_c pi_c A_c``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -54,9 +54,9 @@ class AlignConfig(BaseModel):
                                        "moves only agents with a failing sample. 0 disables it.")
     choice_coef: float = Field(0.0, ge=0, description="With credit='agent', for adapters that offer "
                                "choice_futures (a mixture's modes): every agent's C discrete choices are scored by "
-                               "the reward model at each context, and this weight times the exact expected "
-                               "advantage over the choices, sum_c pi_c A_c, is added to the objective (the "
-                               "reward's advantages normalized over the choices, without the pace term, which "
+                               "the reward model at each context, and alpha times this weight times the exact "
+                               "expected advantage over the choices, sum_c pi_c A_c, is added to the objective "
+                               "(the reward's advantages normalized over the choices, without the pace term, which "
                                "would rank every agent's choices by speed; 0 for passing agents under "
                                "passing_anchor_coef). 0 disables it.")
     pace_tolerance: float | None = Field(None, gt=0, lt=1, description="Constrain the pace (PPO-Lagrangian, "

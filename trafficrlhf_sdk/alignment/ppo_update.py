@@ -156,7 +156,7 @@ class PPOUpdate:
                             "choice_coef = 0.")
                     expected = (choice_prob * rollout.choice_advantages[idx]).sum(1)  # (b, A)
                     choice_objective = _masked_mean(expected, trace.agents)
-                    loss = loss - cfg.choice_coef * choice_objective
+                    loss = loss - cfg.alpha * cfg.choice_coef * choice_objective
                     stats["choice_objective"].append(float(choice_objective.detach()))
                 if cfg.imitation_coef > 0:
                     torch.manual_seed(derived_seed(cfg.seed, epoch, "imitation", p, j))

@@ -23,7 +23,8 @@ One epoch:
    sample's speed also enters the advantages, weighted by a multiplier that tracks the pace of a held-out
    closed-loop drive (:mod:`~trafficrlhf_sdk.alignment.pace`). With ``choice_coef`` and an adapter that offers
    discrete choices (``choice_futures``, e.g. a mixture's modes), every choice's future of every sampled agent is
-   scored too, and ``choice_coef * sum_c pi_c A_c`` (advantages normalized over the choices) joins the objective.
+   scored too, and ``alpha * choice_coef * sum_c pi_c A_c`` (advantages normalized over the choices) joins the
+   objective.
 
 ``log_prob_old`` is recomputed with ``adapter.log_prob`` before any update, on the very minibatches of the first
 pass, so the first minibatch's ratios are exactly 1. Every random draw of epoch ``e`` comes from generators seeded
